@@ -1,0 +1,80 @@
+"""lieflow: structure-preserving integrators for isospectral Lie–Poisson systems.
+
+``dW/dt = [B(W), W]`` integrated with isospectral symplectic Runge–Kutta (ISOSyRK) schemes:
+the midpoint rule, symplectic DIRK compositions, the block algorithm for any symplectic
+tableau (Gauss–Legendre of any order) and the classic Modin–Viviani form, with fixed-point,
+Newton and frozen-B solvers.
+
+>>> import lieflow as lf
+>>> system = lf.systems.get("rigid_body", inertia=(1.0, 2.0, 3.0))
+>>> sol = lf.integrate(system, lf.schemes.get("gauss3"), system.algebra.random(seed=0),
+...                    h=0.1, steps=100)
+>>> bool(sol.energy_error.max() < 1e-6)
+True
+"""
+
+from __future__ import annotations
+
+from importlib.metadata import PackageNotFoundError, version
+
+from . import algebras, schemes, solvers, systems, tableaus
+from .algebras import GL, SO, SU, LieAlgebra, U
+from .errors import (
+    AlgebraError,
+    ConvergenceError,
+    InputError,
+    LieflowError,
+    PluginError,
+    RegistryError,
+    TableauError,
+)
+from .integrate import Step, integrate, iterate
+from .plugins import Registry, RegistryBuilder, default_registry, hookimpl, load_registry
+from .schemes import Scheme, StepResult
+from .solution import Solution, Status
+from .solvers import ImplicitProblem, Solver, SolveResult
+from .systems import IsospectralSystem
+from .tableaus import ButcherTableau
+
+try:
+    __version__ = version("lieflow")
+except PackageNotFoundError:  # pragma: no cover - running from a source tree
+    __version__ = "0+unknown"
+
+__all__ = [
+    "GL",
+    "SO",
+    "SU",
+    "AlgebraError",
+    "ButcherTableau",
+    "ConvergenceError",
+    "ImplicitProblem",
+    "InputError",
+    "IsospectralSystem",
+    "LieAlgebra",
+    "LieflowError",
+    "PluginError",
+    "Registry",
+    "RegistryBuilder",
+    "RegistryError",
+    "Scheme",
+    "Solution",
+    "SolveResult",
+    "Solver",
+    "Status",
+    "Step",
+    "StepResult",
+    "TableauError",
+    "U",
+    "__version__",
+    "algebras",
+    "default_registry",
+    "hookimpl",
+    "integrate",
+    "iterate",
+    "load_registry",
+    "schemes",
+    "solvers",
+    "systems",
+    "tableaus",
+]

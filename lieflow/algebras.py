@@ -1,0 +1,223 @@
+"""Matrix Lie algebras: so(n), u(n), su(N), gl(n).
+
+Each algebra is an immutable value object that knows its matrix size, dtype, projection,
+membership test, a seeded random element, the bracket and the Frobenius inner product
+``<A, B> = Re tr(A^† B)`` (SPEC §1–2). All operations broadcast over leading axes, so a
+stack of shape ``(..., n, n)`` is a stack of algebra elements.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import ClassVar
+
+import attrs
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import AlgebraError, InputError
+
+Array = NDArray[np.generic]
+
+
+def dagger(X: Array) -> Array:
+    """Conjugate transpose of the last two axes, ``X^†`` (a view for real input)."""
+    Xt = np.swapaxes(X, -1, -2)
+    return np.conj(Xt) if np.iscomplexobj(X) else Xt
+
+
+def frobenius_norm(X: Array) -> Array:
+    """Frobenius norm over the last two axes."""
+    return np.sqrt(np.sum(np.abs(X) ** 2, axis=(-2, -1)))
+
+
+def _positive_int(n: int) -> int:
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise InputError(f"matrix size n must be a positive integer, got {n!r}")
+    return int(n)
+
+
+@attrs.frozen
+class LieAlgebra(ABC):
+    """A real Lie algebra of n×n matrices, identified with its dual by the Frobenius pairing.
+
+    Subclasses set :attr:`dtype`, :attr:`skew` and implement :meth:`project` and
+    :meth:`dimension`. ``skew`` is true when every element satisfies ``X^† = -X``;
+    schemes use it to halve the number of products (``M B = (B M)^†``).
+    """
+
+    n: int = attrs.field(converter=_positive_int)
+
+    dtype: ClassVar[np.dtype] = np.dtype(np.float64)
+    skew: ClassVar[bool] = False
+    symbol: ClassVar[str] = "g"
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Shape of one element, ``(n, n)``."""
+        return (self.n, self.n)
+
+    def __str__(self) -> str:
+        return f"{self.symbol}({self.n})"
+
+    @abstractmethod
+    def project(self, X: ArrayLike) -> Array:
+        """Orthogonal (Frobenius) projection of ``X`` onto the algebra."""
+
+    @property
+    @abstractmethod
+    def dimension(self) -> int:
+        """Real dimension of the algebra."""
+
+    def distance(self, X: ArrayLike) -> Array:
+        """``||X - P(X)||_F / max(||X||_F, tiny)``: relative distance from the algebra."""
+        X = np.asarray(X)
+        scale = np.maximum(frobenius_norm(X), np.finfo(float).tiny)
+        return frobenius_norm(X - self.project(X)) / scale
+
+    def contains(self, X: ArrayLike, tol: float = 1e-12) -> bool:
+        """Whether every matrix in ``X`` lies in the algebra to relative tolerance ``tol``."""
+        X = np.asarray(X)
+        if X.shape[-2:] != self.shape:
+            return False
+        if np.iscomplexobj(X) and self.dtype.kind != "c" and np.any(X.imag != 0):
+            return False
+        return bool(np.all(self.distance(X) <= tol))
+
+    def validate(self, X: ArrayLike, *, name: str = "W0", tol: float = 1e-12) -> Array:
+        """Return ``X`` as an array of this algebra's dtype, or raise a clear error.
+
+        Checks shape ``(..., n, n)``, dtype (complex data for a real algebra is refused),
+        finiteness and membership to relative tolerance ``tol``.
+        """
+        try:
+            arr = np.asarray(X)
+        except Exception as exc:  # ragged nested lists etc.
+            raise InputError(f"{name} could not be converted to an array: {exc}") from exc
+        if arr.dtype.kind not in "biufc":
+            raise InputError(f"{name} must be numeric, got dtype {arr.dtype}")
+        if arr.ndim < 2 or arr.shape[-2:] != self.shape:
+            raise InputError(
+                f"{name} has shape {arr.shape}, but {self} needs (..., {self.n}, {self.n}); "
+                f"pass an {self.n}x{self.n} matrix or a stack of them"
+            )
+        if arr.dtype.kind == "c" and self.dtype.kind != "c":
+            if np.any(arr.imag != 0):
+                raise InputError(
+                    f"{name} is complex but {self} is a real algebra; pass real data"
+                )
+            arr = arr.real
+        if not np.all(np.isfinite(arr)):
+            raise InputError(f"{name} contains NaN or Inf entries; pass finite values")
+        arr = np.array(arr, dtype=self.working_dtype(arr.dtype), copy=True)
+        if not self.contains(arr, tol):
+            worst = float(np.max(self.distance(arr)))
+            raise AlgebraError(
+                f"{name} is not in {self}: relative distance {worst:.2e} > {tol:.0e}. "
+                f"{self._membership_hint()} Use {type(self).__name__}.project(...) to "
+                "project onto the algebra."
+            )
+        return arr
+
+    def _membership_hint(self) -> str:
+        return ""
+
+    def working_dtype(self, dtype: np.dtype) -> np.dtype:
+        """The dtype data of ``dtype`` is computed in: single precision is kept."""
+        single = np.dtype(dtype) in (np.dtype(np.float32), np.dtype(np.complex64))
+        if self.dtype.kind == "c":
+            return np.dtype(np.complex64 if single else np.complex128)
+        return np.dtype(np.float32 if single else np.float64)
+
+    def random(self, seed: int | np.random.Generator | None = None, scale: float = 1.0) -> Array:
+        """A random element with i.i.d. normal entries before projection (seeded)."""
+        rng = np.random.default_rng(seed)
+        X = rng.standard_normal(self.shape)
+        if self.dtype.kind == "c":
+            X = X + 1j * rng.standard_normal(self.shape)
+        return (scale * self.project(X)).astype(self.dtype, copy=False)
+
+    @staticmethod
+    def bracket(X: Array, Y: Array) -> Array:
+        """Matrix commutator ``[X, Y] = XY - YX``."""
+        return X @ Y - Y @ X
+
+    @staticmethod
+    def inner(X: Array, Y: Array) -> Array:
+        """Frobenius pairing ``Re tr(X^† Y)`` over the last two axes."""
+        return np.real(np.sum(np.conj(X) * Y, axis=(-2, -1)))
+
+
+@attrs.frozen
+class SO(LieAlgebra):
+    """so(n): real skew-symmetric matrices."""
+
+    dtype: ClassVar[np.dtype] = np.dtype(np.float64)
+    skew: ClassVar[bool] = True
+    symbol: ClassVar[str] = "so"
+
+    def project(self, X: ArrayLike) -> Array:
+        X = np.asarray(X)
+        return 0.5 * (X - np.swapaxes(X, -1, -2))
+
+    @property
+    def dimension(self) -> int:
+        return self.n * (self.n - 1) // 2
+
+    def _membership_hint(self) -> str:
+        return "Elements of so(n) satisfy W^T = -W."
+
+
+@attrs.frozen
+class U(LieAlgebra):
+    """u(n): complex skew-Hermitian matrices."""
+
+    dtype: ClassVar[np.dtype] = np.dtype(np.complex128)
+    skew: ClassVar[bool] = True
+    symbol: ClassVar[str] = "u"
+
+    def project(self, X: ArrayLike) -> Array:
+        X = np.asarray(X)
+        return 0.5 * (X - dagger(X))
+
+    @property
+    def dimension(self) -> int:
+        return self.n * self.n
+
+    def _membership_hint(self) -> str:
+        return "Elements of u(n) satisfy W^† = -W."
+
+
+@attrs.frozen
+class SU(U):
+    """su(N): traceless complex skew-Hermitian matrices."""
+
+    symbol: ClassVar[str] = "su"
+
+    def project(self, X: ArrayLike) -> Array:
+        Y = super().project(X)
+        tr = np.trace(Y, axis1=-2, axis2=-1)[..., None, None]
+        return Y - (tr / self.n) * np.eye(self.n)
+
+    @property
+    def dimension(self) -> int:
+        return self.n * self.n - 1
+
+    def _membership_hint(self) -> str:
+        return "Elements of su(N) satisfy W^† = -W and tr W = 0."
+
+
+@attrs.frozen
+class GL(LieAlgebra):
+    """gl(n): all real n×n matrices."""
+
+    dtype: ClassVar[np.dtype] = np.dtype(np.float64)
+    skew: ClassVar[bool] = False
+    symbol: ClassVar[str] = "gl"
+
+    def project(self, X: ArrayLike) -> Array:
+        return np.asarray(X)
+
+    @property
+    def dimension(self) -> int:
+        return self.n * self.n

@@ -1,0 +1,103 @@
+"""The lieflow exception hierarchy.
+
+Every error lieflow raises on purpose is a :class:`LieflowError`; each message says what was
+wrong and what to do about it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+
+class LieflowError(Exception):
+    """Base class of every error raised by lieflow."""
+
+
+class InputError(LieflowError, ValueError):
+    """An argument has the wrong shape, dtype or value (NaN/Inf, h <= 0, ...)."""
+
+
+class AlgebraError(InputError):
+    """A matrix is not an element of the Lie algebra it is supposed to belong to."""
+
+
+class TableauError(LieflowError, ValueError):
+    """A Butcher tableau is malformed or not symplectic."""
+
+
+class RegistryError(LieflowError, KeyError):
+    """An unknown or duplicate name in the system / scheme / solver registry."""
+
+    def __str__(self) -> str:  # KeyError quotes its message; keep it readable
+        return str(self.args[0]) if self.args else ""
+
+
+class PluginError(LieflowError):
+    """A plugin failed to import or registered something invalid."""
+
+
+class ConvergenceError(LieflowError):
+    """The nonlinear solver did not converge.
+
+    Attributes
+    ----------
+    reason : str
+        ``"max_iterations"``, ``"stalled"``, ``"diverged"`` or ``"non_finite"``.
+    solver : str
+        Name of the solver that gave up.
+    iterations : int
+        Updates performed before giving up.
+    residuals : tuple of float
+        Relative update norms, one per iteration.
+    step, t : int or None, float or None
+        Step index and time of the failed step (filled in by :func:`lieflow.integrate`).
+    """
+
+    def __init__(
+        self,
+        reason: str,
+        *,
+        solver: str,
+        iterations: int,
+        residuals: Sequence[float],
+        step: int | None = None,
+        t: float | None = None,
+    ) -> None:
+        self.reason = reason
+        self.solver = solver
+        self.iterations = iterations
+        self.residuals = tuple(float(r) for r in residuals)
+        self.step = step
+        self.t = t
+        super().__init__(self._message())
+
+    def at(self, step: int, t: float) -> ConvergenceError:
+        """The same failure, located at step index ``step`` and time ``t``."""
+        return ConvergenceError(
+            self.reason,
+            solver=self.solver,
+            iterations=self.iterations,
+            residuals=self.residuals,
+            step=step,
+            t=t,
+        )
+
+    def _message(self) -> str:
+        where = "" if self.step is None else f" at step {self.step} (t = {self.t:.6g})"
+        last = f"{self.residuals[-1]:.3e}" if self.residuals else "n/a"
+        advice = {
+            "max_iterations": "raise max_iter, loosen rtol, or reduce the step size h",
+            "stalled": (
+                "the iteration stopped contracting: reduce h, or use a solver that converges "
+                "for stiff steps (lieflow.solvers.Newton or 'auto')"
+            ),
+            "diverged": (
+                "h times the Lipschitz constant of the map is too large for fixed-point "
+                "iteration: reduce h, or use lieflow.solvers.Newton / FrozenB / 'auto'"
+            ),
+            "non_finite": "the iterate became NaN/Inf: reduce h or check the system's B map",
+        }.get(self.reason, "reduce h or change the solver")
+        return (
+            f"{self.solver} did not converge{where}: {self.reason} after {self.iterations} "
+            f"iterations, last relative update {last}. To fix: {advice}."
+        )

@@ -1,0 +1,274 @@
+"""The one entry point that runs many steps: :func:`integrate`, and the step stream
+:func:`iterate` it is built on (the command line's HDF5 runner consumes the same stream)."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator
+from typing import Any, Literal
+
+import attrs
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .algebras import Array
+from .errors import ConvergenceError, InputError
+from .schemes.base import Scheme, StepResult
+from .solution import Solution, Status
+from .solvers.base import Solver
+from .solvers.fixed_point import FixedPoint
+from .systems.base import IsospectralSystem
+
+
+@attrs.frozen
+class Step:
+    """One completed step of :func:`iterate`: step ``index`` took ``t - h`` to ``t``."""
+
+    index: int
+    t: float
+    result: StepResult
+
+    @property
+    def W(self) -> Array:
+        """The new state."""
+        return self.result.W
+
+
+def check_step_size(h: float) -> float:
+    """Return ``h`` as a float, or raise :class:`InputError` unless it is positive and finite."""
+    try:
+        hf = float(h)
+    except (TypeError, ValueError):
+        raise InputError(f"step size h must be a real number, got {h!r}") from None
+    if not math.isfinite(hf) or hf <= 0:
+        raise InputError(f"step size h must be positive and finite, got {h!r}")
+    return hf
+
+
+def _check_types(system: object, scheme: object, solver: object) -> None:
+    if not isinstance(system, IsospectralSystem):
+        raise InputError(
+            f"system must be an IsospectralSystem, got {type(system).__name__}; "
+            "use lieflow.systems.get(name, ...) or subclass IsospectralSystem"
+        )
+    if not isinstance(scheme, Scheme):
+        raise InputError(
+            f"scheme must be a Scheme, got {type(scheme).__name__}; use lieflow.schemes.get(name)"
+        )
+    if not isinstance(solver, Solver):
+        raise InputError(
+            f"solver must implement the Solver protocol (name, solve), got {type(solver).__name__}"
+        )
+
+
+def iterate(
+    system: IsospectralSystem,
+    scheme: Scheme,
+    W0: Array,
+    h: float,
+    solver: Solver,
+    *,
+    start: int = 0,
+    warm: Array | None = None,
+    warm_start: bool = True,
+) -> Iterator[Step]:
+    """Yield steps ``start + 1, start + 2, ...`` from the (already validated) state ``W0``.
+
+    ``t`` is computed as ``index * h`` (never accumulated). ``warm`` seeds the first step's
+    initial guess (pass the last :attr:`StepResult.warm` to resume a run bit-for-bit). A failed
+    step raises :class:`ConvergenceError` carrying its index and time; a step whose result is
+    not finite raises it too (reason ``"non_finite"``).
+    """
+    W, k = W0, start
+    while True:
+        try:
+            res = scheme.step(system, W, h, solver, warm if warm_start else None)
+        except ConvergenceError as exc:
+            raise exc.at(k + 1, k * h) from exc
+        if not np.all(np.isfinite(res.W)):
+            raise ConvergenceError(
+                "non_finite", solver=res.solver, iterations=res.iterations,
+                residuals=(res.residual,), step=k + 1, t=k * h,
+            )
+        k += 1
+        W, warm = res.W, res.warm
+        yield Step(k, k * h, res)
+
+
+def _resolve_steps(h: float, steps: int | None, t_final: float | None) -> int:
+    if (steps is None) == (t_final is None):
+        raise InputError("give exactly one of steps=N or t_final=T")
+    if steps is not None:
+        if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
+            raise InputError(f"steps must be a positive integer, got {steps!r}")
+        return int(steps)
+    assert t_final is not None
+    if not (math.isfinite(t_final) and t_final > 0):
+        raise InputError(f"t_final must be positive and finite, got {t_final!r}")
+    n = round(t_final / h)
+    if n < 1 or abs(n * h - t_final) > 1e-9 * t_final:
+        raise InputError(
+            f"t_final = {t_final} is not a whole number of steps of h = {h}; "
+            "choose h = t_final / N or pass steps=N"
+        )
+    return n
+
+
+def integrate(
+    system: IsospectralSystem,
+    scheme: Scheme,
+    W0: ArrayLike,
+    h: float,
+    *,
+    steps: int | None = None,
+    t_final: float | None = None,
+    solver: Solver | None = None,
+    save_every: int = 1,
+    diagnostics: bool = True,
+    warm_start: bool = True,
+    on_failure: Literal["raise", "truncate"] = "raise",
+    progress: bool = False,
+) -> Solution:
+    """Integrate ``dW/dt = [B(W), W]`` from ``W0`` with a fixed step ``h``.
+
+    Parameters
+    ----------
+    system, scheme : IsospectralSystem, Scheme
+        What to integrate and how (``lieflow.systems.get``, ``lieflow.schemes.get``).
+    W0 : array_like, shape (n, n) or (..., n, n)
+        Initial condition in the system's algebra; a stack is an ensemble advanced together.
+    h : float
+        Step size, positive.
+    steps, t_final : int or float
+        Number of steps, or final time (a whole number of steps).
+    solver : Solver, optional
+        Nonlinear solver; ``FixedPoint()`` (rtol 1e-14) by default.
+    save_every : int
+        Keep every ``save_every``-th state (the first and last are always kept).
+    diagnostics : bool
+        Record the relative energy error and Casimir drift at every step.
+    warm_start : bool
+        Start each solve from the previous step's solution (SPEC §5).
+    on_failure : {"raise", "truncate"}
+        On a failed step raise :class:`ConvergenceError` (default) or return the steps done,
+        with ``status = FAILED`` and the error in ``failure``.
+    progress : bool
+        Show a progress bar (needs ``rich``).
+    """
+    solver = FixedPoint() if solver is None else solver
+    _check_types(system, scheme, solver)
+    h = check_step_size(h)
+    n_steps = _resolve_steps(h, steps, t_final)
+    if isinstance(save_every, bool) or not isinstance(save_every, (int, np.integer)) or save_every < 1:
+        raise InputError(f"save_every must be a positive integer, got {save_every!r}")
+    if on_failure not in ("raise", "truncate"):
+        raise InputError(f"on_failure must be 'raise' or 'truncate', got {on_failure!r}")
+    W0a = system.validate(W0)
+
+    saved_t, saved_W, saved_k = [0.0], [W0a], [0]
+    iterations = np.zeros(n_steps, dtype=np.int64)
+    solvers: list[str] = []
+    H, C = [], []
+    if diagnostics:
+        H.append(system.hamiltonian(W0a))
+        C.append(system.casimirs(W0a))
+    failure: ConvergenceError | None = None
+    bar = _progress(n_steps) if progress else None
+    last: Step | None = None
+    start = time.perf_counter()
+    try:
+        for step in iterate(system, scheme, W0a, h, solver, warm_start=warm_start):
+            last = step
+            iterations[step.index - 1] = step.result.iterations
+            solvers.append(step.result.solver)
+            if diagnostics:
+                H.append(system.hamiltonian(step.W))
+                C.append(system.casimirs(step.W))
+            if step.index % save_every == 0 or step.index == n_steps:
+                saved_t.append(step.t)
+                saved_W.append(step.W)
+                saved_k.append(step.index)
+            if bar is not None:
+                bar.advance(step.result.iterations)
+            if step.index == n_steps:
+                break
+    except ConvergenceError as exc:
+        if on_failure == "raise":
+            raise
+        failure = exc
+        if last is not None and saved_k[-1] != last.index:
+            saved_t.append(last.t)
+            saved_W.append(last.W)
+            saved_k.append(last.index)
+    finally:
+        if bar is not None:
+            bar.close()
+    wall = time.perf_counter() - start
+
+    done = 0 if last is None else last.index
+    energy_error = casimir_drift = None
+    if diagnostics:
+        Ha = np.asarray(H, dtype=float)
+        energy_error = np.abs(Ha - Ha[0]) / np.maximum(np.abs(Ha[0]), np.finfo(float).tiny)
+        Ca = np.asarray(C)
+        casimir_drift = np.abs(Ca - Ca[0]) / system.casimir_scale(W0a)
+    return Solution(
+        system=system,
+        scheme=scheme.name,
+        h=h,
+        t=np.asarray(saved_t),
+        W=np.stack(saved_W),
+        saved_steps=np.asarray(saved_k),
+        iterations=iterations[:done],
+        solvers=tuple(solvers),
+        energy_error=energy_error,
+        casimir_drift=casimir_drift,
+        status=Status.SUCCESS if failure is None else Status.FAILED,
+        failure=failure,
+        wall_time=wall,
+    )
+
+
+class _Progress:
+    """A rich progress bar showing steps, rate and mean iterations per step."""
+
+    def __init__(self, total: int) -> None:
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeRemainingColumn,
+        )
+
+        self._p = Progress(
+            TextColumn("[bold]integrating"), BarColumn(), MofNCompleteColumn(),
+            TextColumn("{task.fields[rate]} steps/s, {task.fields[its]} it/step"),
+            TimeRemainingColumn(),
+        )
+        self._task = self._p.add_task("steps", total=total, rate="-", its="-")
+        self._start = time.perf_counter()
+        self._n = 0
+        self._its = 0
+        self._p.start()
+
+    def advance(self, iterations: int) -> None:
+        self._n += 1
+        self._its += iterations
+        elapsed = max(time.perf_counter() - self._start, 1e-9)
+        self._p.update(
+            self._task, advance=1, rate=f"{self._n / elapsed:,.0f}", its=f"{self._its / self._n:.1f}"
+        )
+
+    def close(self) -> None:
+        self._p.stop()
+
+
+def _progress(total: int) -> Any:
+    try:
+        return _Progress(total)
+    except ImportError as exc:
+        raise InputError(
+            "progress=True needs the 'rich' package: pip install 'lieflow[cli]'"
+        ) from exc

@@ -1,0 +1,287 @@
+"""Plugins: the pluggy hook specification and the registry of systems, schemes and solvers.
+
+Every provider — lieflow's own built-ins included — is a distribution that declares an entry
+point in the group ``lieflow`` pointing at a module (or object) with a hook implementation::
+
+    # pyproject.toml of a plugin
+    [project.entry-points.lieflow]
+    vortices = "lieflow_vortices.plugin"
+
+    # lieflow_vortices/plugin.py
+    import lieflow
+    @lieflow.hookimpl
+    def lieflow_register(registry):
+        registry.add_system("point_vortices", PointVortices, "N point vortices on the sphere")
+
+Each entry point is loaded and called inside a guard: a plugin that fails to import, whose
+hook raises, or that registers something invalid (a duplicate name, a class of the wrong
+kind, a scheme on a non-symplectic tableau) yields a :class:`~lieflow.errors.PluginError`
+naming the distribution and the reason. Environment variables:
+
+``LIEFLOW_DISABLE_PLUGIN_AUTOLOAD=1``
+    load only lieflow's own entry points (third-party plugins are skipped);
+``LIEFLOW_PLUGIN_ERRORS=warn``
+    a broken plugin is skipped with a :class:`PluginWarning` instead of raising.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.metadata as md
+import inspect
+import os
+import re
+import warnings
+from collections.abc import Callable, Iterable, Mapping
+from types import MappingProxyType
+from typing import Any, Literal
+
+import attrs
+import pluggy
+
+from .errors import LieflowError, PluginError, RegistryError
+
+PROJECT = "lieflow"
+ENTRY_POINT_GROUP = "lieflow"
+DISABLE_AUTOLOAD_ENV = "LIEFLOW_DISABLE_PLUGIN_AUTOLOAD"
+ERRORS_ENV = "LIEFLOW_PLUGIN_ERRORS"
+
+hookspec = pluggy.HookspecMarker(PROJECT)
+hookimpl = pluggy.HookimplMarker(PROJECT)
+
+Kind = Literal["system", "scheme", "solver"]
+KINDS: tuple[Kind, ...] = ("system", "scheme", "solver")
+_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
+
+
+class PluginWarning(UserWarning):
+    """A broken plugin was skipped (``LIEFLOW_PLUGIN_ERRORS=warn``)."""
+
+
+class HookSpecs:
+    """The hooks a lieflow plugin may implement."""
+
+    @hookspec
+    def lieflow_register(self, registry: RegistryBuilder) -> None:
+        """Register systems, schemes and solvers by calling ``registry.add_system(...)``,
+        ``registry.add_scheme(...)`` and ``registry.add_solver(...)``."""
+
+
+@attrs.frozen
+class Entry:
+    """One registered name: what it makes and who provided it."""
+
+    kind: Kind
+    name: str
+    factory: Callable[..., Any] = attrs.field(repr=False)
+    description: str
+    source: str
+
+    def create(self, **params: Any) -> Any:
+        """Call the factory with ``params``; a bad parameter becomes a clear error."""
+        try:
+            return self.factory(**params)
+        except LieflowError:
+            raise
+        except TypeError as exc:
+            sig = _signature(self.factory)
+            raise RegistryError(
+                f"{self.kind} {self.name!r} does not accept {sorted(params)}: {exc}. "
+                f"Its parameters are {sig}"
+            ) from exc
+
+
+def _signature(factory: Callable[..., Any]) -> str:
+    try:
+        return str(inspect.signature(factory))
+    except (TypeError, ValueError):
+        return "(unknown)"
+
+
+def _check_kind(kind: Kind, obj: Any) -> str | None:
+    """Why ``obj`` is not a valid ``kind`` (or ``None`` if it is)."""
+    from .schemes.base import Scheme
+    from .solvers.base import Solver
+    from .systems.base import IsospectralSystem
+
+    expected: type = {"system": IsospectralSystem, "scheme": Scheme, "solver": Solver}[kind]
+    return None if isinstance(obj, expected) else (
+        f"its factory made a {type(obj).__name__}, not a {expected.__name__}"
+    )
+
+
+class RegistryBuilder:
+    """Collects registrations while plugins load (handed to ``lieflow_register``)."""
+
+    def __init__(self) -> None:
+        self._entries: dict[Kind, dict[str, Entry]] = {k: {} for k in KINDS}
+        self._source = "?"
+        self._pending: list[Entry] = []
+
+    def add_system(self, name: str, factory: Callable[..., Any], description: str = "") -> None:
+        """Register an :class:`~lieflow.IsospectralSystem` subclass or factory."""
+        self._add("system", name, factory, description)
+
+    def add_scheme(self, name: str, factory: Callable[..., Any], description: str = "") -> None:
+        """Register a :class:`~lieflow.Scheme` subclass or factory."""
+        self._add("scheme", name, factory, description)
+
+    def add_solver(self, name: str, factory: Callable[..., Any], description: str = "") -> None:
+        """Register a :class:`~lieflow.solvers.Solver` class or factory."""
+        self._add("solver", name, factory, description)
+
+    def _add(self, kind: Kind, name: str, factory: Callable[..., Any], description: str) -> None:
+        if not isinstance(name, str) or not _NAME.match(name):
+            raise PluginError(
+                f"invalid {kind} name {name!r}: use lower-case letters, digits and underscores"
+            )
+        if not callable(factory):
+            raise PluginError(f"{kind} {name!r}: the factory {factory!r} is not callable")
+        taken = self._entries[kind].get(name) or next(
+            (e for e in self._pending if e.kind == kind and e.name == name), None
+        )
+        if taken is not None:
+            raise PluginError(f"{kind} name {name!r} is already registered by {taken.source}")
+        self._validate(kind, name, factory)
+        doc = description or (inspect.getdoc(factory) or "").split("\n")[0]
+        self._pending.append(Entry(kind, name, factory, doc, self._source))
+
+    @staticmethod
+    def _validate(kind: Kind, name: str, factory: Callable[..., Any]) -> None:
+        """Instantiate with defaults where possible: catches wrong kinds and bad tableaus."""
+        try:
+            params = inspect.signature(factory).parameters.values()
+        except (TypeError, ValueError):
+            return
+        required = [
+            p for p in params
+            if p.default is p.empty and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+        ]
+        if required:
+            return
+        try:
+            obj = factory()
+        except Exception as exc:
+            raise PluginError(f"{kind} {name!r} cannot be created with its defaults: {exc}") from exc
+        problem = _check_kind(kind, obj)
+        if problem:
+            raise PluginError(f"{kind} {name!r} is invalid: {problem}")
+
+    def _commit(self) -> None:
+        for e in self._pending:
+            self._entries[e.kind][e.name] = e
+        self._pending = []
+
+    def freeze(self) -> Registry:
+        """The immutable registry."""
+        return Registry(**{f"{k}s": MappingProxyType(dict(v)) for k, v in self._entries.items()})
+
+
+@attrs.frozen
+class Registry:
+    """Immutable name -> :class:`Entry` tables for systems, schemes and solvers."""
+
+    systems: Mapping[str, Entry]
+    schemes: Mapping[str, Entry]
+    solvers: Mapping[str, Entry]
+
+    def table(self, kind: Kind) -> Mapping[str, Entry]:
+        """The entries of one kind."""
+        if kind not in KINDS:
+            raise RegistryError(f"unknown kind {kind!r}; use one of {KINDS}")
+        return getattr(self, f"{kind}s")  # type: ignore[no-any-return]
+
+    def entry(self, kind: Kind, name: str) -> Entry:
+        """Look a name up, or raise :class:`RegistryError` listing the known names."""
+        table = self.table(kind)
+        try:
+            return table[name]
+        except (KeyError, TypeError):
+            known = ", ".join(sorted(table)) or "(none)"
+            raise RegistryError(
+                f"unknown {kind} {name!r}. Known {kind}s: {known}. A {kind} from a plugin "
+                "appears here once its distribution is installed"
+            ) from None
+
+    def create(self, kind: Kind, name: str, **params: Any) -> Any:
+        """Look ``name`` up and build it with ``params``."""
+        return self.entry(kind, name).create(**params)
+
+
+def _plugin_entry_points(autoload: bool) -> list[md.EntryPoint]:
+    eps = list(md.entry_points(group=ENTRY_POINT_GROUP))
+    if not autoload:
+        eps = [ep for ep in eps if _dist_name(ep) == PROJECT]
+    # one distribution can appear twice on sys.path (e.g. an editable and a regular install)
+    unique = {(_dist_name(ep), ep.name, ep.value): ep for ep in eps}
+    return sorted(unique.values(), key=lambda ep: (_dist_name(ep) != PROJECT, ep.name))
+
+
+def _dist_name(ep: md.EntryPoint) -> str:
+    dist = getattr(ep, "dist", None)
+    return str(dist.metadata["Name"]) if dist is not None else "unknown distribution"
+
+
+def load_registry(
+    *,
+    autoload: bool | None = None,
+    plugins: Iterable[tuple[str, object]] = (),
+    errors: Literal["raise", "warn"] | None = None,
+) -> Registry:
+    """Load every plugin and return the frozen :class:`Registry`.
+
+    Parameters
+    ----------
+    autoload : bool, optional
+        Load third-party entry points too (default: unless ``LIEFLOW_DISABLE_PLUGIN_AUTOLOAD``
+        is set). lieflow's own entry point is always loaded.
+    plugins : iterable of (name, object)
+        Extra plugin objects (modules or instances with a ``lieflow_register`` hookimpl), e.g.
+        for tests; they are guarded like entry points.
+    errors : {"raise", "warn"}, optional
+        What to do with a broken plugin (default: ``LIEFLOW_PLUGIN_ERRORS`` or ``"raise"``).
+    """
+    if autoload is None:
+        autoload = not os.environ.get(DISABLE_AUTOLOAD_ENV)
+    if errors is None:
+        errors = "warn" if os.environ.get(ERRORS_ENV, "").lower() == "warn" else "raise"
+    pm = pluggy.PluginManager(PROJECT)
+    pm.add_hookspecs(HookSpecs)
+    builder = RegistryBuilder()
+
+    candidates: list[tuple[str, Callable[[], object]]] = [
+        (f"entry point {ep.name!r} of distribution {_dist_name(ep)!r}", ep.load)
+        for ep in _plugin_entry_points(autoload)
+    ]
+    candidates += [(f"plugin {name!r}", lambda obj=obj: obj) for name, obj in plugins]
+    for label, load in candidates:
+        builder._source = label
+        plugin: object | None = None
+        try:
+            plugin = load()
+            pm.register(plugin, name=label)
+            others = [p for p in pm.get_plugins() if p is not plugin]
+            if not any(i.plugin is plugin for i in pm.hook.lieflow_register.get_hookimpls()):
+                raise PluginError("it has no lieflow_register hook implementation")
+            pm.subset_hook_caller("lieflow_register", remove_plugins=others)(registry=builder)
+            builder._commit()
+        except Exception as exc:
+            builder._pending = []
+            if plugin is not None and pm.is_registered(plugin):
+                pm.unregister(plugin)
+            reason = str(exc) if isinstance(exc, PluginError) else f"{type(exc).__name__}: {exc}"
+            message = (
+                f"lieflow {label} is broken: {reason}. Fix or uninstall that distribution, "
+                f"or set {DISABLE_AUTOLOAD_ENV}=1 to skip third-party plugins"
+            )
+            if errors == "warn":
+                warnings.warn(message, PluginWarning, stacklevel=2)
+            else:
+                raise PluginError(message) from exc
+    return builder.freeze()
+
+
+@functools.cache
+def default_registry() -> Registry:
+    """The registry of the installed plugins, loaded once (it is immutable)."""
+    return load_registry()

@@ -1,0 +1,98 @@
+"""The :class:`Scheme` interface and helpers shared by the built-in schemes."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+import attrs
+import numpy as np
+
+from ..algebras import Array, dagger
+from ..errors import ConvergenceError
+from ..solvers.base import ImplicitProblem, Solver, SolveResult
+from ..systems.base import IsospectralSystem
+from ..tableaus import ButcherTableau
+
+
+@attrs.frozen
+class StepResult:
+    """One step ``W0 -> W1`` of a scheme.
+
+    Attributes
+    ----------
+    W : ndarray
+        The new state ``W1``.
+    warm : ndarray
+        The solved unknowns as offsets from their ``h = 0`` values; passed back as ``warm``
+        to the next step, it is that step's initial guess (a warm start, SPEC §5).
+    iterations : int
+        Solver updates in this step (summed over the sub-steps of a composition).
+    solver : str
+        Name of the solver that finished the step (the last sub-step's).
+    residual : float
+        The last recorded relative update of the final solve.
+    """
+
+    W: Array = attrs.field(repr=False)
+    warm: Array = attrs.field(repr=False)
+    iterations: int
+    solver: str
+    residual: float
+
+
+class Scheme(ABC):
+    """An ISOSyRK scheme: one step ``W0 -> W1`` for any system, step size and solver.
+
+    A scheme states its implicit equation as an :class:`~lieflow.solvers.ImplicitProblem`
+    and lets the solver find it; it never raises for an unconverged solve silently: a failed
+    solve raises :class:`~lieflow.errors.ConvergenceError`.
+    """
+
+    tableau: ButcherTableau
+
+    @property
+    def name(self) -> str:
+        """The scheme's name (the tableau's by default)."""
+        return self.tableau.name
+
+    @property
+    def order(self) -> int:
+        """Classical order of accuracy."""
+        return self.tableau.order
+
+    @abstractmethod
+    def step(
+        self,
+        system: IsospectralSystem,
+        W0: Array,
+        h: float,
+        solver: Solver,
+        warm: Array | None = None,
+    ) -> StepResult:
+        """Advance ``W0`` by one step of size ``h`` (``W0`` may be a stack ``(..., n, n)``)."""
+
+
+def solve(solver: Solver, problem: ImplicitProblem) -> SolveResult:
+    """Run ``solver`` on ``problem``; raise :class:`ConvergenceError` if it did not converge."""
+    res = solver.solve(problem)
+    if not res.converged:
+        raise ConvergenceError(
+            res.reason, solver=res.solver, iterations=res.iterations, residuals=res.residuals
+        )
+    return res
+
+
+def commutator_update(system: IsospectralSystem, W0: Array, stages: Array, hb: Array) -> Array:
+    """``W1 = W0 + sum_i (h b_i) [B(W_i), W_i]`` for stage values ``stages[..., i, :, :]``.
+
+    One batched call of ``B``; for skew algebras ``W_i B_i = (B_i W_i)^†`` saves a product.
+    """
+    B = system.B(stages)
+    BW = B @ stages
+    WB = dagger(BW) if system.algebra.skew else stages @ B
+    return W0 + np.einsum("i,...iab->...ab", hb, BW - WB)
+
+
+def right_product(BM: Array, M: Array, B: Array, skew: bool) -> Array:
+    """``M B``, computed as ``(B M)^†`` without a product when ``M`` and ``B`` are skew."""
+    return dagger(BM) if skew else M @ B

@@ -1,0 +1,264 @@
+"""The block algorithm for any symplectic tableau (SPEC §4.3) and its reduced stage form
+(SPEC §4.5): two evaluations of the same fixed point, behind one scheme, :class:`BlockGauss`.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import attrs
+import numpy as np
+
+from ..algebras import Array, dagger
+from ..solvers.base import Solver
+from ..systems.base import IsospectralSystem
+from ..tableaus import ButcherTableau, gauss
+from .base import Scheme, StepResult, commutator_update, solve
+
+
+def blocks_to_dense(X: Array) -> Array:
+    """``(..., s, s, n, n)`` blocks ``X_kl`` -> the dense ``(..., sn, sn)`` matrix."""
+    *batch, s, _, n, _ = X.shape
+    return np.swapaxes(X, -3, -2).reshape(*batch, s * n, s * n)
+
+
+def dense_to_blocks(X: Array, s: int) -> Array:
+    """Inverse of :func:`blocks_to_dense`."""
+    *batch, sn, _ = X.shape
+    n = sn // s
+    return np.swapaxes(X.reshape(*batch, s, n, s, n), -3, -2)
+
+
+def _block_coefficient_matrix(coef: np.ndarray, mats: Array) -> Array:
+    """Dense ``(..., sn, sn)`` matrix with blocks ``coef[k, l] * mats[..., k or l]``.
+
+    ``mats`` has shape ``(..., s, s, n, n)`` already broadcast to the block pattern.
+    """
+    return blocks_to_dense(coef[:, :, None, None] * mats)
+
+
+class BlockProblem:
+    r"""The block algorithm's implicit equation (SPEC §4.3), evaluated block-wise.
+
+    Unknown ``M`` with ``n×n`` blocks ``M_kl``, shape ``(..., s, s, n, n)``;
+    ``B_k = B(M_kk)``. Fixed-point map
+
+    .. math:: M \leftarrow \mathbf W_0 + hA\mathbf B M - hM\mathbf B A^T
+              + h^2 A\mathbf B M \mathbf B A^T,
+
+    the rearrangement of :math:`\mathbf W_0 = (I - hA\mathbf B) M (I + h\mathbf B A^T)`
+    (SPEC §4.3 prints the last sign as minus; expanding the product, and §4.1 for ``s = 1``,
+    give plus, and only plus reproduces the Modin–Viviani form),
+
+    with :math:`(A\mathbf BM)_{ij} = \sum_k a_{ik}B_kM_{kj}`,
+    :math:`(M\mathbf BA^T)_{ij} = \sum_l a_{jl}M_{il}B_l` and
+    :math:`(A\mathbf BM\mathbf BA^T)_{ij} = \sum_{kl}a_{ik}a_{jl}B_kM_{kl}B_l`:
+    ``3 s^2`` products of ``n×n`` matrices per iteration, no dense ``sn×sn`` matrix.
+    """
+
+    core_ndim = 4
+
+    def __init__(
+        self,
+        system: IsospectralSystem,
+        W0: Array,
+        h: float,
+        tableau: ButcherTableau,
+        warm: Array | None = None,
+    ) -> None:
+        self.system = system
+        self.W0 = W0
+        self.h = h
+        self.A = tableau.A
+        self.b = tableau.b
+        s = tableau.stages
+        self.diag = np.arange(s)
+        trivial = np.broadcast_to(W0[..., None, None, :, :], (*W0.shape[:-2], s, s, *W0.shape[-2:]))
+        self.x0 = trivial + warm if warm is not None else trivial.copy()
+
+    def stages(self, M: Array) -> Array:
+        """The stage values ``M_kk``, shape ``(..., s, n, n)``."""
+        return M[..., self.diag, self.diag, :, :]
+
+    def _combine(self, BM: Array, MB: Array, BMB: Array) -> Array:
+        A, h = self.A, self.h
+        ABM = np.einsum("ik,...kjab->...ijab", A, BM)
+        MBAt = np.einsum("jl,...ilab->...ijab", A, MB)
+        ABMBAt = np.einsum("ik,jl,...klab->...ijab", A, A, BMB)
+        return h * (ABM - MBAt) + (h * h) * ABMBAt
+
+    def map(self, M: Array) -> Array:
+        B = self.system.B(self.stages(M))
+        Bk = B[..., :, None, :, :]  # B_k acting on block row k
+        Bl = B[..., None, :, :, :]  # B_l acting on block column l
+        BM = Bk @ M
+        return self.W0[..., None, None, :, :] + self._combine(BM, M @ Bl, BM @ Bl)
+
+    def map_derivative(self, M: Array, dM: Array) -> Array:
+        D = self.stages(M)
+        B = self.system.B(D)
+        dB = self.system.B_derivative(D, self.stages(dM))
+        Bk, Bl = B[..., :, None, :, :], B[..., None, :, :, :]
+        dBk, dBl = dB[..., :, None, :, :], dB[..., None, :, :, :]
+        BM = Bk @ M
+        dBM = dBk @ M + Bk @ dM
+        return self._combine(dBM, dM @ Bl + M @ dBl, dBM @ Bl + BM @ dBl)
+
+    def frozen_map(self, M: Array) -> Array:
+        B = self.system.B(self.stages(M))
+        s, n = self.A.shape[0], B.shape[-1]
+        eye = np.eye(s * n, dtype=B.dtype)
+        AB = _block_coefficient_matrix(self.A, B[..., None, :, :, :])  # blocks a_ik B_k
+        BAt = _block_coefficient_matrix(self.A.T, B[..., :, None, :, :])  # blocks B_k a_lk
+        W0b = np.broadcast_to(
+            self.W0[..., None, None, :, :], (*self.W0.shape[:-2], s, s, n, n)
+        )
+        left = np.linalg.solve(eye - self.h * AB, blocks_to_dense(W0b))
+        right = np.swapaxes(eye + self.h * BAt, -1, -2)
+        X = np.swapaxes(np.linalg.solve(right, np.swapaxes(left, -1, -2)), -1, -2)
+        return dense_to_blocks(X, s)
+
+    def update(self, M: Array) -> Array:
+        """``W1 = W0 + h sum_i b_i [B(M_ii), M_ii]``."""
+        return commutator_update(self.system, self.W0, self.stages(M), self.h * self.b)
+
+    def offsets(self, M: Array) -> Array:
+        """``M`` minus its ``h = 0`` value, for warm starts."""
+        return M - self.W0[..., None, None, :, :]
+
+
+class ReducedProblem:
+    r"""The reduced stage form (SPEC §4.5): the lifted RK stages with ``g0 = I``, ``p0 = W0``.
+
+    .. math::
+        G_i = I + h\sum_j a_{ij} G_j B_j^\dagger,\quad
+        P_i = W_0 - h\sum_j a_{ij} P_j B_j,\quad B_j = B(G_j^\dagger P_j),
+
+    unknown ``x = (G, P)`` of shape ``(..., 2, s, n, n)``; ``3 s`` products per iteration.
+    The stage values ``G_i^† P_i`` equal the block algorithm's ``M_ii`` (same fixed point).
+    """
+
+    core_ndim = 4
+
+    def __init__(
+        self,
+        system: IsospectralSystem,
+        W0: Array,
+        h: float,
+        tableau: ButcherTableau,
+        warm: Array | None = None,
+    ) -> None:
+        self.system = system
+        self.W0 = W0
+        self.h = h
+        self.A = tableau.A
+        self.b = tableau.b
+        self.skew = system.algebra.skew
+        s, n = tableau.stages, W0.shape[-1]
+        trivial = np.empty((*W0.shape[:-2], 2, s, n, n), dtype=W0.dtype)
+        trivial[..., 0, :, :, :] = np.eye(n)
+        trivial[..., 1, :, :, :] = W0[..., None, :, :]
+        self.trivial = trivial
+        self.x0 = trivial + warm if warm is not None else trivial.copy()
+
+    def stages(self, x: Array) -> Array:
+        """Stage values ``G_i^† P_i``, shape ``(..., s, n, n)``."""
+        return dagger(x[..., 0, :, :, :]) @ x[..., 1, :, :, :]
+
+    def _Bdag(self, B: Array) -> Array:
+        return -B if self.skew else dagger(B)
+
+    def _assemble(self, GB: Array, PB: Array, constant: Array) -> Array:
+        hA = self.h * self.A
+        out = np.einsum("ij,...xjab->...xiab", hA, np.stack([GB, -PB], axis=-4))
+        return out + constant
+
+    def map(self, x: Array) -> Array:
+        G, P = x[..., 0, :, :, :], x[..., 1, :, :, :]
+        B = self.system.B(dagger(G) @ P)
+        return self._assemble(G @ self._Bdag(B), P @ B, self.trivial)
+
+    def map_derivative(self, x: Array, dx: Array) -> Array:
+        G, P = x[..., 0, :, :, :], x[..., 1, :, :, :]
+        dG, dP = dx[..., 0, :, :, :], dx[..., 1, :, :, :]
+        W = dagger(G) @ P
+        B = self.system.B(W)
+        dB = self.system.B_derivative(W, dagger(dG) @ P + dagger(G) @ dP)
+        dGB = dG @ self._Bdag(B) + G @ self._Bdag(dB)
+        dPB = dP @ B + P @ dB
+        return self._assemble(dGB, dPB, 0.0)
+
+    def frozen_map(self, x: Array) -> Array:
+        r"""With ``B`` frozen both stage equations are linear (row-block form):
+        ``G (I - h B^†A^T) = [I ... I]`` and ``P (I + h B A^T) = [W0 ... W0]``."""
+        B = self.system.B(self.stages(x))
+        s, n = self.A.shape[0], B.shape[-1]
+        eye = np.eye(s * n, dtype=B.dtype)
+        # blocks (j, i) = a_ij B_j: the matrix B A^T acting on a block row from the right
+        At = self.A.T
+        Bdag = self._Bdag(B)
+        CG = _block_coefficient_matrix(At, Bdag[..., :, None, :, :])
+        CP = _block_coefficient_matrix(At, B[..., :, None, :, :])
+        rows = np.swapaxes(self.trivial, -3, -2).reshape(*self.trivial.shape[:-3], n, s * n)
+        G = _solve_right(rows[..., 0, :, :], eye - self.h * CG)
+        P = _solve_right(rows[..., 1, :, :], eye + self.h * CP)
+        out = np.stack([G, P], axis=-3).reshape(*G.shape[:-2], 2, n, s, n)
+        return np.swapaxes(out, -3, -2)
+
+    def update(self, x: Array) -> Array:
+        """``W1 = W0 + h sum_i b_i [B(W_i), W_i]`` with ``W_i = G_i^† P_i``."""
+        return commutator_update(self.system, self.W0, self.stages(x), self.h * self.b)
+
+    def offsets(self, x: Array) -> Array:
+        """``x`` minus its ``h = 0`` value ``(I, W0)``, for warm starts."""
+        return x - self.trivial
+
+
+def _solve_right(rhs: Array, mat: Array) -> Array:
+    """``rhs mat^{-1}`` via a solve with the transposed matrix."""
+    return np.swapaxes(
+        np.linalg.solve(np.swapaxes(mat, -1, -2), np.swapaxes(rhs, -1, -2)), -1, -2
+    )
+
+
+@attrs.frozen
+class BlockGauss(Scheme):
+    """ISOSyRK for any symplectic tableau via the block algorithm (SPEC §4.3).
+
+    Parameters
+    ----------
+    tableau : ButcherTableau
+        Any symplectic tableau (checked); Gauss–Legendre with 2 stages by default.
+    form : {"reduced", "block"}
+        ``"reduced"`` (default) iterates the ``2s`` stage matrices of the lifted system
+        (SPEC §4.5, ``3s`` products per iteration); ``"block"`` iterates the paper's ``s×s``
+        block matrix ``M`` block-wise (``3s^2`` products). Both have the same fixed point
+        and give the same ``W1`` to roundoff.
+    """
+
+    tableau: ButcherTableau = attrs.field(
+        factory=lambda: gauss(2), converter=lambda t: t.require_symplectic()
+    )
+    form: Literal["reduced", "block"] = attrs.field(
+        default="reduced", validator=attrs.validators.in_(("reduced", "block"))
+    )
+
+    @property
+    def name(self) -> str:
+        return self.tableau.name if self.form == "reduced" else f"block_{self.tableau.name}"
+
+    def step(
+        self,
+        system: IsospectralSystem,
+        W0: Array,
+        h: float,
+        solver: Solver,
+        warm: Array | None = None,
+    ) -> StepResult:
+        cls = ReducedProblem if self.form == "reduced" else BlockProblem
+        problem = cls(system, W0, h, self.tableau, warm)
+        res = solve(solver, problem)
+        return StepResult(
+            problem.update(res.x), problem.offsets(res.x), res.iterations, res.solver,
+            res.residuals[-1],
+        )

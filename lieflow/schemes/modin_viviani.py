@@ -1,0 +1,169 @@
+"""The classic Modin–Viviani ISOSyRK form with ``3s + s^2`` unknowns (SPEC §4.4, corrected)."""
+
+from __future__ import annotations
+
+import attrs
+import numpy as np
+
+from ..algebras import Array
+from ..solvers.base import Solver
+from ..systems.base import IsospectralSystem
+from ..tableaus import ButcherTableau, gauss
+from .base import Scheme, StepResult, commutator_update, solve
+from .block import _block_coefficient_matrix
+
+
+class ModinVivianiProblem:
+    r"""Unknowns ``X_i, Y_i, K_ij`` (stacked as ``(..., 2s + s^2, n, n)``) with
+
+    .. math::
+        X_i &= -h\,(W_0 + \textstyle\sum_j a_{ij} X_j)\, B(\tilde W_i) \\
+        Y_i &= h\, B(\tilde W_i)\,(W_0 + \textstyle\sum_j a_{ij} Y_j) \\
+        K_{ij} &= h\, B(\tilde W_j) \textstyle\sum_l (a_{il} X_l + a_{jl} K_{il}) \\
+        \tilde W_i &= W_0 + \textstyle\sum_j a_{ij} (X_j + Y_j + K_{ij})
+
+    and :math:`W_1 = W_0 + h\sum_i b_i [B(\tilde W_i), \tilde W_i]` (SPEC §4.4: the seed
+    paper's K equation has index errors). ``s^2 + 2s`` products per iteration.
+    """
+
+    core_ndim = 3
+
+    def __init__(
+        self,
+        system: IsospectralSystem,
+        W0: Array,
+        h: float,
+        tableau: ButcherTableau,
+        warm: Array | None = None,
+    ) -> None:
+        self.system = system
+        self.W0 = W0
+        self.h = h
+        self.A = tableau.A
+        self.b = tableau.b
+        self.s = s = tableau.stages
+        shape = (*W0.shape[:-2], 2 * s + s * s, *W0.shape[-2:])
+        self.x0 = np.array(warm, dtype=W0.dtype) if warm is not None else np.zeros(shape, W0.dtype)
+
+    def _split(self, x: Array) -> tuple[Array, Array, Array]:
+        s = self.s
+        K = x[..., 2 * s :, :, :].reshape(*x.shape[:-3], s, s, *x.shape[-2:])
+        return x[..., :s, :, :], x[..., s : 2 * s, :, :], K
+
+    def _join(self, X: Array, Y: Array, K: Array) -> Array:
+        K = K.reshape(*K.shape[:-4], self.s * self.s, *K.shape[-2:])
+        return np.concatenate([X, Y, K], axis=-3)
+
+    def stages(self, x: Array) -> Array:
+        """``W~_i``, shape ``(..., s, n, n)``."""
+        X, Y, K = self._split(x)
+        return self._stages(X, Y, K, self.W0)
+
+    def _stages(self, X: Array, Y: Array, K: Array, W0: Array | float) -> Array:
+        A = self.A
+        XY = np.einsum("ij,...jab->...iab", A, X + Y)
+        AK = np.einsum("ij,...ijab->...iab", A, K)
+        return np.asarray(W0)[..., None, :, :] + XY + AK if np.ndim(W0) else XY + AK
+
+    def _rhs(
+        self, X: Array, Y: Array, K: Array, B: Array, dB: Array | None = None,
+        dX: Array | None = None, dY: Array | None = None, dK: Array | None = None,
+    ) -> Array:
+        """The map, or (with the d-arguments) its derivative, which is linear in them."""
+        A, h = self.A, self.h
+        W0 = self.W0[..., None, :, :]
+        Bj = B[..., None, :, :, :]
+        if dB is None:
+            AX = np.einsum("ij,...jab->...iab", A, X)
+            AY = np.einsum("ij,...jab->...iab", A, Y)
+            Z = AX[..., :, None, :, :] + np.einsum("jl,...ilab->...ijab", A, K)
+            return self._join(-h * ((W0 + AX) @ B), h * (B @ (W0 + AY)), h * (Bj @ Z))
+        assert dX is not None and dY is not None and dK is not None
+        dBj = dB[..., None, :, :, :]
+        AX, dAX = (np.einsum("ij,...jab->...iab", A, v) for v in (X, dX))
+        AY, dAY = (np.einsum("ij,...jab->...iab", A, v) for v in (Y, dY))
+        Z = AX[..., :, None, :, :] + np.einsum("jl,...ilab->...ijab", A, K)
+        dZ = dAX[..., :, None, :, :] + np.einsum("jl,...ilab->...ijab", A, dK)
+        return self._join(
+            -h * (dAX @ B + (W0 + AX) @ dB),
+            h * (dB @ (W0 + AY) + B @ dAY),
+            h * (dBj @ Z + Bj @ dZ),
+        )
+
+    def map(self, x: Array) -> Array:
+        X, Y, K = self._split(x)
+        return self._rhs(X, Y, K, self.system.B(self._stages(X, Y, K, self.W0)))
+
+    def map_derivative(self, x: Array, dx: Array) -> Array:
+        X, Y, K = self._split(x)
+        dX, dY, dK = self._split(dx)
+        W = self._stages(X, Y, K, self.W0)
+        B = self.system.B(W)
+        dB = self.system.B_derivative(W, self._stages(dX, dY, dK, 0.0))
+        return self._rhs(X, Y, K, B, dB, dX, dY, dK)
+
+    def frozen_map(self, x: Array) -> Array:
+        r"""With ``B_i`` frozen the equations are linear, in block form
+        ``X (I + h A^T B) = -h [W0 B_1 ... W0 B_s]``,
+        ``(I - h B A) Y = h [B_1 W0; ...; B_s W0]`` and, for each ``i``,
+        ``(I - h B A) [K_i1; ...; K_is] = h [B_1 Z_i; ...; B_s Z_i]``, ``Z_i = sum_l a_il X_l``.
+        """
+        W0, A, h, s = self.W0, self.A, self.h, self.s
+        B = self.system.B(self.stages(x))
+        n = B.shape[-1]
+        eye = np.eye(s * n, dtype=B.dtype)
+        batch = W0.shape[:-2]
+        # X: row block, X (I + h C) = R with blocks C_(j,i) = a_ij B_i
+        C = _block_coefficient_matrix(A.T, B[..., None, :, :, :])
+        R = -h * (W0[..., None, :, :] @ B)
+        Rrow = np.swapaxes(R, -3, -2).reshape(*batch, n, s * n)
+        Xrow = np.swapaxes(
+            np.linalg.solve(
+                np.swapaxes(eye + h * C, -1, -2), np.swapaxes(Rrow, -1, -2)
+            ), -1, -2,
+        )
+        X = np.swapaxes(Xrow.reshape(*batch, n, s, n), -3, -2)
+        # Y and all K_i: column blocks sharing the matrix I - h B A, blocks (i, j) = B_i a_ij
+        D = _block_coefficient_matrix(A, B[..., :, None, :, :])
+        Z = np.einsum("il,...lab->...iab", A, X)  # Z_i
+        rhs_Y = h * (B @ W0[..., None, :, :])  # (..., s, n, n)
+        rhs_K = h * (B[..., None, :, :, :] @ Z[..., :, None, :, :])  # [i, j] = B_j Z_i
+        cols = np.concatenate([rhs_Y[..., None, :, :, :], rhs_K], axis=-4)  # (..., 1+s, s, n, n)
+        cols = np.moveaxis(cols, -4, -2).reshape(*batch, s * n, (1 + s) * n)
+        sol = np.linalg.solve(eye - h * D, cols).reshape(*batch, s, n, 1 + s, n)
+        sol = np.moveaxis(sol, -2, -4)  # (..., 1+s, s, n, n)
+        return self._join(X, sol[..., 0, :, :, :], sol[..., 1:, :, :, :])
+
+    def update(self, x: Array) -> Array:
+        """``W1 = W0 + h sum_i b_i [B(W~_i), W~_i]``."""
+        return commutator_update(self.system, self.W0, self.stages(x), self.h * self.b)
+
+
+@attrs.frozen
+class ModinViviani(Scheme):
+    """The classic ``3s + s^2`` Modin–Viviani ISOSyRK form for any symplectic tableau.
+
+    Kept as the reference formulation: the block algorithm must reproduce it to roundoff.
+    """
+
+    tableau: ButcherTableau = attrs.field(
+        factory=lambda: gauss(2), converter=lambda t: t.require_symplectic()
+    )
+
+    @property
+    def name(self) -> str:
+        return f"modin_viviani_{self.tableau.name}"
+
+    def step(
+        self,
+        system: IsospectralSystem,
+        W0: Array,
+        h: float,
+        solver: Solver,
+        warm: Array | None = None,
+    ) -> StepResult:
+        problem = ModinVivianiProblem(system, W0, h, self.tableau, warm)
+        res = solve(solver, problem)
+        return StepResult(
+            problem.update(res.x), res.x, res.iterations, res.solver, res.residuals[-1]
+        )

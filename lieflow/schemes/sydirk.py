@@ -1,0 +1,108 @@
+"""The implicit midpoint rule in minimal-variable form and its compositions (ISOSyDIRK)."""
+
+from __future__ import annotations
+
+import attrs
+import numpy as np
+
+from ..algebras import Array
+from ..errors import TableauError
+from ..solvers.base import Solver
+from ..systems.base import IsospectralSystem
+from ..tableaus import ButcherTableau, midpoint
+from .base import Scheme, StepResult, commutator_update, right_product, solve
+
+
+class MidpointProblem:
+    r"""The midpoint equation in minimal-variable form (SPEC §4.1).
+
+    Solve :math:`W_0 = (I - \tfrac h2 B(M))\, M\, (I + \tfrac h2 B(M))` for ``M`` by
+
+    .. math:: M \leftarrow W_0 + \tfrac h2 (BM - MB) + \tfrac{h^2}{4} BMB,\qquad B = B(M),
+
+    two matrix products per iteration for skew algebras (``MB = (BM)^†``), three otherwise.
+    The step is :math:`W_1 = W_0 + h[B(M), M]`.
+    """
+
+    core_ndim = 2
+
+    def __init__(
+        self, system: IsospectralSystem, W0: Array, h: float, warm: Array | None = None
+    ) -> None:
+        self.system = system
+        self.W0 = W0
+        self.half = 0.5 * h
+        self.skew = system.algebra.skew
+        self.x0 = W0 + warm if warm is not None else W0.copy()
+
+    def map(self, M: Array) -> Array:
+        B = self.system.B(M)
+        BM = B @ M
+        MB = right_product(BM, M, B, self.skew)
+        q = self.half
+        return self.W0 + q * (BM - MB) + (q * q) * (BM @ B)
+
+    def map_derivative(self, M: Array, dM: Array) -> Array:
+        B = self.system.B(M)
+        dB = self.system.B_derivative(M, dM)
+        q = self.half
+        first = dB @ M + B @ dM - dM @ B - M @ dB
+        second = dB @ M @ B + B @ dM @ B + B @ M @ dB
+        return q * first + (q * q) * second
+
+    def frozen_map(self, M: Array) -> Array:
+        B = self.system.B(M)
+        eye = np.eye(B.shape[-1], dtype=B.dtype)
+        left = np.linalg.solve(eye - self.half * B, self.W0)
+        # left (I + h/2 B)^{-1}, as a solve with the transposed matrix
+        right = np.swapaxes(eye + self.half * B, -1, -2)
+        return np.swapaxes(np.linalg.solve(right, np.swapaxes(left, -1, -2)), -1, -2)
+
+    def update(self, M: Array) -> Array:
+        """``W1 = W0 + h [B(M), M]``."""
+        return commutator_update(self.system, self.W0, M[..., None, :, :], np.array([2 * self.half]))
+
+
+def _composition_tableau(tableau: ButcherTableau) -> ButcherTableau:
+    b = tableau.b
+    expected = np.tril(np.broadcast_to(b, (b.size, b.size)), -1) + np.diag(b / 2)
+    if not np.allclose(tableau.A, expected, rtol=0, atol=1e-15):
+        raise TableauError(
+            f"tableau {tableau.name!r} is not a composition of midpoint steps "
+            "(a_ij = b_j for j < i, a_ii = b_i / 2); use BlockGauss for a general "
+            "symplectic tableau"
+        )
+    return tableau.require_symplectic()
+
+
+@attrs.frozen
+class SyDIRK(Scheme):
+    """A symplectic DIRK: a composition of midpoint steps of sizes ``b_1 h, ..., b_s h``
+    (SPEC §4.2). ``SyDIRK()`` is the implicit midpoint rule (1s-SyDIRK).
+
+    Each sub-step solves its own :class:`MidpointProblem`; ``warm`` stacks the sub-steps'
+    unknowns (offsets ``M_i - W^{(i-1)}``), shape ``(..., s, n, n)``.
+    """
+
+    tableau: ButcherTableau = attrs.field(factory=midpoint, converter=_composition_tableau)
+
+    def step(
+        self,
+        system: IsospectralSystem,
+        W0: Array,
+        h: float,
+        solver: Solver,
+        warm: Array | None = None,
+    ) -> StepResult:
+        W = W0
+        offsets = []
+        iterations = 0
+        for i, bi in enumerate(self.tableau.b):
+            problem = MidpointProblem(system, W, bi * h, None if warm is None else warm[..., i, :, :])
+            res = solve(solver, problem)
+            iterations += res.iterations
+            offsets.append(res.x - W)
+            W = problem.update(res.x)
+        return StepResult(
+            W, np.stack(offsets, axis=-3), iterations, res.solver, res.residuals[-1]
+        )

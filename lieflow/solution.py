@@ -1,0 +1,106 @@
+"""The result of :func:`lieflow.integrate`."""
+
+from __future__ import annotations
+
+import enum
+
+import attrs
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from .algebras import Array
+from .errors import ConvergenceError
+from .systems.base import IsospectralSystem
+
+
+class Status(str, enum.Enum):
+    """How a run ended."""
+
+    SUCCESS = "success"
+    FAILED = "failed"
+
+
+@attrs.frozen(eq=False)
+class Solution:
+    """A trajectory with its diagnostics (SPEC §6).
+
+    Attributes
+    ----------
+    t, W : ndarray
+        Saved times ``(n_saved,)`` and states ``(n_saved, *batch, n, n)``; the initial state
+        and the last computed state are always saved.
+    saved_steps : ndarray
+        Step index of each saved state (0 is the initial condition).
+    iterations : ndarray
+        Solver updates per completed step, ``(n_steps,)``.
+    solvers : tuple of str
+        The solver that finished each step (differs from the requested one under ``"auto"``).
+    energy_error : ndarray or None
+        ``|eta(W_k) - eta(W_0)| / |eta(W_0)|`` for ``k = 0..n_steps``, shape
+        ``(n_steps + 1, *batch)``; ``None`` if diagnostics were off.
+    casimir_drift : ndarray or None
+        ``|C_j(W_k) - C_j(W_0)| / ||W_0||^{k_j}`` per step and Casimir, shape
+        ``(n_steps + 1, *batch, n_casimirs)``.
+    status : Status
+        ``SUCCESS``, or ``FAILED`` with :attr:`failure` set (``on_failure="truncate"``).
+    failure : ConvergenceError or None
+        What went wrong, at which step.
+    wall_time : float
+        Seconds spent stepping.
+    """
+
+    system: IsospectralSystem
+    scheme: str
+    h: float
+    t: Array
+    W: Array = attrs.field(repr=False)
+    saved_steps: Array = attrs.field(repr=False)
+    iterations: Array = attrs.field(repr=False)
+    solvers: tuple[str, ...] = attrs.field(repr=False)
+    energy_error: Array | None = attrs.field(repr=False)
+    casimir_drift: Array | None = attrs.field(repr=False)
+    status: Status
+    failure: ConvergenceError | None
+    wall_time: float
+
+    @property
+    def n_steps(self) -> int:
+        """Completed steps."""
+        return int(self.iterations.shape[0])
+
+    @property
+    def W_final(self) -> Array:
+        """The last computed state."""
+        return self.W[-1]
+
+    @property
+    def t_final(self) -> float:
+        """Time of the last computed state."""
+        return float(self.t[-1])
+
+    @property
+    def success(self) -> bool:
+        """Whether every requested step was computed."""
+        return self.status is Status.SUCCESS
+
+    def spectrum_drift(self) -> Array:
+        """``max_i |lambda_i(W_k) - lambda_i(W_0)| / max_i |lambda_i(W_0)|`` per saved state.
+
+        Eigenvalues of ``W_k`` are matched to those of ``W_0`` by a minimum-cost assignment,
+        so clusters and roundoff-level real parts cannot mis-pair them.
+        """
+        lam = np.linalg.eigvals(self.W)
+        flat = lam.reshape(lam.shape[0], -1, lam.shape[-1])
+        out = np.empty(flat.shape[:2])
+        for b in range(flat.shape[1]):
+            ref = flat[0, b]
+            scale = max(float(np.max(np.abs(ref))), np.finfo(float).tiny)
+            for k in range(flat.shape[0]):
+                cost = np.abs(flat[k, b][:, None] - ref[None, :])
+                rows, cols = linear_sum_assignment(cost)
+                out[k, b] = np.max(cost[rows, cols]) / scale
+        return out.reshape(lam.shape[:-1])
+
+    def algebra_distance(self) -> Array:
+        """Relative distance of each saved state from the system's algebra."""
+        return self.system.algebra.distance(self.W)

@@ -1,0 +1,106 @@
+"""The contract between schemes and nonlinear solvers.
+
+A scheme states its implicit equation as an :class:`ImplicitProblem`: an unknown ``x``, a
+fixed-point map ``F`` whose fixed point is the solution, the map's derivative (for Newton) and
+a frozen-B map (the Cayley-type quasi-Newton iteration of SPEC §5). A :class:`Solver` finds
+the fixed point and returns a :class:`SolveResult`; it never knows which scheme called it.
+
+Unknowns have shape ``batch + core``: the trailing ``core_ndim`` axes form one unknown and
+leading axes index independent problems (an ensemble of initial conditions). Norms are
+Frobenius norms per problem; a solve has converged when every problem in the batch has.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+import attrs
+import numpy as np
+
+from ..algebras import Array
+
+
+@runtime_checkable
+class ImplicitProblem(Protocol):
+    """An implicit equation ``x = F(x)`` posed by a scheme for one step."""
+
+    @property
+    def x0(self) -> Array:
+        """Initial guess (cold: the ``h = 0`` solution; warm: extrapolated from the last step)."""
+        ...
+
+    @property
+    def core_ndim(self) -> int:
+        """How many trailing axes of ``x`` make up one unknown."""
+        ...
+
+    def map(self, x: Array) -> Array:
+        """The fixed-point map ``F(x)``; a new array."""
+        ...
+
+    def map_derivative(self, x: Array, dx: Array) -> Array:
+        """Fréchet derivative ``F'(x)[dx]`` (Newton solves ``(I - F'(x)) d = F(x) - x``)."""
+        ...
+
+    def frozen_map(self, x: Array) -> Array:
+        """Frozen-B map: evaluate ``B`` at ``x`` and solve the then-linear equation exactly."""
+        ...
+
+
+@attrs.frozen
+class SolveResult:
+    """Outcome of one nonlinear solve.
+
+    Attributes
+    ----------
+    x : ndarray
+        The last iterate (the solution if ``converged``).
+    converged : bool
+        Whether the stopping rule was met.
+    iterations : int
+        Updates performed (map evaluations for fixed-point iterations, linear solves for
+        Newton). The paper counts one fewer for fixed-point iteration (SPEC §5).
+    residuals : tuple of float
+        Relative update (or residual) norm after each iteration, max over the batch.
+    reason : str
+        ``"converged"``, ``"roundoff"`` (stagnated at roundoff below ``roundoff_floor``:
+        accepted), ``"max_iterations"``, ``"stalled"``, ``"diverged"`` or ``"non_finite"``.
+    solver : str
+        Name of the solver that produced ``x``.
+    """
+
+    x: Array = attrs.field(repr=False)
+    converged: bool
+    iterations: int
+    residuals: tuple[float, ...]
+    reason: str
+    solver: str
+
+
+@runtime_checkable
+class Solver(Protocol):
+    """Anything with a ``name`` and ``solve(problem) -> SolveResult``."""
+
+    @property
+    def name(self) -> str: ...
+
+    def solve(self, problem: ImplicitProblem) -> SolveResult: ...
+
+
+def batch_norm(x: Array, core_ndim: int) -> Array:
+    """Frobenius norm over the trailing ``core_ndim`` axes (shape: the batch shape)."""
+    axes = tuple(range(x.ndim - core_ndim, x.ndim))
+    if np.iscomplexobj(x):
+        return np.sqrt(np.sum(x.real**2 + x.imag**2, axis=axes))
+    return np.sqrt(np.sum(x * x, axis=axes))
+
+
+def relative_change(new: Array, old: Array, core_ndim: int, atol: float, rtol: float) -> tuple[
+    float, bool
+]:
+    """``max ||new - old|| / ||new||`` over the batch, and whether every member meets
+    ``||new - old|| <= atol + rtol ||new||`` (SPEC §5)."""
+    step = batch_norm(new - old, core_ndim)
+    size = batch_norm(new, core_ndim)
+    rel = float(np.max(step / np.maximum(size, np.finfo(float).tiny)))
+    return rel, bool(np.all(step <= atol + rtol * size))

@@ -1,0 +1,180 @@
+"""Fixed-point iteration (the paper's solver), optionally Anderson-accelerated, and the
+frozen-B quasi-Newton iteration of SPEC §5."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import attrs
+import numpy as np
+
+from ..algebras import Array
+from ..errors import InputError
+from .base import ImplicitProblem, SolveResult, relative_change
+
+_EPS = float(np.finfo(float).eps)
+
+
+def _positive(_inst: object, attr: attrs.Attribute, value: float) -> None:
+    if not (np.isfinite(value) and value > 0):
+        raise InputError(f"{attr.name} must be a positive finite number, got {value!r}")
+
+
+def _non_negative(_inst: object, attr: attrs.Attribute, value: float) -> None:
+    if not (np.isfinite(value) and value >= 0):
+        raise InputError(f"{attr.name} must be a non-negative finite number, got {value!r}")
+
+
+@attrs.frozen
+class StoppingRule:
+    """When an iteration has converged, stalled or diverged (SPEC §5).
+
+    Converged when ``||x_{k+1} - x_k|| <= atol + rtol ||x_{k+1}||`` for every problem in the
+    batch. The relative update ``r_k`` is monitored: if it sets no new minimum for
+    ``patience`` iterations the iteration has stopped contracting — accepted as
+    ``"roundoff"`` when the best ``r`` is below ``roundoff_floor`` (no floating-point
+    iteration can do better), reported as ``"stalled"`` otherwise. ``r_k`` exceeding
+    ``divergence_factor`` times its minimum, or a non-finite iterate, is divergence.
+    """
+
+    rtol: float = attrs.field(default=1e-14, validator=_non_negative)
+    atol: float = attrs.field(default=0.0, validator=_non_negative)
+    max_iter: int = 100
+    patience: int = 6
+    roundoff_floor: float = attrs.field(default=256 * _EPS, validator=_positive)
+    divergence_factor: float = attrs.field(default=1e4, validator=_positive)
+
+    def __attrs_post_init__(self) -> None:
+        if self.rtol == 0 and self.atol == 0:
+            raise InputError("rtol and atol cannot both be zero: the iteration could never stop")
+        if self.max_iter < 1 or self.patience < 1:
+            raise InputError("max_iter and patience must be positive integers")
+
+    def verdict(self, residuals: list[float], met: bool, finite: bool) -> str | None:
+        """``None`` to go on, else the reason to stop."""
+        if not finite:
+            return "non_finite"
+        if met:
+            return "converged"
+        r = residuals[-1]
+        best_at = int(np.argmin(residuals))
+        best = residuals[best_at]
+        if r > self.divergence_factor * best:
+            return "diverged"
+        if len(residuals) - 1 - best_at >= self.patience:
+            return "roundoff" if best <= self.roundoff_floor else "stalled"
+        if len(residuals) >= self.max_iter:
+            return "max_iterations"
+        return None
+
+
+def _anderson_step(
+    xs: list[np.ndarray], gs: list[np.ndarray], regularization: float = 1e-12
+) -> np.ndarray:
+    """Anderson (type II) update from the last iterates ``x_j`` and values ``g_j = F(x_j)``.
+
+    Minimise ``||sum_j alpha_j (g_j - x_j)||`` subject to ``sum alpha_j = 1`` via the
+    differences of residuals, and return ``sum_j alpha_j g_j``.
+    """
+    f = [g - x for g, x in zip(gs, xs)]
+    dF = np.stack([f[j + 1] - f[j] for j in range(len(f) - 1)], axis=1)
+    dG = np.stack([gs[j + 1] - gs[j] for j in range(len(gs) - 1)], axis=1)
+    # Real least squares on stacked real/imaginary parts (works for complex unknowns).
+    lhs = np.concatenate([dF.real, dF.imag]) if np.iscomplexobj(dF) else dF
+    rhs = np.concatenate([f[-1].real, f[-1].imag]) if np.iscomplexobj(dF) else f[-1]
+    scale = np.linalg.norm(lhs) + np.finfo(float).tiny
+    lhs_reg = np.vstack([lhs, regularization * scale * np.eye(lhs.shape[1])])
+    rhs_reg = np.concatenate([rhs, np.zeros(lhs.shape[1])])
+    gamma = np.linalg.lstsq(lhs_reg, rhs_reg, rcond=None)[0]
+    return gs[-1] - dG @ gamma
+
+
+@attrs.frozen
+class FixedPoint:
+    """Fixed-point iteration ``x <- F(x)`` with the stopping rule of :class:`StoppingRule`.
+
+    Parameters
+    ----------
+    rtol, atol, max_iter
+        Stopping tolerances and the iteration cap (see :class:`StoppingRule`).
+    anderson : int
+        Depth ``m`` of Anderson acceleration; 0 (default) is the plain iteration. With
+        ``m > 0`` each update mixes the last ``m + 1`` map values by a small least-squares
+        problem; iterations still count map evaluations.
+    patience, roundoff_floor, divergence_factor
+        Stagnation and divergence detection (see :class:`StoppingRule`).
+    """
+
+    rtol: float = 1e-14
+    atol: float = 0.0
+    max_iter: int = 100
+    anderson: int = attrs.field(default=0, kw_only=True)
+    patience: int = attrs.field(default=6, kw_only=True)
+    roundoff_floor: float = attrs.field(default=256 * _EPS, kw_only=True)
+    divergence_factor: float = attrs.field(default=1e4, kw_only=True)
+
+    name = "fixed_point"
+
+    def __attrs_post_init__(self) -> None:
+        if self.anderson < 0:
+            raise InputError(f"anderson depth must be >= 0, got {self.anderson}")
+        _ = self.rule  # validate now, not at the first solve
+
+    @property
+    def rule(self) -> StoppingRule:
+        """The stopping rule these options define."""
+        return StoppingRule(
+            self.rtol, self.atol, self.max_iter, self.patience, self.roundoff_floor,
+            self.divergence_factor,
+        )
+
+    def _map(self, problem: ImplicitProblem) -> Callable[[Array], Array]:
+        return problem.map
+
+    def solve(self, problem: ImplicitProblem) -> SolveResult:
+        """Iterate the scheme's map from ``problem.x0`` until the stopping rule fires."""
+        F = self._map(problem)
+        rule, core = self.rule, problem.core_ndim
+        x = problem.x0
+        residuals: list[float] = []
+        xs: list[np.ndarray] = []
+        gs: list[np.ndarray] = []
+        while True:
+            g = F(x)
+            finite = bool(np.all(np.isfinite(g)))
+            rel, met = relative_change(g, x, core, rule.atol, rule.rtol) if finite else (
+                np.inf,
+                False,
+            )
+            residuals.append(rel)
+            reason = rule.verdict(residuals, met, finite)
+            if reason is not None:
+                x_final = g if reason in ("converged", "roundoff") else x
+                return SolveResult(
+                    x_final, reason in ("converged", "roundoff"), len(residuals),
+                    tuple(residuals), reason, self.name,
+                )
+            if self.anderson:
+                xs.append(x.ravel())
+                gs.append(g.ravel())
+                del xs[: -self.anderson - 1], gs[: -self.anderson - 1]
+                x = _anderson_step(xs, gs).reshape(g.shape) if len(xs) > 1 else g
+            else:
+                x = g
+
+
+@attrs.frozen
+class FrozenB(FixedPoint):
+    """Frozen-B quasi-Newton iteration (SPEC §5): evaluate ``B`` at the current iterate, then
+    solve the equation — linear once ``B`` is fixed — exactly, e.g. for the block algorithm
+
+    .. math:: M \\leftarrow (I - hA\\mathbf B_k)^{-1} \\mathbf W_0 (I + h\\mathbf B_k A^T)^{-1}.
+
+    It converges for steps where plain fixed-point iteration diverges, at the price of
+    small dense linear solves per iteration.
+    """
+
+    name = "frozen_b"
+
+    def _map(self, problem: ImplicitProblem) -> Callable[[Array], Array]:
+        return problem.frozen_map

@@ -1,0 +1,155 @@
+"""Newton's method on ``R(x) = x - F(x)`` and the fixed-point-then-Newton fallback."""
+
+from __future__ import annotations
+
+import math
+
+import attrs
+import numpy as np
+import scipy.sparse.linalg as spla
+
+from ..algebras import Array
+from ..errors import InputError
+from .base import ImplicitProblem, Solver, SolveResult, batch_norm, relative_change
+from .fixed_point import _EPS, FixedPoint, StoppingRule
+
+
+def _to_real(x: Array, core_ndim: int) -> np.ndarray:
+    """``(batch..., core...)`` -> ``(batch_size, m)`` real; complex as [Re, Im]."""
+    core_size = math.prod(x.shape[x.ndim - core_ndim :])
+    flat = x.reshape(-1, core_size)
+    return np.concatenate([flat.real, flat.imag], axis=1) if np.iscomplexobj(x) else flat
+
+
+def _from_real(v: np.ndarray, like: Array, core_ndim: int) -> Array:
+    if np.iscomplexobj(like):
+        half = v.shape[1] // 2
+        v = v[:, :half] + 1j * v[:, half:]
+    return v.reshape(like.shape).astype(like.dtype, copy=False)
+
+
+@attrs.frozen
+class Newton:
+    """Newton's method for the scheme's equation ``R(x) = x - F(x) = 0`` (SPEC §5).
+
+    Each iteration solves ``(I - F'(x)) d = F(x) - x`` with the exact Fréchet derivative
+    supplied by the scheme (which uses the system's ``B_derivative``) and sets ``x <- x + d``.
+    The linear system is assembled densely and solved directly when a problem has at most
+    ``dense_max`` real unknowns, and solved matrix-free with GMRES otherwise
+    (``linear="dense"`` / ``"gmres"`` override the choice). GMRES uses the forcing term
+    ``min(0.1, ||R||)`` so that convergence stays quadratic. Complex unknowns are treated as
+    pairs of reals, so ``F`` need only be real-differentiable.
+
+    Stops when ``||R(x)|| <= atol + rtol ||x||``, returning ``F(x)``; ``iterations`` counts
+    linear solves. Stagnation and divergence are detected as in :class:`StoppingRule`.
+    """
+
+    rtol: float = 1e-14
+    atol: float = 0.0
+    max_iter: int = 25
+    linear: str = attrs.field(default="auto", kw_only=True)
+    dense_max: int = attrs.field(default=800, kw_only=True)
+    patience: int = attrs.field(default=3, kw_only=True)
+    roundoff_floor: float = attrs.field(default=256 * _EPS, kw_only=True)
+
+    name = "newton"
+
+    def __attrs_post_init__(self) -> None:
+        if self.linear not in ("auto", "dense", "gmres"):
+            raise InputError(f"linear must be 'auto', 'dense' or 'gmres', got {self.linear!r}")
+        _ = self.rule
+
+    @property
+    def rule(self) -> StoppingRule:
+        """The stopping rule these options define."""
+        return StoppingRule(
+            self.rtol, self.atol, self.max_iter, self.patience, self.roundoff_floor, 1e8
+        )
+
+    def solve(self, problem: ImplicitProblem) -> SolveResult:
+        """Newton iteration from ``problem.x0``."""
+        rule, core = self.rule, problem.core_ndim
+        x = problem.x0
+        residuals: list[float] = []
+        m_real = _to_real(x, core).shape[1]
+        dense = self.linear == "dense" or (self.linear == "auto" and m_real <= self.dense_max)
+        while True:
+            Fx = problem.map(x)
+            finite = bool(np.all(np.isfinite(Fx)))
+            rel, met = relative_change(Fx, x, core, rule.atol, rule.rtol) if finite else (
+                np.inf,
+                False,
+            )
+            residuals.append(rel)
+            reason = rule.verdict(residuals, met, finite)
+            if reason is not None:
+                ok = reason in ("converged", "roundoff")
+                return SolveResult(
+                    Fx if ok else x, ok, len(residuals) - 1, tuple(residuals), reason, self.name
+                )
+            rhs = Fx - x
+            d = (
+                self._dense_step(problem, x, rhs, core)
+                if dense
+                else self._gmres_step(problem, x, rhs, core, rel)
+            )
+            x = x + d
+
+    @staticmethod
+    def _dense_step(problem: ImplicitProblem, x: Array, rhs: Array, core: int) -> Array:
+        """Assemble ``I - F'(x)`` column by column (all batch members at once) and solve."""
+        r = _to_real(rhs, core)
+        batch, m = r.shape
+        J = np.empty((batch, m, m))
+        e = np.zeros((batch, m))
+        for k in range(m):
+            e[:, k] = 1.0
+            J[:, :, k] = -_to_real(problem.map_derivative(x, _from_real(e, x, core)), core)
+            e[:, k] = 0.0
+        J[:, np.arange(m), np.arange(m)] += 1.0
+        d = np.linalg.solve(J, r[..., None])[..., 0]
+        return _from_real(d, x, core)
+
+    @staticmethod
+    def _gmres_step(problem: ImplicitProblem, x: Array, rhs: Array, core: int, rel: float) -> Array:
+        """Matrix-free GMRES on ``(I - F'(x)) d = rhs`` for the whole batch at once."""
+        r = _to_real(rhs, core)
+        shape = r.shape
+
+        def apply(v: np.ndarray) -> np.ndarray:
+            dv = _from_real(v.reshape(shape), x, core)
+            return (v - _to_real(problem.map_derivative(x, dv), core).ravel())
+
+        op = spla.LinearOperator((r.size, r.size), matvec=apply, dtype=float)
+        tol = max(min(0.1, rel), 1e-15)
+        d, _info = spla.gmres(op, r.ravel(), rtol=tol, atol=0.0, restart=50, maxiter=20)
+        return _from_real(d.reshape(shape), x, core)
+
+
+@attrs.frozen
+class Auto:
+    """Fixed-point iteration first; if it stalls or diverges, Newton from the same guess.
+
+    The :class:`SolveResult` names the solver that finished the step, and ``iterations``
+    counts the updates of both.
+    """
+
+    first: Solver = attrs.field(factory=FixedPoint)
+    fallback: Solver = attrs.field(factory=Newton)
+
+    name = "auto"
+
+    def solve(self, problem: ImplicitProblem) -> SolveResult:
+        """Solve with ``first``; on failure, solve again with ``fallback``."""
+        res = self.first.solve(problem)
+        if res.converged:
+            return res
+        res2 = self.fallback.solve(problem)
+        return attrs.evolve(
+            res2,
+            iterations=res.iterations + res2.iterations,
+            residuals=res.residuals + res2.residuals,
+        )
+
+
+__all__ = ["Auto", "Newton", "batch_norm"]

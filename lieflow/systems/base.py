@@ -1,0 +1,96 @@
+"""The abstract isospectral Lie–Poisson system ``dW/dt = [B(W), W]`` (SPEC §1, §3)."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import ClassVar
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from ..algebras import Array, LieAlgebra, frobenius_norm
+from ..errors import LieflowError
+
+
+class IsospectralSystem(ABC):
+    """An isospectral Lie–Poisson system ``dW/dt = [B(W), W]`` on a matrix Lie algebra.
+
+    ``B(W) = (grad eta(W))^†`` for the Hamiltonian ``eta`` (SPEC §1). To add a system,
+    subclass and provide :attr:`algebra` (a class attribute, property or attrs field),
+    :meth:`B` and :meth:`hamiltonian`::
+
+        class Euler3(IsospectralSystem):
+            algebra = lieflow.algebras.SO(3)
+            linear_B = True
+            def B(self, W): return -W * weights
+            def hamiltonian(self, W): return 0.5 * np.sum(W * W * weights, axis=(-2, -1))
+
+    Every method must broadcast over leading axes: ``W`` has shape ``(..., n, n)``.
+
+    Attributes
+    ----------
+    linear_B : bool
+        Whether ``B`` is linear. Then its derivative is ``B`` itself and Newton needs
+        nothing more; a nonlinear ``B`` should override :meth:`B_derivative`.
+    casimir_powers : tuple of int
+        The ``k`` in the default Casimirs ``tr W^k`` (capped at ``n``).
+    """
+
+    linear_B: ClassVar[bool] = False
+    casimir_powers: ClassVar[tuple[int, ...]] = (2, 3, 4)
+
+    @property
+    @abstractmethod
+    def algebra(self) -> LieAlgebra:
+        """The Lie algebra ``W`` lives in."""
+
+    @abstractmethod
+    def B(self, W: Array) -> Array:
+        """The map ``B(W) = (grad eta(W))^†`` (one call per stage and iteration)."""
+
+    @abstractmethod
+    def hamiltonian(self, W: Array) -> Array:
+        """The Hamiltonian ``eta(W)``, shape ``W.shape[:-2]``."""
+
+    @property
+    def name(self) -> str:
+        """A short human-readable name."""
+        return type(self).__name__
+
+    def B_derivative(self, W: Array, dW: Array) -> Array:
+        """Fréchet derivative ``B'(W)[dW]``; needed by Newton's method (SPEC §5).
+
+        The default is ``B(dW)`` for a linear ``B``; a nonlinear ``B`` must override it.
+        """
+        if self.linear_B:
+            return self.B(dW)
+        raise LieflowError(
+            f"{self.name} has a nonlinear B but does not implement B_derivative(W, dW); "
+            "implement it to use Newton's method, or use FixedPoint or FrozenB"
+        )
+
+    def casimirs(self, W: Array) -> Array:
+        """Casimirs ``Re tr W^k`` for ``k`` in :attr:`casimir_powers`, last axis indexes k."""
+        powers = [k for k in self.casimir_powers if k <= self.algebra.n]
+        out = []
+        P = W
+        for k in range(2, max(powers, default=1) + 1):
+            P = P @ W
+            if k in powers:
+                out.append(np.real(np.trace(P, axis1=-2, axis2=-1)))
+        if 1 in powers:
+            out.insert(0, np.real(np.trace(W, axis1=-2, axis2=-1)))
+        return np.stack(out, axis=-1) if out else np.zeros(W.shape[:-2] + (0,))
+
+    def validate(self, W0: ArrayLike, tol: float = 1e-12) -> Array:
+        """Check an initial condition and return it as a fresh array (raises InputError)."""
+        return self.algebra.validate(W0, name="W0", tol=tol)
+
+    def casimir_scale(self, W0: Array) -> Array:
+        """``||W0||_F^k`` for each Casimir ``tr W^k``: divides Casimir drift to make it
+        dimensionless (``tr W^3`` of an so(n) matrix is zero, so no relative error exists)."""
+        powers = np.array([k for k in self.casimir_powers if k <= self.algebra.n])
+        return np.maximum(frobenius_norm(W0)[..., None] ** powers, 1e-300)
+
+    def __repr__(self) -> str:
+        return f"{self.name}(algebra={self.algebra})"

@@ -1,0 +1,112 @@
+"""Rigid bodies: the free rigid body on so(3) and Manakov's generalized rigid body on so(n)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import attrs
+import numpy as np
+
+from ..algebras import SO, Array
+from ..errors import InputError
+from .base import IsospectralSystem
+
+
+def _positive_vector(values: Sequence[float], what: str) -> np.ndarray:
+    arr = np.asarray(values, dtype=float)
+    if arr.ndim != 1 or arr.size < 2 or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+        raise InputError(f"{what} must be a 1-D sequence of positive finite numbers, got {values!r}")
+    return arr
+
+
+@attrs.frozen(eq=False)
+class GeneralizedRigidBody(IsospectralSystem):
+    r"""Manakov's generalized rigid body on so(n) (SPEC §3).
+
+    Inertia map :math:`\mathcal I(\Omega) = J\Omega + \Omega J`, ``J = diag(J_1..J_n) > 0``, so
+
+    .. math:: B(W) = -\mathcal I^{-1} W,\qquad (\mathcal I^{-1}W)_{ij} = W_{ij}/(J_i + J_j),
+
+    and :math:`\eta(W) = \tfrac12 \sum_{ij} W_{ij}^2 / (J_i + J_j)`. Casimirs ``tr W^{2k}``.
+    """
+
+    J: np.ndarray = attrs.field(converter=lambda v: _positive_vector(v, "J"))
+    weights: np.ndarray = attrs.field(init=False)
+    linear_B = True
+    casimir_powers = (2, 4, 6)
+
+    @weights.default
+    def _weights(self) -> np.ndarray:
+        return 1.0 / (self.J[:, None] + self.J[None, :])
+
+    @property
+    def algebra(self) -> SO:
+        return SO(self.J.size)
+
+    def B(self, W: Array) -> Array:
+        return -W * self.weights
+
+    def hamiltonian(self, W: Array) -> Array:
+        return 0.5 * np.sum(W * W * self.weights, axis=(-2, -1))
+
+    @classmethod
+    def random_inertia(cls, n: int, seed: int | None = None) -> GeneralizedRigidBody:
+        """A generalized rigid body with ``J_i`` drawn uniformly from [1, 2) (seeded)."""
+        return cls(np.random.default_rng(seed).uniform(1.0, 2.0, size=n))
+
+
+@attrs.frozen(eq=False)
+class RigidBody(IsospectralSystem):
+    r"""The free rigid body on so(3) with principal moments of inertia ``I_1, I_2, I_3``.
+
+    ``W = hat(m)``, ``omega_i = m_i / I_i``, ``B(W) = -hat(omega)`` (the paper's
+    :math:`B(W) = -\mathcal I^{-1} W`) and :math:`\eta = m\cdot\omega` (SPEC §3). Entry
+    ``(i, j)`` of ``hat(m)`` carries ``m_k`` for the index ``k`` not in ``{i, j}``, so
+    ``B(W)_{ij} = -W_{ij} / I_k``.
+    """
+
+    inertia: np.ndarray = attrs.field(
+        default=(1.0, 2.0, 3.0), converter=lambda v: _positive_vector(v, "inertia")
+    )
+    weights: np.ndarray = attrs.field(init=False)
+    linear_B = True
+    casimir_powers = (2,)
+
+    @inertia.validator
+    def _three(self, _attr: object, value: np.ndarray) -> None:
+        if value.size != 3:
+            raise InputError(f"inertia needs 3 principal moments, got {value.size}")
+
+    @weights.default
+    def _weights(self) -> np.ndarray:
+        inv = 1.0 / self.inertia
+        w = np.zeros((3, 3))
+        for i, j, k in ((0, 1, 2), (1, 2, 0), (0, 2, 1)):
+            w[i, j] = w[j, i] = inv[k]
+        return w
+
+    @property
+    def algebra(self) -> SO:
+        return SO(3)
+
+    def B(self, W: Array) -> Array:
+        return -W * self.weights
+
+    def hamiltonian(self, W: Array) -> Array:
+        return 0.5 * np.sum(W * W * self.weights, axis=(-2, -1))
+
+
+def hat(m: Array) -> Array:
+    """The so(3) matrix of a vector: ``hat(m) x = m × x`` (broadcasts over leading axes)."""
+    m = np.asarray(m)
+    out = np.zeros((*m.shape[:-1], 3, 3), dtype=m.dtype)
+    out[..., 0, 1], out[..., 0, 2] = -m[..., 2], m[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = m[..., 2], -m[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -m[..., 1], m[..., 0]
+    return out
+
+
+def vee(W: Array) -> Array:
+    """Inverse of :func:`hat`."""
+    W = np.asarray(W)
+    return np.stack([W[..., 2, 1], W[..., 0, 2], W[..., 1, 0]], axis=-1)

@@ -1,0 +1,234 @@
+"""Butcher tableaus: an immutable value object, Gauss–Legendre of any order, compositions.
+
+Coefficients that are irrational (Gauss nodes, composition weights) are computed in 50-digit
+decimal arithmetic and rounded once to float64 (GeometricIntegrators.jl does the same).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from decimal import Decimal, localcontext
+from fractions import Fraction
+
+import attrs
+import numpy as np
+
+from .errors import TableauError
+
+_DIGITS = 50
+
+
+def _frozen_array(value: object) -> np.ndarray:
+    arr = np.array(value, dtype=float)
+    arr.setflags(write=False)
+    return arr
+
+
+@attrs.frozen(eq=False)
+class ButcherTableau:
+    """An s-stage Runge–Kutta tableau ``(A, b, c)`` with its classical order.
+
+    The arrays are read-only. ``c`` defaults to the row sums of ``A``.
+    """
+
+    A: np.ndarray = attrs.field(converter=_frozen_array)
+    b: np.ndarray = attrs.field(converter=_frozen_array)
+    order: int
+    name: str
+    c: np.ndarray = attrs.field(converter=_frozen_array)
+
+    @c.default
+    def _row_sums(self) -> np.ndarray:
+        return np.asarray(self.A).sum(axis=1)
+
+    def __attrs_post_init__(self) -> None:
+        A, b, c = self.A, self.b, self.c
+        s = b.shape[0] if b.ndim == 1 else -1
+        if A.ndim != 2 or A.shape != (s, s) or c.shape != (s,):
+            raise TableauError(
+                f"tableau {self.name!r}: A must be s×s and b, c of length s; got "
+                f"A {A.shape}, b {b.shape}, c {c.shape}"
+            )
+        if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b)) and np.all(np.isfinite(c))):
+            raise TableauError(f"tableau {self.name!r} has non-finite coefficients")
+        if abs(b.sum() - 1.0) > 1e-12:
+            raise TableauError(
+                f"tableau {self.name!r} is not consistent: sum(b) = {b.sum():.16g} != 1"
+            )
+
+    @property
+    def stages(self) -> int:
+        """Number of stages ``s``."""
+        return int(self.b.shape[0])
+
+    def symplecticity_defect(self) -> float:
+        """``max_ij |b_i a_ij + b_j a_ji - b_i b_j|`` (zero for symplectic tableaus)."""
+        b, A = self.b, self.A
+        M = b[:, None] * A + (b[:, None] * A).T - np.outer(b, b)
+        return float(np.max(np.abs(M)))
+
+    def is_symplectic(self, tol: float = 1e-14) -> bool:
+        """Whether ``b_i a_ij + b_j a_ji = b_i b_j`` for all ``i, j`` (SPEC §4)."""
+        return self.symplecticity_defect() <= tol
+
+    def require_symplectic(self, tol: float = 1e-14) -> ButcherTableau:
+        """Return ``self`` or raise :class:`TableauError` if the tableau is not symplectic."""
+        if not self.is_symplectic(tol):
+            raise TableauError(
+                f"tableau {self.name!r} is not symplectic (max |b_i a_ij + b_j a_ji - b_i b_j|"
+                f" = {self.symplecticity_defect():.2e}); its isospectral descent would be "
+                "wrong. Use a symplectic tableau: Gauss–Legendre (lieflow.tableaus.gauss) or "
+                "a composition of midpoint steps (lieflow.tableaus.composition)"
+            )
+        return self
+
+    @property
+    def spectral_radius(self) -> float:
+        """``rho(A)``; the fixed-point contraction rate scales with ``h rho(A)`` (SPEC §5)."""
+        return float(np.max(np.abs(np.linalg.eigvals(self.A))))
+
+    @property
+    def is_diagonally_implicit(self) -> bool:
+        """Whether ``A`` is lower triangular."""
+        return bool(np.all(np.triu(self.A, 1) == 0))
+
+
+# --- Gauss–Legendre --------------------------------------------------------------------------
+
+
+def _legendre_roots(s: int) -> list[Decimal]:
+    """Roots of the shifted Legendre polynomial ``P_s(2x - 1)`` on (0, 1), ascending."""
+
+    def p_and_dp(x: Decimal) -> tuple[Decimal, Decimal]:
+        # Bonnet recurrence for P_k(t), t = 2x - 1, and the derivative in x.
+        t = 2 * x - 1
+        p_prev, p = Decimal(1), t
+        for k in range(1, s):
+            p_prev, p = p, ((2 * k + 1) * t * p - k * p_prev) / (k + 1)
+        dp_dt = s * (t * p - p_prev) / (t * t - 1)
+        return p, 2 * dp_dt
+
+    roots = []
+    for i in range(1, s + 1):
+        # Chebyshev-like initial guess, then Newton in 50-digit arithmetic.
+        guess = (1 - np.cos(np.pi * (i - 0.25) / (s + 0.5))) / 2
+        x = Decimal(repr(float(guess)))
+        for _ in range(100):
+            p, dp = p_and_dp(x)
+            dx = p / dp
+            x -= dx
+            if abs(dx) < Decimal(10) ** (-_DIGITS + 5):
+                break
+        roots.append(x)
+    return sorted(roots)
+
+
+def _poly_mul_linear(coeffs: list[Decimal], root: Decimal) -> list[Decimal]:
+    """Multiply a polynomial (ascending coefficients) by ``(x - root)``."""
+    out = [Decimal(0)] * (len(coeffs) + 1)
+    for k, a in enumerate(coeffs):
+        out[k + 1] += a
+        out[k] -= root * a
+    return out
+
+
+def _integral(coeffs: list[Decimal], upper: Decimal) -> Decimal:
+    return sum((a * upper ** (k + 1) / (k + 1) for k, a in enumerate(coeffs)), Decimal(0))
+
+
+def gauss(s: int) -> ButcherTableau:
+    r"""The s-stage Gauss–Legendre collocation tableau, order ``2s`` (SPEC §4.6).
+
+    Nodes ``c_i`` are the roots of the shifted Legendre polynomial; with Lagrange basis
+    :math:`\ell_j` on the nodes, :math:`a_{ij} = \int_0^{c_i} \ell_j`, :math:`b_j = \int_0^1 \ell_j`.
+    """
+    if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 1:
+        raise TableauError(f"Gauss–Legendre needs a positive integer number of stages, got {s!r}")
+    s = int(s)
+    with localcontext() as ctx:
+        ctx.prec = _DIGITS
+        c = _legendre_roots(s)
+        A = [[Decimal(0)] * s for _ in range(s)]
+        b = [Decimal(0)] * s
+        for j in range(s):
+            basis = [Decimal(1)]
+            denom = Decimal(1)
+            for m in range(s):
+                if m != j:
+                    basis = _poly_mul_linear(basis, c[m])
+                    denom *= c[j] - c[m]
+            basis = [a / denom for a in basis]
+            b[j] = _integral(basis, Decimal(1))
+            for i in range(s):
+                A[i][j] = _integral(basis, c[i])
+        return ButcherTableau(
+            A=[[float(a) for a in row] for row in A],
+            b=[float(x) for x in b],
+            c=[float(x) for x in c],
+            order=2 * s,
+            name=f"gauss{s}",
+        )
+
+
+# --- compositions of the midpoint rule (symplectic DIRK) -------------------------------------
+
+
+def composition(weights: Sequence[float], order: int, name: str) -> ButcherTableau:
+    """The symplectic DIRK tableau of a composition of midpoint steps (SPEC §4.2).
+
+    A step of size ``h`` is midpoint steps of sizes ``b_1 h, ..., b_s h``; the tableau has
+    ``a_ij = b_j`` for ``j < i`` and ``a_ii = b_i / 2``.
+    """
+    b = np.asarray(weights, dtype=float)
+    if b.ndim != 1 or b.size < 1:
+        raise TableauError(f"composition weights must be a non-empty 1-D sequence, got {weights!r}")
+    A = np.tril(np.broadcast_to(b, (b.size, b.size)), -1) + np.diag(b / 2)
+    return ButcherTableau(A=A, b=b, order=order, name=name)
+
+
+def _decimal_root(x: int, k: int) -> Decimal:
+    return Decimal(x) ** (Decimal(1) / Decimal(k))
+
+
+def triple_jump() -> ButcherTableau:
+    """Triple jump, order 4: ``b = (x, 1 - 2x, x)``, ``x = 1 / (2 - 2^{1/3})``."""
+    with localcontext() as ctx:
+        ctx.prec = _DIGITS
+        x = 1 / (2 - _decimal_root(2, 3))
+        return composition([float(x), float(1 - 2 * x), float(x)], 4, "triple_jump")
+
+
+def suzuki5() -> ButcherTableau:
+    """Suzuki's 5-stage composition, order 4: ``b = (p, p, 1-4p, p, p)``, ``p = 1/(4 - 4^{1/3})``."""
+    with localcontext() as ctx:
+        ctx.prec = _DIGITS
+        p = 1 / (4 - _decimal_root(4, 3))
+        q = float(1 - 4 * p)
+        return composition([float(p), float(p), q, float(p), float(p)], 4, "suzuki5")
+
+
+def yoshida6() -> ButcherTableau:
+    """Yoshida's 7-stage order-6 composition (solution A), the paper's 7s-SyDIRK (SPEC §4.2)."""
+    with localcontext() as ctx:
+        ctx.prec = _DIGITS
+        w1 = Decimal("-1.17767998417887100694641568096")
+        w2 = Decimal("0.235573213359358133684793182979")
+        w3 = Decimal("0.784513610477557263819497633866")
+        w0 = 1 - 2 * (w1 + w2 + w3)
+        w = [w3, w2, w1, w0, w1, w2, w3]
+        return composition([float(x) for x in w], 6, "sydirk7")
+
+
+def midpoint() -> ButcherTableau:
+    """The implicit midpoint rule, ``A = [1/2]``, ``b = [1]``, order 2."""
+    return composition([1.0], 2, "midpoint")
+
+
+def radau_iia2() -> ButcherTableau:
+    """Radau IIA with 2 stages (order 3): *not* symplectic; kept as a negative example."""
+    return ButcherTableau(
+        A=[[float(Fraction(5, 12)), float(Fraction(-1, 12))], [0.75, 0.25]],
+        b=[0.75, 0.25],
+        order=3,
+        name="radau_iia2",
+    )
