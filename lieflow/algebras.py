@@ -9,7 +9,7 @@ stack of shape ``(..., n, n)`` is a stack of algebra elements.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import attrs
 import numpy as np
@@ -17,7 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .errors import AlgebraError, InputError
 
-Array = NDArray[np.generic]
+Array = NDArray[Any]
 
 
 def dagger(X: Array) -> Array:
@@ -103,9 +103,7 @@ class LieAlgebra(ABC):
             )
         if arr.dtype.kind == "c" and self.dtype.kind != "c":
             if np.any(arr.imag != 0):
-                raise InputError(
-                    f"{name} is complex but {self} is a real algebra; pass real data"
-                )
+                raise InputError(f"{name} is complex but {self} is a real algebra; pass real data")
             arr = arr.real
         if not np.all(np.isfinite(arr)):
             raise InputError(f"{name} contains NaN or Inf entries; pass finite values")

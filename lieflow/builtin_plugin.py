@@ -45,7 +45,7 @@ def lieflow_register(registry: RegistryBuilder) -> None:
     for s in (2, 3, 4):
         registry.add_scheme(
             f"gauss{s}",
-            lambda s=s, form="reduced": gauss_scheme(s, form),  # type: ignore[misc]
+            lambda s=s, form="reduced": gauss_scheme(s, form),
             f"{s}-stage Gauss–Legendre (block algorithm), order {2 * s}",
         )
     registry.add_scheme("block", BlockGauss, "block algorithm for any symplectic `tableau`")

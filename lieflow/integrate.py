@@ -88,8 +88,12 @@ def iterate(
             raise exc.at(k + 1, k * h) from exc
         if not np.all(np.isfinite(res.W)):
             raise ConvergenceError(
-                "non_finite", solver=res.solver, iterations=res.iterations,
-                residuals=(res.residual,), step=k + 1, t=k * h,
+                "non_finite",
+                solver=res.solver,
+                iterations=res.iterations,
+                residuals=(res.residual,),
+                step=k + 1,
+                t=k * h,
             )
         k += 1
         W, warm = res.W, res.warm
@@ -160,7 +164,11 @@ def integrate(
     _check_types(system, scheme, solver)
     h = check_step_size(h)
     n_steps = _resolve_steps(h, steps, t_final)
-    if isinstance(save_every, bool) or not isinstance(save_every, (int, np.integer)) or save_every < 1:
+    if (
+        isinstance(save_every, bool)
+        or not isinstance(save_every, (int, np.integer))
+        or save_every < 1
+    ):
         raise InputError(f"save_every must be a positive integer, got {save_every!r}")
     if on_failure not in ("raise", "truncate"):
         raise InputError(f"on_failure must be 'raise' or 'truncate', got {on_failure!r}")
@@ -243,7 +251,9 @@ class _Progress:
         )
 
         self._p = Progress(
-            TextColumn("[bold]integrating"), BarColumn(), MofNCompleteColumn(),
+            TextColumn("[bold]integrating"),
+            BarColumn(),
+            MofNCompleteColumn(),
             TextColumn("{task.fields[rate]} steps/s, {task.fields[its]} it/step"),
             TimeRemainingColumn(),
         )
@@ -258,7 +268,10 @@ class _Progress:
         self._its += iterations
         elapsed = max(time.perf_counter() - self._start, 1e-9)
         self._p.update(
-            self._task, advance=1, rate=f"{self._n / elapsed:,.0f}", its=f"{self._its / self._n:.1f}"
+            self._task,
+            advance=1,
+            rate=f"{self._n / elapsed:,.0f}",
+            its=f"{self._its / self._n:.1f}",
         )
 
     def close(self) -> None:

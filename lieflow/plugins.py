@@ -105,8 +105,10 @@ def _check_kind(kind: Kind, obj: Any) -> str | None:
     from .systems.base import IsospectralSystem
 
     expected: type = {"system": IsospectralSystem, "scheme": Scheme, "solver": Solver}[kind]
-    return None if isinstance(obj, expected) else (
-        f"its factory made a {type(obj).__name__}, not a {expected.__name__}"
+    return (
+        None
+        if isinstance(obj, expected)
+        else (f"its factory made a {type(obj).__name__}, not a {expected.__name__}")
     )
 
 
@@ -154,7 +156,8 @@ class RegistryBuilder:
         except (TypeError, ValueError):
             return
         required = [
-            p for p in params
+            p
+            for p in params
             if p.default is p.empty and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
         ]
         if required:
@@ -162,7 +165,9 @@ class RegistryBuilder:
         try:
             obj = factory()
         except Exception as exc:
-            raise PluginError(f"{kind} {name!r} cannot be created with its defaults: {exc}") from exc
+            raise PluginError(
+                f"{kind} {name!r} cannot be created with its defaults: {exc}"
+            ) from exc
         problem = _check_kind(kind, obj)
         if problem:
             raise PluginError(f"{kind} {name!r} is invalid: {problem}")
@@ -189,7 +194,7 @@ class Registry:
         """The entries of one kind."""
         if kind not in KINDS:
             raise RegistryError(f"unknown kind {kind!r}; use one of {KINDS}")
-        return getattr(self, f"{kind}s")  # type: ignore[no-any-return]
+        return getattr(self, f"{kind}s")
 
     def entry(self, kind: Kind, name: str) -> Entry:
         """Look a name up, or raise :class:`RegistryError` listing the known names."""
@@ -215,6 +220,10 @@ def _plugin_entry_points(autoload: bool) -> list[md.EntryPoint]:
     # one distribution can appear twice on sys.path (e.g. an editable and a regular install)
     unique = {(_dist_name(ep), ep.name, ep.value): ep for ep in eps}
     return sorted(unique.values(), key=lambda ep: (_dist_name(ep) != PROJECT, ep.name))
+
+
+def _constant(obj: object) -> Callable[[], object]:
+    return lambda: obj
 
 
 def _dist_name(ep: md.EntryPoint) -> str:
@@ -253,7 +262,7 @@ def load_registry(
         (f"entry point {ep.name!r} of distribution {_dist_name(ep)!r}", ep.load)
         for ep in _plugin_entry_points(autoload)
     ]
-    candidates += [(f"plugin {name!r}", lambda obj=obj: obj) for name, obj in plugins]
+    candidates += [(f"plugin {name!r}", _constant(obj)) for name, obj in plugins]
     for label, load in candidates:
         builder._source = label
         plugin: object | None = None

@@ -139,8 +139,9 @@ def _integral(coeffs: list[Decimal], upper: Decimal) -> Decimal:
 def gauss(s: int) -> ButcherTableau:
     r"""The s-stage Gauss–Legendre collocation tableau, order ``2s`` (SPEC §4.6).
 
-    Nodes ``c_i`` are the roots of the shifted Legendre polynomial; with Lagrange basis
-    :math:`\ell_j` on the nodes, :math:`a_{ij} = \int_0^{c_i} \ell_j`, :math:`b_j = \int_0^1 \ell_j`.
+    Nodes ``c_i`` are the roots of the shifted Legendre polynomial; with the Lagrange
+    basis :math:`\ell_j` on the nodes, :math:`a_{ij} = \int_0^{c_i} \ell_j` and
+    :math:`b_j = \int_0^1 \ell_j`.
     """
     if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 1:
         raise TableauError(f"Gauss–Legendre needs a positive integer number of stages, got {s!r}")
@@ -199,7 +200,10 @@ def triple_jump() -> ButcherTableau:
 
 
 def suzuki5() -> ButcherTableau:
-    """Suzuki's 5-stage composition, order 4: ``b = (p, p, 1-4p, p, p)``, ``p = 1/(4 - 4^{1/3})``."""
+    """Suzuki's 5-stage composition, order 4.
+
+    ``b = (p, p, 1 - 4p, p, p)`` with ``p = 1 / (4 - 4^{1/3})``.
+    """
     with localcontext() as ctx:
         ctx.prec = _DIGITS
         p = 1 / (4 - _decimal_root(4, 3))

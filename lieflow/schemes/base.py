@@ -93,6 +93,16 @@ def commutator_update(system: IsospectralSystem, W0: Array, stages: Array, hb: A
     return W0 + np.einsum("i,...iab->...ab", hb, BW - WB)
 
 
+def symplectic(tableau: ButcherTableau) -> ButcherTableau:
+    """attrs converter: the tableau itself, after checking it is symplectic."""
+    return tableau.require_symplectic()
+
+
+def solve_right(rhs: Array, mat: Array) -> Array:
+    """``rhs mat^{-1}`` (batched), as a solve with the transposed matrix."""
+    return np.swapaxes(np.linalg.solve(np.swapaxes(mat, -1, -2), np.swapaxes(rhs, -1, -2)), -1, -2)
+
+
 def right_product(BM: Array, M: Array, B: Array, skew: bool) -> Array:
     """``M B``, computed as ``(B M)^†`` without a product when ``M`` and ``B`` are skew."""
     return dagger(BM) if skew else M @ B

@@ -13,7 +13,7 @@ from ..algebras import Array, dagger
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau, gauss
-from .base import Scheme, StepResult, commutator_update, solve
+from .base import Scheme, StepResult, commutator_update, solve, solve_right, symplectic
 
 
 def blocks_to_dense(X: Array) -> Array:
@@ -110,13 +110,9 @@ class BlockProblem:
         eye = np.eye(s * n, dtype=B.dtype)
         AB = _block_coefficient_matrix(self.A, B[..., None, :, :, :])  # blocks a_ik B_k
         BAt = _block_coefficient_matrix(self.A.T, B[..., :, None, :, :])  # blocks B_k a_lk
-        W0b = np.broadcast_to(
-            self.W0[..., None, None, :, :], (*self.W0.shape[:-2], s, s, n, n)
-        )
+        W0b = np.broadcast_to(self.W0[..., None, None, :, :], (*self.W0.shape[:-2], s, s, n, n))
         left = np.linalg.solve(eye - self.h * AB, blocks_to_dense(W0b))
-        right = np.swapaxes(eye + self.h * BAt, -1, -2)
-        X = np.swapaxes(np.linalg.solve(right, np.swapaxes(left, -1, -2)), -1, -2)
-        return dense_to_blocks(X, s)
+        return dense_to_blocks(solve_right(left, eye + self.h * BAt), s)
 
     def update(self, M: Array) -> Array:
         """``W1 = W0 + h sum_i b_i [B(M_ii), M_ii]``."""
@@ -168,7 +164,7 @@ class ReducedProblem:
     def _Bdag(self, B: Array) -> Array:
         return -B if self.skew else dagger(B)
 
-    def _assemble(self, GB: Array, PB: Array, constant: Array) -> Array:
+    def _assemble(self, GB: Array, PB: Array, constant: Array | float) -> Array:
         hA = self.h * self.A
         out = np.einsum("ij,...xjab->...xiab", hA, np.stack([GB, -PB], axis=-4))
         return out + constant
@@ -200,8 +196,8 @@ class ReducedProblem:
         CG = _block_coefficient_matrix(At, Bdag[..., :, None, :, :])
         CP = _block_coefficient_matrix(At, B[..., :, None, :, :])
         rows = np.swapaxes(self.trivial, -3, -2).reshape(*self.trivial.shape[:-3], n, s * n)
-        G = _solve_right(rows[..., 0, :, :], eye - self.h * CG)
-        P = _solve_right(rows[..., 1, :, :], eye + self.h * CP)
+        G = solve_right(rows[..., 0, :, :], eye - self.h * CG)
+        P = solve_right(rows[..., 1, :, :], eye + self.h * CP)
         out = np.stack([G, P], axis=-3).reshape(*G.shape[:-2], 2, n, s, n)
         return np.swapaxes(out, -3, -2)
 
@@ -214,11 +210,8 @@ class ReducedProblem:
         return x - self.trivial
 
 
-def _solve_right(rhs: Array, mat: Array) -> Array:
-    """``rhs mat^{-1}`` via a solve with the transposed matrix."""
-    return np.swapaxes(
-        np.linalg.solve(np.swapaxes(mat, -1, -2), np.swapaxes(rhs, -1, -2)), -1, -2
-    )
+def _gauss2() -> ButcherTableau:
+    return gauss(2)
 
 
 @attrs.frozen
@@ -236,9 +229,7 @@ class BlockGauss(Scheme):
         and give the same ``W1`` to roundoff.
     """
 
-    tableau: ButcherTableau = attrs.field(
-        factory=lambda: gauss(2), converter=lambda t: t.require_symplectic()
-    )
+    tableau: ButcherTableau = attrs.field(factory=_gauss2, converter=symplectic)
     form: Literal["reduced", "block"] = attrs.field(
         default="reduced", validator=attrs.validators.in_(("reduced", "block"))
     )
@@ -259,6 +250,9 @@ class BlockGauss(Scheme):
         problem = cls(system, W0, h, self.tableau, warm)
         res = solve(solver, problem)
         return StepResult(
-            problem.update(res.x), problem.offsets(res.x), res.iterations, res.solver,
+            problem.update(res.x),
+            problem.offsets(res.x),
+            res.iterations,
+            res.solver,
             res.residuals[-1],
         )

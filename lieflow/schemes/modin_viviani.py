@@ -8,9 +8,9 @@ import numpy as np
 from ..algebras import Array
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
-from ..tableaus import ButcherTableau, gauss
-from .base import Scheme, StepResult, commutator_update, solve
-from .block import _block_coefficient_matrix
+from ..tableaus import ButcherTableau
+from .base import Scheme, StepResult, commutator_update, solve, solve_right, symplectic
+from .block import _block_coefficient_matrix, _gauss2
 
 
 class ModinVivianiProblem:
@@ -66,8 +66,15 @@ class ModinVivianiProblem:
         return np.asarray(W0)[..., None, :, :] + XY + AK if np.ndim(W0) else XY + AK
 
     def _rhs(
-        self, X: Array, Y: Array, K: Array, B: Array, dB: Array | None = None,
-        dX: Array | None = None, dY: Array | None = None, dK: Array | None = None,
+        self,
+        X: Array,
+        Y: Array,
+        K: Array,
+        B: Array,
+        dB: Array | None = None,
+        dX: Array | None = None,
+        dY: Array | None = None,
+        dK: Array | None = None,
     ) -> Array:
         """The map, or (with the d-arguments) its derivative, which is linear in them."""
         A, h = self.A, self.h
@@ -117,11 +124,7 @@ class ModinVivianiProblem:
         C = _block_coefficient_matrix(A.T, B[..., None, :, :, :])
         R = -h * (W0[..., None, :, :] @ B)
         Rrow = np.swapaxes(R, -3, -2).reshape(*batch, n, s * n)
-        Xrow = np.swapaxes(
-            np.linalg.solve(
-                np.swapaxes(eye + h * C, -1, -2), np.swapaxes(Rrow, -1, -2)
-            ), -1, -2,
-        )
+        Xrow = solve_right(Rrow, eye + h * C)
         X = np.swapaxes(Xrow.reshape(*batch, n, s, n), -3, -2)
         # Y and all K_i: column blocks sharing the matrix I - h B A, blocks (i, j) = B_i a_ij
         D = _block_coefficient_matrix(A, B[..., :, None, :, :])
@@ -146,9 +149,7 @@ class ModinViviani(Scheme):
     Kept as the reference formulation: the block algorithm must reproduce it to roundoff.
     """
 
-    tableau: ButcherTableau = attrs.field(
-        factory=lambda: gauss(2), converter=lambda t: t.require_symplectic()
-    )
+    tableau: ButcherTableau = attrs.field(factory=_gauss2, converter=symplectic)
 
     @property
     def name(self) -> str:

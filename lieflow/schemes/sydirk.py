@@ -10,7 +10,7 @@ from ..errors import TableauError
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau, midpoint
-from .base import Scheme, StepResult, commutator_update, right_product, solve
+from .base import Scheme, StepResult, commutator_update, right_product, solve, solve_right
 
 
 class MidpointProblem:
@@ -54,13 +54,13 @@ class MidpointProblem:
         B = self.system.B(M)
         eye = np.eye(B.shape[-1], dtype=B.dtype)
         left = np.linalg.solve(eye - self.half * B, self.W0)
-        # left (I + h/2 B)^{-1}, as a solve with the transposed matrix
-        right = np.swapaxes(eye + self.half * B, -1, -2)
-        return np.swapaxes(np.linalg.solve(right, np.swapaxes(left, -1, -2)), -1, -2)
+        return solve_right(left, eye + self.half * B)
 
     def update(self, M: Array) -> Array:
         """``W1 = W0 + h [B(M), M]``."""
-        return commutator_update(self.system, self.W0, M[..., None, :, :], np.array([2 * self.half]))
+        return commutator_update(
+            self.system, self.W0, M[..., None, :, :], np.array([2 * self.half])
+        )
 
 
 def _composition_tableau(tableau: ButcherTableau) -> ButcherTableau:
@@ -98,11 +98,11 @@ class SyDIRK(Scheme):
         offsets = []
         iterations = 0
         for i, bi in enumerate(self.tableau.b):
-            problem = MidpointProblem(system, W, bi * h, None if warm is None else warm[..., i, :, :])
+            problem = MidpointProblem(
+                system, W, bi * h, None if warm is None else warm[..., i, :, :]
+            )
             res = solve(solver, problem)
             iterations += res.iterations
             offsets.append(res.x - W)
             W = problem.update(res.x)
-        return StepResult(
-            W, np.stack(offsets, axis=-3), iterations, res.solver, res.residuals[-1]
-        )
+        return StepResult(W, np.stack(offsets, axis=-3), iterations, res.solver, res.residuals[-1])

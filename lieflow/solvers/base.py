@@ -95,9 +95,9 @@ def batch_norm(x: Array, core_ndim: int) -> Array:
     return np.sqrt(np.sum(x * x, axis=axes))
 
 
-def relative_change(new: Array, old: Array, core_ndim: int, atol: float, rtol: float) -> tuple[
-    float, bool
-]:
+def relative_change(
+    new: Array, old: Array, core_ndim: int, atol: float, rtol: float
+) -> tuple[float, bool]:
     """``max ||new - old|| / ||new||`` over the batch, and whether every member meets
     ``||new - old|| <= atol + rtol ||new||`` (SPEC §5)."""
     step = batch_norm(new - old, core_ndim)

@@ -76,7 +76,7 @@ def _anderson_step(
     Minimise ``||sum_j alpha_j (g_j - x_j)||`` subject to ``sum alpha_j = 1`` via the
     differences of residuals, and return ``sum_j alpha_j g_j``.
     """
-    f = [g - x for g, x in zip(gs, xs)]
+    f = [g - x for g, x in zip(gs, xs, strict=False)]
     dF = np.stack([f[j + 1] - f[j] for j in range(len(f) - 1)], axis=1)
     dG = np.stack([gs[j + 1] - gs[j] for j in range(len(gs) - 1)], axis=1)
     # Real least squares on stacked real/imaginary parts (works for complex unknowns).
@@ -124,7 +124,11 @@ class FixedPoint:
     def rule(self) -> StoppingRule:
         """The stopping rule these options define."""
         return StoppingRule(
-            self.rtol, self.atol, self.max_iter, self.patience, self.roundoff_floor,
+            self.rtol,
+            self.atol,
+            self.max_iter,
+            self.patience,
+            self.roundoff_floor,
             self.divergence_factor,
         )
 
@@ -142,17 +146,25 @@ class FixedPoint:
         while True:
             g = F(x)
             finite = bool(np.all(np.isfinite(g)))
-            rel, met = relative_change(g, x, core, rule.atol, rule.rtol) if finite else (
-                np.inf,
-                False,
+            rel, met = (
+                relative_change(g, x, core, rule.atol, rule.rtol)
+                if finite
+                else (
+                    np.inf,
+                    False,
+                )
             )
             residuals.append(rel)
             reason = rule.verdict(residuals, met, finite)
             if reason is not None:
                 x_final = g if reason in ("converged", "roundoff") else x
                 return SolveResult(
-                    x_final, reason in ("converged", "roundoff"), len(residuals),
-                    tuple(residuals), reason, self.name,
+                    x_final,
+                    reason in ("converged", "roundoff"),
+                    len(residuals),
+                    tuple(residuals),
+                    reason,
+                    self.name,
                 )
             if self.anderson:
                 xs.append(x.ravel())

@@ -76,9 +76,13 @@ class Newton:
         while True:
             Fx = problem.map(x)
             finite = bool(np.all(np.isfinite(Fx)))
-            rel, met = relative_change(Fx, x, core, rule.atol, rule.rtol) if finite else (
-                np.inf,
-                False,
+            rel, met = (
+                relative_change(Fx, x, core, rule.atol, rule.rtol)
+                if finite
+                else (
+                    np.inf,
+                    False,
+                )
             )
             residuals.append(rel)
             reason = rule.verdict(residuals, met, finite)
@@ -118,7 +122,7 @@ class Newton:
 
         def apply(v: np.ndarray) -> np.ndarray:
             dv = _from_real(v.reshape(shape), x, core)
-            return (v - _to_real(problem.map_derivative(x, dv), core).ravel())
+            return v - _to_real(problem.map_derivative(x, dv), core).ravel()
 
         op = spla.LinearOperator((r.size, r.size), matvec=apply, dtype=float)
         tol = max(min(0.1, rel), 1e-15)

@@ -80,7 +80,7 @@ class IsospectralSystem(ABC):
                 out.append(np.real(np.trace(P, axis1=-2, axis2=-1)))
         if 1 in powers:
             out.insert(0, np.real(np.trace(W, axis1=-2, axis2=-1)))
-        return np.stack(out, axis=-1) if out else np.zeros(W.shape[:-2] + (0,))
+        return np.stack(out, axis=-1) if out else np.zeros((*W.shape[:-2], 0))
 
     def validate(self, W0: ArrayLike, tol: float = 1e-12) -> Array:
         """Check an initial condition and return it as a fresh array (raises InputError)."""

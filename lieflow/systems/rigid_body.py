@@ -12,11 +12,17 @@ from ..errors import InputError
 from .base import IsospectralSystem
 
 
-def _positive_vector(values: Sequence[float], what: str) -> np.ndarray:
+def _positive_vector(values: Sequence[float] | np.ndarray, what: str) -> np.ndarray:
     arr = np.asarray(values, dtype=float)
     if arr.ndim != 1 or arr.size < 2 or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
-        raise InputError(f"{what} must be a 1-D sequence of positive finite numbers, got {values!r}")
+        raise InputError(
+            f"{what} must be a 1-D sequence of positive finite numbers, got {values!r}"
+        )
     return arr
+
+
+def _moments(values: Sequence[float] | np.ndarray) -> np.ndarray:
+    return _positive_vector(values, "moments of inertia")
 
 
 @attrs.frozen(eq=False)
@@ -30,7 +36,7 @@ class GeneralizedRigidBody(IsospectralSystem):
     and :math:`\eta(W) = \tfrac12 \sum_{ij} W_{ij}^2 / (J_i + J_j)`. Casimirs ``tr W^{2k}``.
     """
 
-    J: np.ndarray = attrs.field(converter=lambda v: _positive_vector(v, "J"))
+    J: np.ndarray = attrs.field(converter=_moments)
     weights: np.ndarray = attrs.field(init=False)
     linear_B = True
     casimir_powers = (2, 4, 6)
@@ -65,9 +71,7 @@ class RigidBody(IsospectralSystem):
     ``B(W)_{ij} = -W_{ij} / I_k``.
     """
 
-    inertia: np.ndarray = attrs.field(
-        default=(1.0, 2.0, 3.0), converter=lambda v: _positive_vector(v, "inertia")
-    )
+    inertia: np.ndarray = attrs.field(default=(1.0, 2.0, 3.0), converter=_moments)
     weights: np.ndarray = attrs.field(init=False)
     linear_B = True
     casimir_powers = (2,)
