@@ -28,7 +28,7 @@ from .errors import (
     RegistryError,
     TableauError,
 )
-from .integrate import Step, integrate, iterate
+from .integrate import Step, WarmStart, integrate, iterate
 from .plugins import Registry, RegistryBuilder, default_registry, hookimpl, load_registry
 from .schemes import Scheme, StepResult
 from .solution import Solution, Status
@@ -63,6 +63,7 @@ __all__ = [
     "Solver",
     "Status",
     "Step",
+    "WarmStart",
     "StepResult",
     "TableauError",
     "U",

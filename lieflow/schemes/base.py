@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Callable
+from typing import TypeVar
 
 import attrs
 import numpy as np
@@ -12,6 +14,8 @@ from ..errors import ConvergenceError
 from ..solvers.base import ImplicitProblem, Solver, SolveResult
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau
+
+P = TypeVar("P", bound=ImplicitProblem)
 
 
 @attrs.frozen
@@ -72,14 +76,28 @@ class Scheme(ABC):
         """Advance ``W0`` by one step of size ``h`` (``W0`` may be a stack ``(..., n, n)``)."""
 
 
-def solve(solver: Solver, problem: ImplicitProblem) -> SolveResult:
-    """Run ``solver`` on ``problem``; raise :class:`ConvergenceError` if it did not converge."""
+def solve(
+    solver: Solver, build: Callable[[Array | None], P], warm: Array | None
+) -> tuple[P, SolveResult]:
+    """Solve the problem ``build(warm)``; if a warm-started solve fails, retry once from the
+    cold guess ``build(None)`` (a previous step's solution is a poor guess when ``h`` is
+    large). Iterations of both attempts are counted. Raises :class:`ConvergenceError` if
+    the solve does not converge."""
+    problem = build(warm)
     res = solver.solve(problem)
+    if not res.converged and warm is not None:
+        problem, first = build(None), res
+        res = solver.solve(problem)
+        res = attrs.evolve(
+            res,
+            iterations=first.iterations + res.iterations,
+            residuals=first.residuals + res.residuals,
+        )
     if not res.converged:
         raise ConvergenceError(
             res.reason, solver=res.solver, iterations=res.iterations, residuals=res.residuals
         )
-    return res
+    return problem, res
 
 
 def commutator_update(system: IsospectralSystem, W0: Array, stages: Array, hb: Array) -> Array:

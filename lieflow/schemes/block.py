@@ -247,8 +247,7 @@ class BlockGauss(Scheme):
         warm: Array | None = None,
     ) -> StepResult:
         cls = ReducedProblem if self.form == "reduced" else BlockProblem
-        problem = cls(system, W0, h, self.tableau, warm)
-        res = solve(solver, problem)
+        problem, res = solve(solver, lambda guess: cls(system, W0, h, self.tableau, guess), warm)
         return StepResult(
             problem.update(res.x),
             problem.offsets(res.x),

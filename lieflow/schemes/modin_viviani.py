@@ -163,8 +163,9 @@ class ModinViviani(Scheme):
         solver: Solver,
         warm: Array | None = None,
     ) -> StepResult:
-        problem = ModinVivianiProblem(system, W0, h, self.tableau, warm)
-        res = solve(solver, problem)
+        problem, res = solve(
+            solver, lambda guess: ModinVivianiProblem(system, W0, h, self.tableau, guess), warm
+        )
         return StepResult(
             problem.update(res.x), res.x, res.iterations, res.solver, res.residuals[-1]
         )

@@ -98,10 +98,11 @@ class SyDIRK(Scheme):
         offsets = []
         iterations = 0
         for i, bi in enumerate(self.tableau.b):
-            problem = MidpointProblem(
-                system, W, bi * h, None if warm is None else warm[..., i, :, :]
+            problem, res = solve(
+                solver,
+                lambda guess, W=W, hi=bi * h: MidpointProblem(system, W, hi, guess),
+                None if warm is None else warm[..., i, :, :],
             )
-            res = solve(solver, problem)
             iterations += res.iterations
             offsets.append(res.x - W)
             W = problem.update(res.x)

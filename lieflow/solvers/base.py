@@ -88,19 +88,24 @@ class Solver(Protocol):
 
 
 def batch_norm(x: Array, core_ndim: int) -> Array:
-    """Frobenius norm over the trailing ``core_ndim`` axes (shape: the batch shape)."""
-    axes = tuple(range(x.ndim - core_ndim, x.ndim))
-    if np.iscomplexobj(x):
-        return np.sqrt(np.sum(x.real**2 + x.imag**2, axis=axes))
-    return np.sqrt(np.sum(x * x, axis=axes))
+    """Frobenius norm over the trailing ``core_ndim`` axes (shape: the batch shape).
+
+    Computed by ``np.linalg.norm`` on a flattened view (scaled, so large finite iterates do
+    not overflow to Inf).
+    """
+    flat = x.reshape(*x.shape[: x.ndim - core_ndim], -1)
+    return np.linalg.norm(flat, axis=-1)
 
 
 def relative_change(
     new: Array, old: Array, core_ndim: int, atol: float, rtol: float
 ) -> tuple[float, bool]:
     """``max ||new - old|| / ||new||`` over the batch, and whether every member meets
-    ``||new - old|| <= atol + rtol ||new||`` (SPEC §5)."""
-    step = batch_norm(new - old, core_ndim)
-    size = batch_norm(new, core_ndim)
-    rel = float(np.max(step / np.maximum(size, np.finfo(float).tiny)))
+    ``||new - old|| <= atol + rtol ||new||`` (SPEC §5). NaN if anything is not finite."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        step = batch_norm(new - old, core_ndim)
+        size = batch_norm(new, core_ndim)
+        if not (np.all(np.isfinite(step)) and np.all(np.isfinite(size))):
+            return float("nan"), False
+        rel = float(np.max(step / np.maximum(size, np.finfo(float).tiny)))
     return rel, bool(np.all(step <= atol + rtol * size))

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..algebras import Array
 from ..errors import InputError
-from .base import ImplicitProblem, SolveResult, relative_change
+from .base import ImplicitProblem, SolveResult, batch_norm, relative_change
 
 _EPS = float(np.finfo(float).eps)
 
@@ -29,12 +29,20 @@ def _non_negative(_inst: object, attr: attrs.Attribute, value: float) -> None:
 class StoppingRule:
     """When an iteration has converged, stalled or diverged (SPEC §5).
 
-    Converged when ``||x_{k+1} - x_k|| <= atol + rtol ||x_{k+1}||`` for every problem in the
-    batch. The relative update ``r_k`` is monitored: if it sets no new minimum for
-    ``patience`` iterations the iteration has stopped contracting — accepted as
-    ``"roundoff"`` when the best ``r`` is below ``roundoff_floor`` (no floating-point
-    iteration can do better), reported as ``"stalled"`` otherwise. ``r_k`` exceeding
-    ``divergence_factor`` times its minimum, or a non-finite iterate, is divergence.
+    * **converged**: ``||x_{k+1} - x_k|| <= atol + rtol ||x_{k+1}||`` for every problem in
+      the batch;
+    * **non_finite**: an iterate (or its norm) is NaN/Inf;
+    * **diverged**: the iterate has grown by more than ``divergence_factor`` over the
+      initial guess;
+    * **stalled** / **roundoff**: the relative update ``r_k`` set no new minimum for
+      ``patience`` iterations — accepted as ``"roundoff"`` when the best ``r`` is below
+      ``roundoff_floor`` (no floating-point iteration can do better), ``"diverged"`` if the
+      iterate has grown tenfold meanwhile, ``"stalled"`` otherwise;
+    * **stalled** (too slow): with ``project=True``, once ``window`` iterations are done,
+      the contraction rate measured over the last ``window`` iterations predicts that
+      ``rtol`` will not be reached within ``max_iter`` (fail early instead of burning the
+      budget, so a fallback solver can take over);
+    * **max_iterations**: ``max_iter`` updates without any of the above.
     """
 
     rtol: float = attrs.field(default=1e-14, validator=_non_negative)
@@ -42,28 +50,43 @@ class StoppingRule:
     max_iter: int = 100
     patience: int = 6
     roundoff_floor: float = attrs.field(default=256 * _EPS, validator=_positive)
-    divergence_factor: float = attrs.field(default=1e4, validator=_positive)
+    divergence_factor: float = attrs.field(default=100.0, validator=_positive)
+    project: bool = True
+    window: int = 10
 
     def __attrs_post_init__(self) -> None:
         if self.rtol == 0 and self.atol == 0:
             raise InputError("rtol and atol cannot both be zero: the iteration could never stop")
-        if self.max_iter < 1 or self.patience < 1:
-            raise InputError("max_iter and patience must be positive integers")
+        if self.max_iter < 1 or self.patience < 1 or self.window < 2:
+            raise InputError("max_iter and patience must be positive integers, window >= 2")
 
-    def verdict(self, residuals: list[float], met: bool, finite: bool) -> str | None:
-        """``None`` to go on, else the reason to stop."""
-        if not finite:
+    def verdict(self, residuals: list[float], met: bool, growth: float) -> str | None:
+        """``None`` to go on, else the reason to stop.
+
+        ``residuals`` are the relative updates so far, ``met`` whether the last one meets
+        the tolerance, ``growth`` the largest ``||x_k|| / ||x_0||`` over the batch.
+        """
+        r = residuals[-1]
+        if not (np.isfinite(r) and np.isfinite(growth)):
             return "non_finite"
         if met:
             return "converged"
-        r = residuals[-1]
+        if growth > self.divergence_factor:
+            return "diverged"
+        k = len(residuals)
         best_at = int(np.argmin(residuals))
         best = residuals[best_at]
-        if r > self.divergence_factor * best:
-            return "diverged"
-        if len(residuals) - 1 - best_at >= self.patience:
-            return "roundoff" if best <= self.roundoff_floor else "stalled"
-        if len(residuals) >= self.max_iter:
+        if k - 1 - best_at >= self.patience:
+            if best <= self.roundoff_floor:
+                return "roundoff"
+            return "diverged" if growth > 10.0 else "stalled"
+        if self.project and k > self.window and best > self.roundoff_floor:
+            earlier = min(residuals[: k - self.window])
+            rate = (best / earlier) ** (1.0 / self.window) if earlier > 0 else 0.0
+            target = max(self.rtol, self.roundoff_floor)
+            if rate >= 1.0 or k + np.log(target / best) / np.log(rate) > self.max_iter:
+                return "stalled"
+        if k >= self.max_iter:
             return "max_iterations"
         return None
 
@@ -111,7 +134,7 @@ class FixedPoint:
     anderson: int = attrs.field(default=0, kw_only=True)
     patience: int = attrs.field(default=6, kw_only=True)
     roundoff_floor: float = attrs.field(default=256 * _EPS, kw_only=True)
-    divergence_factor: float = attrs.field(default=1e4, kw_only=True)
+    divergence_factor: float = attrs.field(default=100.0, kw_only=True)
 
     name = "fixed_point"
 
@@ -143,28 +166,16 @@ class FixedPoint:
         residuals: list[float] = []
         xs: list[np.ndarray] = []
         gs: list[np.ndarray] = []
+        size0 = np.maximum(batch_norm(x, core), np.finfo(float).tiny)
         while True:
             g = F(x)
-            finite = bool(np.all(np.isfinite(g)))
-            rel, met = (
-                relative_change(g, x, core, rule.atol, rule.rtol)
-                if finite
-                else (
-                    np.inf,
-                    False,
-                )
-            )
+            rel, met = relative_change(g, x, core, rule.atol, rule.rtol)
             residuals.append(rel)
-            reason = rule.verdict(residuals, met, finite)
+            reason = rule.verdict(residuals, met, float(np.max(batch_norm(g, core) / size0)))
             if reason is not None:
-                x_final = g if reason in ("converged", "roundoff") else x
+                ok = reason in ("converged", "roundoff")
                 return SolveResult(
-                    x_final,
-                    reason in ("converged", "roundoff"),
-                    len(residuals),
-                    tuple(residuals),
-                    reason,
-                    self.name,
+                    g if ok else x, ok, len(residuals), tuple(residuals), reason, self.name
                 )
             if self.anderson:
                 xs.append(x.ravel())

@@ -40,16 +40,20 @@ class Newton:
     ``min(0.1, ||R||)`` so that convergence stays quadratic. Complex unknowns are treated as
     pairs of reals, so ``F`` need only be real-differentiable.
 
-    Stops when ``||R(x)|| <= atol + rtol ||x||``, returning ``F(x)``; ``iterations`` counts
-    linear solves. Stagnation and divergence are detected as in :class:`StoppingRule`.
+    Globalised by backtracking: a step that does not decrease ``||R||`` is halved (at most
+    ``max_halvings`` times), which makes Newton converge from the cold guess at step sizes
+    where the plain iteration wanders. Stops when ``||R(x)|| <= atol + rtol ||x||``,
+    returning ``F(x)``; ``iterations`` counts linear solves. Stagnation and divergence
+    are detected as in :class:`StoppingRule`.
     """
 
     rtol: float = 1e-14
     atol: float = 0.0
-    max_iter: int = 25
+    max_iter: int = 30
     linear: str = attrs.field(default="auto", kw_only=True)
     dense_max: int = attrs.field(default=800, kw_only=True)
-    patience: int = attrs.field(default=3, kw_only=True)
+    patience: int = attrs.field(default=8, kw_only=True)
+    max_halvings: int = attrs.field(default=8, kw_only=True)
     roundoff_floor: float = attrs.field(default=256 * _EPS, kw_only=True)
 
     name = "newton"
@@ -63,7 +67,13 @@ class Newton:
     def rule(self) -> StoppingRule:
         """The stopping rule these options define."""
         return StoppingRule(
-            self.rtol, self.atol, self.max_iter, self.patience, self.roundoff_floor, 1e8
+            self.rtol,
+            self.atol,
+            self.max_iter,
+            self.patience,
+            self.roundoff_floor,
+            1e6,
+            project=False,
         )
 
     def solve(self, problem: ImplicitProblem) -> SolveResult:
@@ -73,19 +83,12 @@ class Newton:
         residuals: list[float] = []
         m_real = _to_real(x, core).shape[1]
         dense = self.linear == "dense" or (self.linear == "auto" and m_real <= self.dense_max)
+        size0 = np.maximum(batch_norm(x, core), np.finfo(float).tiny)
+        Fx = problem.map(x)
         while True:
-            Fx = problem.map(x)
-            finite = bool(np.all(np.isfinite(Fx)))
-            rel, met = (
-                relative_change(Fx, x, core, rule.atol, rule.rtol)
-                if finite
-                else (
-                    np.inf,
-                    False,
-                )
-            )
+            rel, met = relative_change(Fx, x, core, rule.atol, rule.rtol)
             residuals.append(rel)
-            reason = rule.verdict(residuals, met, finite)
+            reason = rule.verdict(residuals, met, float(np.max(batch_norm(Fx, core) / size0)))
             if reason is not None:
                 ok = reason in ("converged", "roundoff")
                 return SolveResult(
@@ -97,7 +100,24 @@ class Newton:
                 if dense
                 else self._gmres_step(problem, x, rhs, core, rel)
             )
-            x = x + d
+            x, Fx = self._line_search(problem, x, d, float(np.linalg.norm(rhs)))
+
+    def _line_search(
+        self, problem: ImplicitProblem, x: Array, d: Array, merit: float
+    ) -> tuple[Array, Array]:
+        """Backtracking on ``||F(x) - x||``: the full step if it decreases the residual
+        (always, near the solution: quadratic convergence is kept), else halve it up to
+        ``max_halvings`` times. Returns the new iterate and its map value."""
+        lam = 1.0
+        for _ in range(self.max_halvings):
+            xn = x + lam * d
+            Fn = problem.map(xn)
+            with np.errstate(invalid="ignore", over="ignore"):
+                trial = float(np.linalg.norm(Fn - xn))
+            if trial <= (1.0 - 1e-4 * lam) * merit:
+                return xn, Fn
+            lam *= 0.5
+        return xn, Fn
 
     @staticmethod
     def _dense_step(problem: ImplicitProblem, x: Array, rhs: Array, core: int) -> Array:

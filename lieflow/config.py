@@ -1,0 +1,578 @@
+"""Run configurations for ``lieflow run``: TOML parsing, validation and building.
+
+A configuration names a system, an initial condition, a scheme, a solver and the run
+settings::
+
+    [system]
+    name = "rigid_body"
+    params = { inertia = [1.0, 2.0, 3.0] }
+
+    [initial]            # exactly one of: random = true (with seed), matrix, file
+    random = true
+    seed = 0
+    scale = 1.0
+
+    [scheme]
+    name = "gauss3"
+
+    [solver]             # optional; fixed_point with its defaults if left out
+    name = "fixed_point"
+    params = { rtol = 1e-15 }
+
+    [run]
+    h = 0.1
+    steps = 2000
+    save_every = 10      # keep every 10th state and checkpoint there
+    output = "rigid_body.h5"
+
+:func:`parse_config` turns the text into a frozen :class:`Config` (checking every key's
+presence and type, refusing unknown keys), and :func:`build` turns a :class:`Config` into
+the objects of a run (:class:`RunSetup`): system, scheme and solver from the registry, the
+validated initial condition and the checked output path. Every problem raises
+:class:`ConfigError`, whose one-paragraph message names the key and the fix; nothing is
+written to disk by either function.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any, Literal
+
+import attrs
+import numpy as np
+
+from .algebras import Array
+from .errors import LieflowError
+from .plugins import Kind, Registry, default_registry
+from .schemes.base import Scheme
+from .solvers.base import Solver
+from .systems.base import IsospectralSystem
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+__all__ = [
+    "Component",
+    "Config",
+    "ConfigError",
+    "InitialCondition",
+    "RunSettings",
+    "RunSetup",
+    "build",
+    "check_output_path",
+    "load_config",
+    "parse_config",
+]
+
+_SECTIONS = ("system", "initial", "scheme", "solver", "run")
+
+
+class ConfigError(LieflowError, ValueError):
+    """A run configuration is invalid.
+
+    Attributes
+    ----------
+    key : str
+        The offending key, written as in the file (``"[run] steps"``), or ``""`` when the
+        problem is with the file as a whole.
+    """
+
+    def __init__(self, message: str, key: str = "") -> None:
+        super().__init__(message)
+        self.key = key
+
+
+def _fail(source: str, key: str, problem: str, fix: str) -> ConfigError:
+    where = f"{source}: {key}: " if key else f"{source}: "
+    return ConfigError(f"{where}{problem}. To fix: {fix}.", key)
+
+
+def _frozen_params(value: Mapping[str, Any]) -> Mapping[str, Any]:
+    return MappingProxyType(dict(value))
+
+
+@attrs.frozen
+class Component:
+    """A registry name with keyword parameters: a ``[system]``, ``[scheme]`` or ``[solver]``
+    section."""
+
+    name: str
+    params: Mapping[str, Any] = attrs.field(factory=dict, converter=_frozen_params)
+
+    def as_dict(self) -> dict[str, Any]:
+        """A plain (JSON-able) dictionary."""
+        return {"name": self.name, "params": dict(self.params)}
+
+
+@attrs.frozen
+class InitialCondition:
+    """The ``[initial]`` section: a seeded random element, an explicit matrix or a file.
+
+    Attributes
+    ----------
+    kind : {"random", "matrix", "file"}
+        Which of the three forms was given.
+    seed : int or None
+        Seed of the random element (``kind == "random"``).
+    scale : float
+        Factor applied to the random element.
+    matrix : tuple of tuple of float, or None
+        Rows of the explicit matrix; ``imag`` holds its imaginary part, if any.
+    file : Path or None
+        A ``.npy`` file, resolved against the configuration's directory.
+    """
+
+    kind: Literal["random", "matrix", "file"]
+    seed: int | None = None
+    scale: float = 1.0
+    matrix: tuple[tuple[float, ...], ...] | None = None
+    imag: tuple[tuple[float, ...], ...] | None = None
+    file: Path | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        """A plain (JSON-able) dictionary."""
+        return {
+            "kind": self.kind,
+            "seed": self.seed,
+            "scale": self.scale,
+            "matrix": self.matrix,
+            "imag": self.imag,
+            "file": None if self.file is None else str(self.file),
+        }
+
+
+@attrs.frozen
+class RunSettings:
+    """The ``[run]`` section: step size, number of steps, save cadence and output file."""
+
+    h: float
+    steps: int
+    save_every: int
+    output: Path
+
+
+@attrs.frozen
+class Config:
+    """A parsed, type-checked run configuration (see the module docstring).
+
+    Attributes
+    ----------
+    system, scheme, solver : Component
+        Registry names and parameters.
+    initial : InitialCondition
+        How to make ``W0``.
+    run : RunSettings
+        Step size, steps, save cadence, output path.
+    text : str
+        The configuration's full text (stored in the output file).
+    source : str
+        Where the text came from (a path, or ``"<string>"``).
+    """
+
+    system: Component
+    initial: InitialCondition
+    scheme: Component
+    solver: Component
+    run: RunSettings
+    text: str = attrs.field(repr=False)
+    source: str = "<string>"
+
+    def identity(self) -> str:
+        """JSON of everything that defines the trajectory except its length and location.
+
+        Two configurations with the same identity (and the same ``W0``) compute the same
+        steps, so one may resume the other's file, possibly with more steps.
+        """
+        return json.dumps(
+            {
+                "system": self.system.as_dict(),
+                "scheme": self.scheme.as_dict(),
+                "solver": self.solver.as_dict(),
+                "h": self.run.h,
+                "save_every": self.run.save_every,
+            },
+            sort_keys=True,
+            default=str,
+        )
+
+
+@attrs.frozen(eq=False)
+class RunSetup:
+    """Everything a run needs, built and validated; nothing has been written yet."""
+
+    config: Config
+    system: IsospectralSystem
+    scheme: Scheme
+    solver: Solver
+    W0: Array = attrs.field(repr=False)
+    output: Path
+
+
+class _Section:
+    """Typed access to one TOML table that remembers which keys were read."""
+
+    def __init__(self, data: Mapping[str, Any], name: str, source: str) -> None:
+        self.data = data
+        self.name = name
+        self.source = source
+        self.seen: set[str] = set()
+
+    def key(self, key: str) -> str:
+        return f"[{self.name}] {key}"
+
+    def error(self, key: str, problem: str, fix: str) -> ConfigError:
+        return _fail(self.source, self.key(key), problem, fix)
+
+    def has(self, key: str) -> bool:
+        return key in self.data
+
+    def _raw(self, key: str, required: bool, hint: str) -> Any:
+        self.seen.add(key)
+        if key not in self.data:
+            if required:
+                raise self.error(key, "missing", f"add {key} = {hint} to the [{self.name}] table")
+            return None
+        return self.data[key]
+
+    def string(self, key: str, *, required: bool = True, hint: str = '"..."') -> str | None:
+        value = self._raw(key, required, hint)
+        if value is not None and not isinstance(value, str):
+            raise self.error(key, f"expected a string, got {value!r}", f"write {key} = {hint}")
+        return value
+
+    def integer(self, key: str, *, required: bool = True, minimum: int = 1) -> int | None:
+        value = self._raw(key, required, str(minimum))
+        if value is None:
+            return None
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.error(
+                key, f"expected an integer, got {value!r}", f"write {key} = {minimum} (no quotes)"
+            )
+        if value < minimum:
+            raise self.error(
+                key, f"must be at least {minimum}, got {value}", f"use an integer >= {minimum}"
+            )
+        return value
+
+    def number(self, key: str, *, required: bool = True, positive: bool = True) -> float | None:
+        value = self._raw(key, required, "0.1")
+        if value is None:
+            return None
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.error(
+                key, f"expected a number, got {value!r}", f"write {key} = 0.1 (no quotes)"
+            )
+        x = float(value)
+        if not math.isfinite(x) or (positive and x <= 0):
+            raise self.error(
+                key,
+                f"must be {'positive and ' if positive else ''}finite, got {value!r}",
+                "use a positive finite number" if positive else "use a finite number",
+            )
+        return x
+
+    def boolean(self, key: str, *, required: bool = True) -> bool | None:
+        value = self._raw(key, required, "true")
+        if value is not None and not isinstance(value, bool):
+            raise self.error(key, f"expected true or false, got {value!r}", f"write {key} = true")
+        return value
+
+    def table(self, key: str) -> Mapping[str, Any]:
+        value = self._raw(key, False, "{}")
+        if value is None:
+            return {}
+        if not isinstance(value, dict):
+            raise self.error(
+                key,
+                f"expected a table of keyword parameters, got {value!r}",
+                f"write {key} = {{ name = value, ... }} or a [{self.name}.{key}] table",
+            )
+        return value
+
+    def matrix(self, key: str) -> tuple[tuple[float, ...], ...]:
+        value = self._raw(key, True, "[[...], [...]]")
+        fix = f"write {key} = [[a, b, ...], [c, d, ...], ...] with one list of numbers per row"
+        if not isinstance(value, list) or not value:
+            raise self.error(key, f"expected a list of rows, got {value!r}", fix)
+        rows = []
+        for row in value:
+            if not isinstance(row, list) or not all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) for x in row
+            ):
+                raise self.error(key, f"row {row!r} is not a list of numbers", fix)
+            rows.append(tuple(float(x) for x in row))
+        if len({len(r) for r in rows}) != 1:
+            raise self.error(key, "rows have different lengths", fix)
+        return tuple(rows)
+
+    def finish(self) -> None:
+        unknown = sorted(set(self.data) - self.seen)
+        if unknown:
+            known = ", ".join(sorted(self.seen))
+            raise self.error(
+                unknown[0],
+                "unknown key",
+                f"remove it or correct its spelling; [{self.name}] accepts {known}",
+            )
+
+
+def _component(raw: Mapping[str, Any], name: str, source: str) -> Component:
+    sec = _Section(raw, name, source)
+    cname = sec.string("name", hint='"<registered name>" (see `lieflow list`)')
+    assert cname is not None
+    comp = Component(cname, sec.table("params"))
+    sec.finish()
+    return comp
+
+
+def _initial(raw: Mapping[str, Any], source: str, base: Path) -> InitialCondition:
+    sec = _Section(raw, "initial", source)
+    given = [k for k in ("random", "matrix", "file") if sec.has(k)]
+    if len(given) != 1:
+        problem = "none of" if not given else "more than one of"
+        raise _fail(
+            source,
+            "[initial]",
+            f"{problem} random, matrix, file is given",
+            "give exactly one: random = true with seed = <int>, matrix = [[...]], or "
+            'file = "w0.npy"',
+        )
+    kind = given[0]
+    if kind == "random":
+        if sec.boolean("random") is not True:
+            raise sec.error(
+                "random", "is false", "write random = true, or give matrix or file instead"
+            )
+        seed = sec.integer("seed", minimum=0)
+        scale = sec.number("scale", required=False)
+        sec.finish()
+        return InitialCondition("random", seed=seed, scale=1.0 if scale is None else scale)
+    if kind == "matrix":
+        rows = sec.matrix("matrix")
+        imag = sec.matrix("imag") if sec.has("imag") else None
+        if imag is not None and (len(imag), len(imag[0])) != (len(rows), len(rows[0])):
+            raise sec.error("imag", "has a different shape than matrix", "give one entry each")
+        sec.finish()
+        return InitialCondition("matrix", matrix=rows, imag=imag)
+    name = sec.string("file", hint='"w0.npy"')
+    assert name is not None
+    path = Path(name).expanduser()
+    path = path if path.is_absolute() else base / path
+    if not path.is_file():
+        raise sec.error(
+            "file",
+            f"{str(path)!r} does not exist or is not a file",
+            "give the path of a .npy file (relative paths are relative to the configuration)",
+        )
+    sec.finish()
+    return InitialCondition("file", file=path)
+
+
+def _run(raw: Mapping[str, Any], source: str, base: Path, default_output: str) -> RunSettings:
+    sec = _Section(raw, "run", source)
+    h = sec.number("h")
+    steps = sec.integer("steps")
+    save_every = sec.integer("save_every", required=False)
+    output = sec.string("output", required=False, hint='"trajectory.h5"')
+    sec.finish()
+    assert h is not None and steps is not None
+    out = Path(output or default_output).expanduser()
+    return RunSettings(h, steps, save_every or 1, out if out.is_absolute() else base / out)
+
+
+def parse_config(
+    text: str, *, source: str = "<string>", base_dir: Path | str | None = None
+) -> Config:
+    """Parse and type-check a TOML run configuration.
+
+    Parameters
+    ----------
+    text : str
+        The TOML text.
+    source : str
+        Where it came from, for messages (a path, or ``"<string>"``).
+    base_dir : path, optional
+        Directory that relative ``[initial] file`` and ``[run] output`` paths are relative
+        to (default: the current directory).
+
+    Returns
+    -------
+    Config
+
+    Raises
+    ------
+    ConfigError
+        Invalid TOML, a missing, ill-typed or unknown key.
+    """
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise _fail(source, "", f"is not valid TOML ({exc})", "correct the syntax") from None
+    base = Path.cwd() if base_dir is None else Path(base_dir)
+    unknown = sorted(set(data) - set(_SECTIONS))
+    if unknown:
+        raise _fail(
+            source,
+            f"[{unknown[0]}]",
+            "unknown section",
+            f"remove it or correct its spelling; sections are {', '.join(_SECTIONS)}",
+        )
+    for name in _SECTIONS:
+        if name not in data and name != "solver":
+            raise _fail(
+                source,
+                f"[{name}]",
+                "missing section",
+                f"add a [{name}] table (see `lieflow run --help`)",
+            )
+        if name in data and not isinstance(data[name], dict):
+            raise _fail(source, name, "must be a table", f"write it as a [{name}] section")
+    stem = Path(source).stem if source != "<string>" else "trajectory"
+    return Config(
+        system=_component(data["system"], "system", source),
+        initial=_initial(data["initial"], source, base),
+        scheme=_component(data["scheme"], "scheme", source),
+        solver=(
+            _component(data["solver"], "solver", source)
+            if "solver" in data
+            else Component("fixed_point")
+        ),
+        run=_run(data["run"], source, base, f"{stem}.h5"),
+        text=text,
+        source=source,
+    )
+
+
+def load_config(path: Path | str) -> Config:
+    """Read and parse the configuration file ``path`` (relative paths inside it are relative
+    to its directory)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(
+            f"cannot read configuration {str(p)!r}: {exc.strerror or exc}. To fix: check the "
+            "path and its permissions."
+        ) from None
+    except UnicodeDecodeError:
+        raise ConfigError(
+            f"configuration {str(p)!r} is not UTF-8 text. To fix: save it as UTF-8 TOML."
+        ) from None
+    return parse_config(text, source=str(p), base_dir=p.resolve().parent)
+
+
+def check_output_path(path: Path, key: str, source: str = "") -> Path:
+    """Check that a file can be created at ``path`` without creating anything.
+
+    The path must not be a directory; its nearest existing ancestor must be a writable
+    directory (missing directories are created when the run starts).
+    """
+    prefix = f"{source}: " if source else ""
+    path = Path(path).expanduser().absolute()
+    if path.is_dir():
+        raise ConfigError(
+            f"{prefix}{key}: {str(path)!r} is a directory. To fix: give a file name such as "
+            f"{str(path / 'trajectory.h5')!r}.",
+            key,
+        )
+    ancestor = path.parent
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir() or not os.access(ancestor, os.W_OK | os.X_OK):
+        raise ConfigError(
+            f"{prefix}{key}: cannot create {str(path)!r}: {str(ancestor)!r} is not a writable "
+            "directory. To fix: choose an output path in a directory you can write to.",
+            key,
+        )
+    return path
+
+
+def _create(registry: Registry, kind: Kind, comp: Component, source: str) -> Any:
+    entry_key = f"[{kind}] name"
+    try:
+        entry = registry.entry(kind, comp.name)
+    except LieflowError as exc:
+        raise ConfigError(
+            f"{source}: {entry_key}: {exc}. To fix: use a known name.", entry_key
+        ) from None
+    params_key = f"[{kind}] params"
+    try:
+        return entry.create(**comp.params)
+    except (LieflowError, TypeError, ValueError) as exc:
+        raise ConfigError(
+            f"{source}: {params_key}: {kind} {comp.name!r} rejected its parameters "
+            f"{dict(comp.params)!r}: {exc}. To fix: correct {params_key}.",
+            params_key,
+        ) from None
+
+
+def _initial_state(config: Config, system: IsospectralSystem) -> Array:
+    init, source = config.initial, config.source
+    key = f"[initial] {init.kind}"
+    if init.kind == "random":
+        try:
+            return system.algebra.random(seed=init.seed, scale=init.scale)
+        except (LieflowError, ValueError) as exc:  # pragma: no cover - defensive
+            raise ConfigError(f"{source}: {key}: {exc}.", key) from None
+    if init.kind == "matrix":
+        W: Any = np.array(init.matrix)
+        if init.imag is not None:
+            W = W + 1j * np.array(init.imag)
+    else:
+        assert init.file is not None
+        try:
+            W = np.load(init.file, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise ConfigError(
+                f"{source}: {key}: cannot read {str(init.file)!r} as a .npy array ({exc}). "
+                "To fix: save W0 with numpy.save.",
+                key,
+            ) from None
+    try:
+        return system.validate(W)
+    except LieflowError as exc:
+        raise ConfigError(
+            f"{source}: {key}: {exc}. To fix: give an initial condition for {system.name} "
+            f"on {system.algebra}.",
+            key,
+        ) from None
+
+
+def build(
+    config: Config, *, output: Path | str | None = None, registry: Registry | None = None
+) -> RunSetup:
+    """Build and validate every object of a run; write nothing.
+
+    Parameters
+    ----------
+    config : Config
+        A parsed configuration.
+    output : path, optional
+        Output file overriding ``[run] output`` (the command line's ``--out``).
+    registry : Registry, optional
+        Where names are looked up (default: :func:`lieflow.default_registry`).
+
+    Raises
+    ------
+    ConfigError
+        Unknown names, rejected parameters, a wrong initial condition, an unwritable output.
+    """
+    reg = default_registry() if registry is None else registry
+    source = config.source
+    system = _create(reg, "system", config.system, source)
+    scheme = _create(reg, "scheme", config.scheme, source)
+    solver = _create(reg, "solver", config.solver, source)
+    W0 = _initial_state(config, system)
+    if output is None:
+        out = check_output_path(config.run.output, "[run] output", source)
+    else:
+        out = check_output_path(Path(output), "--out")
+    return RunSetup(config, system, scheme, solver, W0, out)
