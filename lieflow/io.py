@@ -192,33 +192,21 @@ def _check_format(f: h5py.File, path: Path) -> None:
 
 def _read_checkpoint(f: h5py.File) -> Checkpoint:
     slot = f["checkpoint"][f"slot{int(f['checkpoint'].attrs['current'])}"]
-    warm = _read_warm(slot["warm"]) if bool(slot.attrs["has_warm"]) else None
+    warm = _read_warm(slot) if bool(slot.attrs["has_warm"]) else None
     return Checkpoint(int(slot.attrs["step"]), float(slot.attrs["t"]), slot["W"][()], warm)
 
 
-def _write_warm(group: h5py.Group, warm: WarmStart) -> None:
-    """Store every field of ``warm``: arrays as datasets, scalars as attributes, ``None`` as
-    absence (the field's default)."""
-    for field in attrs.fields(type(warm)):
-        value = getattr(warm, field.name)
-        if isinstance(value, np.ndarray):
-            _put(group, field.name, value)
-            continue
-        if field.name in group:
-            del group[field.name]
-        if value is None:
-            group.attrs.pop(field.name, None)
-        else:
-            group.attrs[field.name] = value
-
-
-def _read_warm(group: h5py.Group) -> WarmStart:
+def _read_warm(slot: h5py.Group) -> WarmStart:
+    """Rebuild the :class:`WarmStart` a checkpoint stored field by field: arrays as datasets
+    ``warm/<field>``, other values as attributes (``"none"`` for ``None``)."""
     values: dict[str, Any] = {}
     for field in attrs.fields(WarmStart):
-        if field.name in group:
-            values[field.name] = group[field.name][()]
-        elif field.name in group.attrs:
-            values[field.name] = _plain(group.attrs[field.name])
+        key = f"warm/{field.name}"
+        if key in slot:
+            values[field.name] = slot[key][()]
+        elif key in slot.attrs:
+            value = _plain(slot.attrs[key])
+            values[field.name] = None if value == "none" else value
     return WarmStart(**values)
 
 
@@ -302,11 +290,18 @@ class TrajectoryWriter:
         self._H0 = diag["energy"][0]
         self._C0 = diag["casimirs"][0]
         self._cscale = setup.system.casimir_scale(f["initial/W0"][()])
-        self._n_diag = diag["iterations"].shape[0] + 1  # rows committed (steps 0..K)
-        self._n_saved = f["trajectory/step"].shape[0]
+        # h5py path lookups cost tens of microseconds each: keep the handles
+        self._diag = {name: diag[name] for name in (*_PER_STEP, *_PER_UPDATE)}
+        self._traj = {name: f["trajectory"][name] for name in ("step", "t", "W")}
+        self._ck = f["checkpoint"]
+        self._slots = [self._ck["slot0"], self._ck["slot1"]]
+        self._slot_data: list[dict[str, Any]] = [{}, {}]
+        self._n_diag = self._diag["iterations"].shape[0] + 1  # rows committed (steps 0..K)
+        self._n_saved = self._traj["step"].shape[0]
         self._buffer: list[tuple[Array, Array, int, float]] = []
-        self._slot = int(f["checkpoint"].attrs["current"])
-        self._max_error = float(np.max(diag["energy_error"][: self._n_diag]))
+        self._slot = int(self._ck.attrs["current"])
+        self._step = int(self._slots[self._slot].attrs["step"])  # the checkpoint's step
+        self._max_error = float(np.max(self._diag["energy_error"][: self._n_diag]))
 
     @property
     def path(self) -> Path:
@@ -405,41 +400,50 @@ class TrajectoryWriter:
                 "iterations": np.asarray([b[2] for b in buf], dtype=np.int64),
                 "residual": np.asarray([b[3] for b in buf], dtype=float),
             }
-            d = f["diagnostics"]
             for name, values in columns.items():
                 start = n0 if name in _PER_STEP else n0 - 1
-                ds = d[name]
+                ds = self._diag[name]
                 ds.resize(start + len(values), axis=0)
                 ds[start:] = values
         n_saved = self._n_saved
         if state:
-            tr = f["trajectory"]
             for name, value in (("step", step.index), ("t", step.t), ("W", step.W)):
-                tr[name].resize(n_saved + 1, axis=0)
-                tr[name][n_saved] = value
+                ds = self._traj[name]
+                ds.resize(n_saved + 1, axis=0)
+                ds[n_saved] = value
             n_saved += 1
         self._checkpoint(step.index, step.t, step.W, step.warm)
-        f.attrs["completed_steps"] = step.index
         f.flush()
         self._n_diag, self._n_saved = n1, n_saved
         buf.clear()
 
     def _checkpoint(self, index: int, t: float, W: Array, warm: WarmStart) -> None:
         slot_id = 1 - self._slot
-        slot = self._f["checkpoint"][f"slot{slot_id}"]
-        _put(slot, "W", W)
-        _write_warm(slot.require_group("warm"), warm)
-        slot.attrs["has_warm"] = True
+        slot, cache = self._slots[slot_id], self._slot_data[slot_id]
+        _put(slot, "W", W, cache)
+        for field in attrs.fields(type(warm)):
+            value = getattr(warm, field.name)
+            key = f"warm/{field.name}"
+            if isinstance(value, np.ndarray):
+                _put(slot, key, value, cache)
+            elif key in slot:
+                cache.pop(key, None)
+                del slot[key]
+            if not isinstance(value, np.ndarray):
+                slot.attrs[key] = "none" if value is None else value
+        if "has_warm" not in cache:  # one attribute write fewer per save
+            slot.attrs["has_warm"] = cache["has_warm"] = True
         slot.attrs["step"] = index
         slot.attrs["t"] = t
         self._f.flush()
-        self._f["checkpoint"].attrs["current"] = slot_id  # the commit point
-        self._slot = slot_id
+        self._ck.attrs["current"] = slot_id  # the commit point
+        self._slot, self._step = slot_id, index
 
     def close(self, status: str, wall_time: float, failure: str = "") -> None:
         """Record the final status and the time spent, and close the file."""
         f = self._f
         try:
+            f.attrs["completed_steps"] = self._step
             f.attrs["status"] = status
             f.attrs["wall_time"] = float(f.attrs.get("wall_time", 0.0)) + wall_time
             f.attrs["failure"] = failure
@@ -448,14 +452,19 @@ class TrajectoryWriter:
             f.close()
 
 
-def _put(group: h5py.Group, name: str, value: Array) -> None:
+def _put(group: h5py.Group, name: str, value: Array, cache: dict[str, Any]) -> None:
+    """Write ``value`` to dataset ``name`` of ``group`` in place (``cache`` keeps handles)."""
     value = np.asarray(value)
-    if name in group and (group[name].shape != value.shape or group[name].dtype != value.dtype):
+    ds = cache.get(name)
+    if ds is None and name in group:
+        ds = cache[name] = group[name]
+    if ds is not None and (ds.shape != value.shape or ds.dtype != value.dtype):
         del group[name]
-    if name in group:
-        group[name][...] = value
+        ds = None
+    if ds is None:
+        cache[name] = group.create_dataset(name, data=value)
     else:
-        group.create_dataset(name, data=value)
+        ds[...] = value
 
 
 def _initialise(f: h5py.File, setup: RunSetup) -> None:
@@ -472,6 +481,7 @@ def _initialise(f: h5py.File, setup: RunSetup) -> None:
         "h": cfg.run.h,
         "save_every": cfg.run.save_every,
         "requested_steps": cfg.run.steps,
+        "casimir_powers": [k for k in system.casimir_powers if k <= system.algebra.n],
         "completed_steps": 0,
         "status": "running",
         "wall_time": 0.0,

@@ -1,0 +1,253 @@
+"""The ``lieflow`` command line.
+
+Subcommands::
+
+    lieflow list                      systems, schemes and solvers (plugins included)
+    lieflow run CONFIG.toml           integrate a TOML configuration into an HDF5 file
+            [--resume] [--out FILE] [--force] [--no-progress]
+    lieflow reproduce [--out DIR]     the paper's experiments: figures, report.md, results.csv
+            [--quick] [--seed N]
+    lieflow plot FILE.h5 [--out DIR]  energy error, Casimir drift and iterations per step
+
+:func:`main` returns the exit code: 0 on success, 2 for any lieflow error (the message, one
+paragraph naming the problem and the fix, goes to stderr; no traceback), 130 when a run was
+interrupted with Ctrl-C (its file can be continued with ``--resume``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, TextIO
+
+from . import __version__
+from .errors import LieflowError
+from .integrate import Step
+
+__all__ = ["main"]
+
+EXIT_OK = 0
+EXIT_ERROR = 2
+EXIT_INTERRUPTED = 130
+
+
+def _cmd_list(args: argparse.Namespace) -> int:
+    from .plugins import KINDS, default_registry
+
+    registry = default_registry()
+    out: TextIO = sys.stdout
+    kinds = KINDS if args.kind is None else (args.kind,)
+    for i, kind in enumerate(kinds):
+        table = registry.table(kind)
+        if i:
+            print(file=out)
+        print(f"{kind}s:", file=out)
+        width = max((len(name) for name in table), default=0)
+        for name in sorted(table):
+            entry = table[name]
+            line = f"  {name:<{width}}  {entry.description}"
+            if args.verbose:
+                line += f"  [{entry.source}]"
+            print(line.rstrip(), file=out)
+    return EXIT_OK
+
+
+class _RichMonitor:
+    """Progress bar for ``lieflow run``: steps, rate, iterations per step, energy error."""
+
+    def __init__(self) -> None:
+        self._progress: Any = None
+        self._task: Any = None
+        self._steps = 0
+        self._iterations = 0
+        self._start = 0.0
+        self._last_update = 0.0
+        self._max_err = 0.0
+
+    def start(self, done: int, total: int) -> None:
+        from rich.console import Console
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+            TimeRemainingColumn,
+        )
+
+        self._progress = Progress(
+            TextColumn("[bold]steps"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("{task.fields[rate]} steps/s  {task.fields[its]} it/step"),
+            TextColumn("max energy error {task.fields[err]}"),
+            TimeElapsedColumn(),
+            TimeRemainingColumn(),
+            console=Console(stderr=True),
+        )
+        self._task = self._progress.add_task(
+            "run", total=total, completed=done, rate="-", its="-", err="-"
+        )
+        self._start = time.perf_counter()
+        self._progress.start()
+
+    def advance(self, step: Step, energy_error: float) -> None:
+        self._steps += 1
+        self._iterations += step.result.iterations
+        now = time.perf_counter()
+        self._max_err = max(self._max_err, energy_error)
+        if now - self._last_update < 0.1:
+            self._progress.update(self._task, completed=step.index)
+            return
+        self._last_update = now
+        self._progress.update(
+            self._task,
+            completed=step.index,
+            rate=f"{self._steps / max(now - self._start, 1e-9):,.0f}",
+            its=f"{self._iterations / self._steps:.1f}",
+            err=f"{self._max_err:.2e}",
+        )
+
+    def stop(self) -> None:
+        if self._progress is not None:
+            self._progress.stop()
+
+
+def _show_progress(args: argparse.Namespace) -> bool:
+    return not args.no_progress and sys.stderr.isatty()
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from .config import ConfigError, build, load_config
+    from .io import run
+
+    config = load_config(args.config)
+    setup = build(config, output=args.out)
+    if setup.output.exists() and not (args.resume or args.force):
+        key = "--out" if args.out is not None else "[run] output"
+        raise ConfigError(
+            f"{config.source}: {key}: {str(setup.output)!r} already exists. To fix: pass "
+            "--resume to continue it, --force to replace it, or choose another output.",
+            key,
+        )
+    summary = run(
+        setup, resume=args.resume, monitor=_RichMonitor() if _show_progress(args) else None
+    )
+    rate = summary.new_steps / summary.wall_time if summary.wall_time > 0 else 0.0
+    print(
+        f"{summary.status}: {summary.completed_steps}/{summary.requested_steps} steps "
+        f"({summary.new_steps} new, {summary.wall_time:.2f} s, {rate:,.0f} steps/s), "
+        f"max energy error {summary.max_energy_error:.3e} -> {summary.path}"
+    )
+    if summary.status == "interrupted":
+        print(
+            f"lieflow: interrupted; continue with: lieflow run {args.config} --resume"
+            + (f" --out {args.out}" if args.out is not None else ""),
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
+    return EXIT_OK
+
+
+def _cmd_reproduce(args: argparse.Namespace) -> int:
+    from .reproduce import reproduce
+
+    def log(message: str) -> None:
+        if not args.quiet:
+            print(message, file=sys.stderr, flush=True)
+
+    result = reproduce(args.out, quick=args.quick, seed=args.seed, log=log)
+    for path in result.files:
+        print(path)
+    return EXIT_OK
+
+
+def _cmd_plot(args: argparse.Namespace) -> int:
+    from .plotting import plot_trajectory
+
+    for path in plot_trajectory(args.file, args.out):
+        print(path)
+    return EXIT_OK
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="lieflow",
+        description="Structure-preserving integration of isospectral Lie-Poisson systems.",
+    )
+    parser.add_argument("--version", action="version", version=f"lieflow {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("list", help="list systems, schemes and solvers (plugins included)")
+    p.add_argument("--kind", choices=("system", "scheme", "solver"), help="only this kind")
+    p.add_argument("-v", "--verbose", action="store_true", help="show who registered each")
+    p.set_defaults(func=_cmd_list)
+
+    p = sub.add_parser(
+        "run",
+        help="integrate a TOML configuration, writing an HDF5 trajectory as it goes",
+        description=(
+            "Integrate the run described by CONFIG (TOML with [system], [initial], [scheme], "
+            "optional [solver], and [run] tables; see examples/*.toml). The trajectory, "
+            "diagnostics and a checkpoint are written to HDF5 at every save, so an "
+            "interrupted run can be continued bit-for-bit with --resume."
+        ),
+    )
+    p.add_argument("config", type=Path, metavar="CONFIG.toml")
+    p.add_argument("--resume", action="store_true", help="continue the output file")
+    p.add_argument("--out", type=Path, metavar="FILE", help="output file (overrides [run])")
+    p.add_argument("--force", action="store_true", help="replace an existing output file")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser(
+        "reproduce",
+        help="rerun the paper's experiments (figures, report.md, results.csv)",
+        description=(
+            "Rerun the paper's numerical experiments (rigid body, Toda lattice, generalized "
+            "rigid body with midpoint, sydirk7, gauss2, gauss3) and write energy-error "
+            "figures, report.md (Tables 1-6 next to the published numbers) and results.csv."
+        ),
+    )
+    p.add_argument("--out", type=Path, default=Path("lieflow-out"), metavar="DIR")
+    p.add_argument("--quick", action="store_true", help="10x fewer steps, GRB n = 10 only")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random data (default 0)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no per-run log lines")
+    p.set_defaults(func=_cmd_reproduce)
+
+    p = sub.add_parser("plot", help="plot the diagnostics of a trajectory file")
+    p.add_argument("file", type=Path, metavar="FILE.h5")
+    p.add_argument("--out", type=Path, metavar="DIR", help="output directory (default: FILE's)")
+    p.set_defaults(func=_cmd_plot)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``lieflow`` command line with ``argv`` (default: ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        0 on success, 2 on a lieflow error or bad usage, 130 after Ctrl-C.
+    """
+    parser = _parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, usage errors
+        return exc.code if isinstance(exc.code, int) else EXIT_ERROR
+    func: Callable[[argparse.Namespace], int] = args.func
+    try:
+        return func(args)
+    except LieflowError as exc:
+        print(f"lieflow: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print("lieflow: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

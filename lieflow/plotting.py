@@ -1,0 +1,160 @@
+"""PNG figures: energy-error panels (``lieflow reproduce``) and trajectory-file diagnostics
+(``lieflow plot``).
+
+matplotlib is imported inside the functions and only its object-oriented API is used with
+the Agg canvas: no pyplot, no global backend switch, no figure registry to leak.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import attrs
+import numpy as np
+
+from .algebras import Array
+
+if TYPE_CHECKING:  # pragma: no cover
+    from matplotlib.figure import Figure
+
+__all__ = ["FLOOR", "Curve", "Panel", "energy_figure", "plot_trajectory"]
+
+#: Values below this (exact zeros: the energy at roundoff) are drawn at it on log axes.
+FLOOR = 1e-17
+
+
+@attrs.frozen(eq=False)
+class Curve:
+    """One line: ``values`` against ``t``."""
+
+    label: str
+    t: Array = attrs.field(repr=False)
+    values: Array = attrs.field(repr=False)
+
+
+@attrs.frozen(eq=False)
+class Panel:
+    """One axes of a figure: a title and its curves."""
+
+    title: str
+    curves: tuple[Curve, ...]
+
+
+def _figure(rows: int, width: float = 8.0, height: float = 3.0) -> tuple[Figure, list[Any]]:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width, height * rows), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(rows, 1, squeeze=False)[:, 0]
+    return fig, list(axes)
+
+
+def _save(fig: Figure, path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    return path
+
+
+def _log_values(values: Array) -> Array:
+    return np.maximum(np.asarray(values, dtype=float), FLOOR)
+
+
+def energy_figure(
+    panels: Sequence[Panel], path: Path | str, *, title: str = "", ylabel: str = ""
+) -> Path:
+    """Draw one log-scale panel per :class:`Panel`, stacked vertically, and save a PNG.
+
+    Parameters
+    ----------
+    panels : sequence of Panel
+        Panels from top to bottom.
+    path : path
+        The PNG to write (parent directories are created).
+    title : str
+        Figure title.
+    ylabel : str
+        Label of every y axis (default: relative energy error).
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    fig, axes = _figure(len(panels))
+    for ax, panel in zip(axes, panels, strict=True):
+        for curve in panel.curves:
+            ax.plot(curve.t, _log_values(curve.values), label=curve.label, linewidth=1.0)
+        ax.set_yscale("log")
+        ax.set_title(panel.title)
+        ax.set_xlabel("t")
+        ax.set_ylabel(ylabel or r"$|\eta(W_k) - \eta(W_0)| / |\eta(W_0)|$")
+        ax.grid(True, which="major", alpha=0.3)
+        ax.legend(loc="best", fontsize="small", ncols=2)
+    if title:
+        fig.suptitle(title)
+    return _save(fig, Path(path))
+
+
+def _worst(values: Array, keep: int) -> Array:
+    """Max over batch axes (an ensemble), keeping the first axis and the last ``keep - 1``."""
+    v = np.asarray(values, dtype=float)
+    axes = tuple(range(1, v.ndim - (keep - 1)))
+    return np.max(v, axis=axes) if axes else v
+
+
+def plot_trajectory(path: Path | str, out_dir: Path | str | None = None) -> list[Path]:
+    """Plot a trajectory file's energy error, Casimir drift and iterations per step.
+
+    Parameters
+    ----------
+    path : path
+        A file written by ``lieflow run``.
+    out_dir : path, optional
+        Where the PNGs go (default: next to the file).
+
+    Returns
+    -------
+    list of Path
+        ``<stem>_energy.png``, ``<stem>_casimirs.png`` and ``<stem>_iterations.png``.
+    """
+    from .io import read_trajectory
+
+    traj = read_trajectory(path)
+    src = Path(path)
+    out = src.parent if out_dir is None else Path(out_dir)
+    stem = src.stem
+    meta = traj.meta
+    label = f"{meta['system']}, {meta['scheme']}, h = {meta['h']:g}"
+    t = traj.step_times
+    written = [
+        energy_figure(
+            [Panel(label, (Curve("energy error", t, _worst(traj.energy_error, 1)),))],
+            out / f"{stem}_energy.png",
+        )
+    ]
+
+    drift = _worst(traj.casimir_drift, 2)
+    powers = list(np.atleast_1d(meta.get("casimir_powers", range(drift.shape[-1]))))
+    curves = tuple(
+        Curve(f"tr W^{k}" if len(powers) == drift.shape[-1] else f"C{j}", t, drift[:, j])
+        for j, k in enumerate(powers[: drift.shape[-1]])
+    )
+    written.append(
+        energy_figure(
+            [Panel(label, curves)],
+            out / f"{stem}_casimirs.png",
+            ylabel=r"$|C(W_k) - C(W_0)| / \|W_0\|^k$",
+        )
+    )
+
+    fig, (ax,) = _figure(1)
+    ax.step(t[1:], traj.iterations, where="post", linewidth=1.0)
+    ax.set_title(label)
+    ax.set_xlabel("t")
+    ax.set_ylabel("solver updates per step")
+    ax.grid(True, alpha=0.3)
+    written.append(_save(fig, out / f"{stem}_iterations.png"))
+    return written
