@@ -82,6 +82,11 @@ class ButcherTableau:
             )
         return self
 
+    def is_symmetric(self, tol: float = 1e-14) -> bool:
+        """Whether the method is symmetric (self-adjoint): ``a_{s+1-i, s+1-j} + a_ij = b_j``."""
+        A, b = self.A, self.b
+        return bool(np.max(np.abs(A[::-1, ::-1] + A - b[None, :])) <= tol)
+
     @property
     def spectral_radius(self) -> float:
         """``rho(A)``; the fixed-point contraction rate scales with ``h rho(A)`` (SPEC §5)."""

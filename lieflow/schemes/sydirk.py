@@ -98,11 +98,11 @@ class SyDIRK(Scheme):
         offsets = []
         iterations = 0
         for i, bi in enumerate(self.tableau.b):
-            problem, res = solve(
-                solver,
-                lambda guess, W=W, hi=bi * h: MidpointProblem(system, W, hi, guess),
-                None if warm is None else warm[..., i, :, :],
-            )
+
+            def build(guess: Array | None, W: Array = W, hi: float = bi * h) -> MidpointProblem:
+                return MidpointProblem(system, W, hi, guess)
+
+            problem, res = solve(solver, build, None if warm is None else warm[..., i, :, :])
             iterations += res.iterations
             offsets.append(res.x - W)
             W = problem.update(res.x)

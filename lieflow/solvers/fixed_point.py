@@ -166,12 +166,15 @@ class FixedPoint:
         residuals: list[float] = []
         xs: list[np.ndarray] = []
         gs: list[np.ndarray] = []
-        size0 = np.maximum(batch_norm(x, core), np.finfo(float).tiny)
+        size0 = batch_norm(x, core)  # growth is measured against max(||x0||, ||F(x0)||)
         while True:
             g = F(x)
             rel, met = relative_change(g, x, core, rule.atol, rule.rtol)
             residuals.append(rel)
-            reason = rule.verdict(residuals, met, float(np.max(batch_norm(g, core) / size0)))
+            size = batch_norm(g, core)
+            if len(residuals) == 1:
+                size0 = np.maximum(np.maximum(size0, size), np.finfo(float).tiny)
+            reason = rule.verdict(residuals, met, float(np.max(size / size0)))
             if reason is not None:
                 ok = reason in ("converged", "roundoff")
                 return SolveResult(

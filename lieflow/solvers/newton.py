@@ -83,12 +83,15 @@ class Newton:
         residuals: list[float] = []
         m_real = _to_real(x, core).shape[1]
         dense = self.linear == "dense" or (self.linear == "auto" and m_real <= self.dense_max)
-        size0 = np.maximum(batch_norm(x, core), np.finfo(float).tiny)
+        size0 = batch_norm(x, core)  # growth is measured against max(||x0||, ||F(x0)||)
         Fx = problem.map(x)
         while True:
             rel, met = relative_change(Fx, x, core, rule.atol, rule.rtol)
             residuals.append(rel)
-            reason = rule.verdict(residuals, met, float(np.max(batch_norm(Fx, core) / size0)))
+            size = batch_norm(Fx, core)
+            if len(residuals) == 1:
+                size0 = np.maximum(np.maximum(size0, size), np.finfo(float).tiny)
+            reason = rule.verdict(residuals, met, float(np.max(size / size0)))
             if reason is not None:
                 ok = reason in ("converged", "roundoff")
                 return SolveResult(

@@ -82,6 +82,15 @@ class IsospectralSystem(ABC):
             out.insert(0, np.real(np.trace(W, axis1=-2, axis2=-1)))
         return np.stack(out, axis=-1) if out else np.zeros((*W.shape[:-2], 0))
 
+    def random_state(self, seed: int | np.random.Generator | None = None) -> Array:
+        """A seeded random initial condition of unit Frobenius norm (test and demo input).
+
+        The default draws from the algebra; systems whose phase space is smaller (symmetric
+        Toda matrices, vortices on spheres) override it.
+        """
+        W = self.algebra.random(seed)
+        return W / frobenius_norm(W)
+
     def validate(self, W0: ArrayLike, tol: float = 1e-12) -> Array:
         """Check an initial condition and return it as a fresh array (raises InputError)."""
         return self.algebra.validate(W0, name="W0", tol=tol)

@@ -25,6 +25,13 @@ def _moments(values: Sequence[float] | np.ndarray) -> np.ndarray:
     return _positive_vector(values, "moments of inertia")
 
 
+def _principal_moments(values: Sequence[float] | np.ndarray) -> np.ndarray:
+    arr = _moments(values)
+    if arr.size != 3:
+        raise InputError(f"inertia needs 3 principal moments, got {arr.size}")
+    return arr
+
+
 @attrs.frozen(eq=False)
 class GeneralizedRigidBody(IsospectralSystem):
     r"""Manakov's generalized rigid body on so(n) (SPEC §3).
@@ -34,9 +41,10 @@ class GeneralizedRigidBody(IsospectralSystem):
     .. math:: B(W) = -\mathcal I^{-1} W,\qquad (\mathcal I^{-1}W)_{ij} = W_{ij}/(J_i + J_j),
 
     and :math:`\eta(W) = \tfrac12 \sum_{ij} W_{ij}^2 / (J_i + J_j)`. Casimirs ``tr W^{2k}``.
+    The default ``J`` is a small (n = 5) example.
     """
 
-    J: np.ndarray = attrs.field(converter=_moments)
+    J: np.ndarray = attrs.field(default=(1.0, 1.3, 1.7, 2.2, 2.8), converter=_moments)
     weights: np.ndarray = attrs.field(init=False)
     linear_B = True
     casimir_powers = (2, 4, 6)
@@ -71,15 +79,10 @@ class RigidBody(IsospectralSystem):
     ``B(W)_{ij} = -W_{ij} / I_k``.
     """
 
-    inertia: np.ndarray = attrs.field(default=(1.0, 2.0, 3.0), converter=_moments)
+    inertia: np.ndarray = attrs.field(default=(1.0, 2.0, 3.0), converter=_principal_moments)
     weights: np.ndarray = attrs.field(init=False)
     linear_B = True
     casimir_powers = (2,)
-
-    @inertia.validator
-    def _three(self, _attr: object, value: np.ndarray) -> None:
-        if value.size != 3:
-            raise InputError(f"inertia needs 3 principal moments, got {value.size}")
 
     @weights.default
     def _weights(self) -> np.ndarray:

@@ -54,6 +54,12 @@ class PeriodicToda(IsospectralSystem):
     def algebra(self) -> GL:
         return GL(self.n)
 
+    def random_state(self, seed: int | np.random.Generator | None = None) -> Array:
+        """A random symmetric matrix of unit norm (the Flaschka phase space)."""
+        X = np.random.default_rng(seed).standard_normal((self.n, self.n))
+        S = X + X.T
+        return S / np.linalg.norm(S)
+
     def B(self, W: Array) -> Array:
         return W * self.sign
 

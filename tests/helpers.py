@@ -1,0 +1,44 @@
+"""Test helpers: tight solver settings and small systems added by subclassing."""
+
+from __future__ import annotations
+
+import numpy as np
+
+import lieflow as lf
+
+
+def tight() -> lf.solvers.FixedPoint:
+    return lf.solvers.FixedPoint(rtol=1e-15)
+
+
+class HermitianBody(lf.IsospectralSystem):
+    """A test-only system on u(n): ``B(W) = -W * C`` with ``C`` real symmetric positive.
+
+    Added by subclassing exactly as the README shows; it exercises complex arithmetic.
+    """
+
+    linear_B = True
+
+    def __init__(self, n: int = 4) -> None:
+        self.C = 1.0 / (1.0 + np.add.outer(np.arange(n), np.arange(n)))
+
+    @property
+    def algebra(self) -> lf.LieAlgebra:
+        return lf.U(self.C.shape[0])
+
+    def B(self, W: np.ndarray) -> np.ndarray:
+        return -W * self.C
+
+    def hamiltonian(self, W: np.ndarray) -> np.ndarray:
+        return 0.5 * np.sum(np.abs(W) ** 2 * self.C, axis=(-2, -1))
+
+
+class TracelessHermitianBody(HermitianBody):
+    """The same on su(n) (B preserves the trace-free part only approximately: project)."""
+
+    @property
+    def algebra(self) -> lf.LieAlgebra:
+        return lf.SU(self.C.shape[0])
+
+    def B(self, W: np.ndarray) -> np.ndarray:
+        return self.algebra.project(-W * self.C)

@@ -1,0 +1,67 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import lieflow as lf
+
+ALGEBRAS = [lf.SO(4), lf.U(3), lf.SU(5), lf.GL(3)]
+
+
+@pytest.mark.parametrize("g", ALGEBRAS, ids=str)
+def test_random_element_is_in_algebra_with_right_dtype(g: lf.LieAlgebra) -> None:
+    X = g.random(seed=1)
+    assert X.shape == g.shape and X.dtype == g.dtype
+    assert g.contains(X, tol=1e-15)
+    np.testing.assert_array_equal(g.random(seed=1), X)  # seeded
+
+
+@pytest.mark.parametrize("g", ALGEBRAS, ids=str)
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_projection_is_idempotent_and_bracket_closes(g: lf.LieAlgebra, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    X = rng.standard_normal(g.shape) + (
+        1j * rng.standard_normal(g.shape) if g.dtype.kind == "c" else 0
+    )
+    P = g.project(X)
+    np.testing.assert_allclose(g.project(P), P, atol=1e-15)
+    Y = g.random(seed + 1)
+    assert g.contains(g.bracket(P, Y), tol=1e-13)
+    # the projection is orthogonal: <X - P(X), Y> = 0 for Y in g
+    assert abs(g.inner(X - P, Y)) <= 1e-12 * (np.linalg.norm(X) * np.linalg.norm(Y))
+
+
+def test_dimensions() -> None:
+    assert [g.dimension for g in ALGEBRAS] == [6, 9, 24, 9]
+
+
+def test_inner_product_is_real_frobenius() -> None:
+    g = lf.U(3)
+    X, Y = g.random(0), g.random(1)
+    assert g.inner(X, Y) == pytest.approx(np.real(np.trace(X.conj().T @ Y)), rel=1e-14)
+
+
+def test_validate_refuses_bad_input() -> None:
+    g = lf.SO(3)
+    with pytest.raises(lf.InputError, match="shape"):
+        g.validate(np.zeros((3, 4)))
+    with pytest.raises(lf.InputError, match="NaN or Inf"):
+        g.validate(np.full((3, 3), np.nan))
+    with pytest.raises(lf.AlgebraError, match=r"not in so\(3\).*W\^T = -W"):
+        g.validate(np.eye(3))
+    with pytest.raises(lf.InputError, match="complex"):
+        g.validate(1j * g.random(0))
+    with pytest.raises(lf.AlgebraError, match="tr W = 0"):
+        lf.SU(2).validate(1j * np.eye(2))
+    with pytest.raises(lf.InputError, match="numeric"):
+        g.validate(np.array([["a"] * 3] * 3))
+    with pytest.raises(lf.InputError):
+        lf.SO(0)
+
+
+def test_validate_keeps_single_precision() -> None:
+    X = lf.U(3).random(0).astype(np.complex64)
+    assert lf.U(3).validate(X, tol=1e-6).dtype == np.complex64

@@ -1,0 +1,129 @@
+"""The plugin registry: built-ins come through the entry point, broken plugins are named."""
+
+from __future__ import annotations
+
+import importlib.metadata as md
+from collections.abc import Callable
+from typing import ClassVar
+
+import pytest
+
+import lieflow as lf
+from lieflow import plugins
+from lieflow.tableaus import radau_iia2
+
+
+class _Plugin:
+    """A plugin object whose hook calls ``register(registry)``."""
+
+    def __init__(self, register: Callable[[lf.RegistryBuilder], object]) -> None:
+        self._register = register
+
+    @lf.hookimpl
+    def lieflow_register(self, registry: lf.RegistryBuilder) -> None:
+        self._register(registry)
+
+
+def test_builtins_come_from_lieflow_entry_point() -> None:
+    reg = lf.default_registry()
+    for name in ("rigid_body", "generalized_rigid_body", "periodic_toda"):
+        assert "'lieflow'" in reg.systems[name].source
+    for name in (
+        "midpoint",
+        "sydirk7",
+        "triple_jump",
+        "suzuki5",
+        "gauss2",
+        "gauss3",
+        "modin_viviani",
+    ):
+        assert name in reg.schemes
+    assert {"fixed_point", "newton", "frozen_b", "auto"} <= set(reg.solvers)
+    assert all(e.description for e in reg.schemes.values())
+
+
+def test_point_vortex_plugin_is_installed_and_registered() -> None:
+    entry = lf.default_registry().systems["point_vortices"]
+    assert "lieflow-vortices" in entry.source
+
+
+def test_unknown_name_lists_known_ones() -> None:
+    with pytest.raises(lf.RegistryError, match=r"unknown scheme 'gauss9'.*gauss2, gauss3"):
+        lf.schemes.get("gauss9")
+    with pytest.raises(lf.RegistryError, match="does not accept"):
+        lf.schemes.get("gauss2", colour="red")
+
+
+def test_registry_is_immutable() -> None:
+    reg = lf.default_registry()
+    with pytest.raises(TypeError):
+        reg.systems["x"] = reg.systems["rigid_body"]  # type: ignore[index]
+
+
+def test_autoload_can_be_turned_off(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(plugins.DISABLE_AUTOLOAD_ENV, "1")
+    reg = lf.load_registry()
+    assert "rigid_body" in reg.systems and "point_vortices" not in reg.systems
+
+
+def test_extra_plugin_object_registers() -> None:
+    def register(registry: lf.RegistryBuilder) -> None:
+        registry.add_scheme("gauss5", lambda: lf.schemes.get("gauss", stages=5), "Gauss 5")
+
+    reg = lf.load_registry(autoload=False, plugins=[("mine", _Plugin(register))])
+    assert reg.schemes["gauss5"].create().order == 10
+    assert "mine" in reg.schemes["gauss5"].source
+
+
+@pytest.mark.parametrize(
+    ("register", "match"),
+    [
+        (lambda r: r.add_system("rigid_body", lf.systems.RigidBody), "already registered"),
+        (lambda r: r.add_scheme("Bad Name", lf.schemes.SyDIRK), "invalid scheme name"),
+        (
+            lambda r: r.add_scheme("radau", lambda: lf.schemes.BlockGauss(radau_iia2())),
+            "not symplectic",
+        ),
+        (lambda r: r.add_system("oops", lf.schemes.SyDIRK), "not a IsospectralSystem"),
+        (lambda r: r.add_solver("nope", 42), "not callable"),
+        (lambda r: 1 / 0, "ZeroDivisionError"),
+    ],
+)
+def test_broken_plugin_is_named(register: object, match: str) -> None:
+    with pytest.raises(lf.PluginError, match=rf"plugin 'broken' is broken: .*{match}"):
+        lf.load_registry(autoload=False, plugins=[("broken", _Plugin(register))])
+
+
+def test_plugin_without_hook_is_an_error() -> None:
+    with pytest.raises(lf.PluginError, match="no lieflow_register"):
+        lf.load_registry(autoload=False, plugins=[("empty", object())])
+
+
+def test_lenient_mode_warns_and_skips(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(plugins.ERRORS_ENV, "warn")
+    bad = _Plugin(lambda r: r.add_system("rigid_body", lf.systems.RigidBody))
+    with pytest.warns(plugins.PluginWarning, match="already registered"):
+        reg = lf.load_registry(autoload=False, plugins=[("broken", bad)])
+    assert reg.systems["rigid_body"].source.startswith("entry point")
+
+
+def test_entry_point_that_fails_to_import_names_its_distribution(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    real = md.entry_points
+
+    class FakeDist:
+        metadata: ClassVar[dict[str, str]] = {"Name": "lieflow-broken"}
+
+    ep = md.EntryPoint("broken", "lieflow_no_such_module.plugin", "lieflow")
+    broken = ep._for(FakeDist())  # type: ignore[attr-defined]
+
+    def fake(**kw: object) -> list[md.EntryPoint]:
+        return [*real(**kw), broken] if kw.get("group") == "lieflow" else real(**kw)
+
+    monkeypatch.setattr(md, "entry_points", fake)
+    with pytest.raises(lf.PluginError, match=r"'lieflow-broken'.*ModuleNotFoundError"):
+        lf.load_registry()
+    # and with autoload off, third-party entry points are not even imported
+    monkeypatch.setenv(plugins.DISABLE_AUTOLOAD_ENV, "1")
+    assert "rigid_body" in lf.load_registry().systems

@@ -1,0 +1,184 @@
+"""Solvers on the stress cases of SPEC §5 (Toda with the paper's W0) and their contracts."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from helpers import tight
+
+import lieflow as lf
+from lieflow.schemes import MidpointProblem, ReducedProblem
+from lieflow.tableaus import gauss
+
+TODA = lf.systems.get("periodic_toda")
+W0 = lf.systems.PAPER_W0
+
+
+def test_midpoint_fixed_point_stalls_at_h_04() -> None:
+    with pytest.raises(lf.ConvergenceError) as info:
+        lf.integrate(TODA, lf.schemes.get("midpoint"), W0, 0.4, steps=5)
+    err = info.value
+    assert err.reason == "stalled" and err.step == 1 and err.t == 0.0
+    assert err.solver == "fixed_point" and err.iterations == len(err.residuals) < 100
+    assert all(np.isfinite(err.residuals))
+    assert "Newton" in str(err) and "step 1" in str(err)
+
+
+@pytest.mark.parametrize(
+    "scheme",
+    [
+        lf.schemes.get("midpoint"),
+        lf.schemes.get("sydirk7"),
+        lf.schemes.get("gauss", stages=2, form="block"),
+        lf.schemes.get("gauss", stages=3, form="block"),
+    ],
+    ids=lambda s: s.name,
+)
+def test_fixed_point_diverges_at_h_08(scheme: lf.Scheme) -> None:
+    """Every fixed-point iteration of the block equation diverges (the reduced stage form of
+    Gauss-2/3 still converges there: its iteration map is a different one)."""
+    with pytest.raises(lf.ConvergenceError) as info:
+        lf.integrate(TODA, scheme, W0, 0.8, steps=5)
+    assert info.value.reason == "diverged"
+    assert info.value.iterations < 20
+
+
+@pytest.mark.parametrize("name", ["midpoint", "gauss2", "gauss3", "sydirk7"])
+def test_newton_and_frozen_b_converge_at_h_08(name: str) -> None:
+    scheme = lf.schemes.get(name)
+    stages = scheme.tableau.stages if isinstance(scheme, lf.schemes.SyDIRK) else 1
+    sol = lf.integrate(TODA, scheme, W0, 0.8, steps=30, solver=lf.solvers.Newton())
+    assert sol.success
+    assert sol.iterations.max() <= 10 * stages  # <= 10 Newton iterations per implicit solve
+    assert sol.spectrum_drift().max() <= 1e-12
+    frozen = lf.integrate(TODA, scheme, W0, 0.8, steps=30, solver=lf.solvers.FrozenB(max_iter=300))
+    assert frozen.success
+    np.testing.assert_allclose(frozen.W_final, sol.W_final, rtol=0, atol=1e-10)
+
+
+def test_newton_converges_quadratically() -> None:
+    problem = MidpointProblem(TODA, W0, 0.8)
+    res = lf.solvers.Newton(rtol=1e-15).solve(problem)
+    r = np.array(res.residuals)
+    assert res.converged and res.iterations <= 7
+    # the last few residuals: r_{k+1} <= C r_k^2 with a modest C
+    tail = [(a, b) for a, b in itertools.pairwise(r) if a < 1e-2 and b > 1e-14]
+    assert tail, r
+    assert all(b <= 10.0 * a**2 for a, b in tail), r
+
+
+def test_newton_gmres_matches_dense() -> None:
+    system = lf.systems.GeneralizedRigidBody(np.linspace(1.0, 2.0, 8))
+    W = system.random_state(seed=0)
+    problem = ReducedProblem(system, W, 0.2, gauss(3))
+    dense = lf.solvers.Newton(linear="dense").solve(problem)
+    krylov = lf.solvers.Newton(linear="gmres").solve(problem)
+    assert dense.converged and krylov.converged
+    np.testing.assert_allclose(krylov.x, dense.x, rtol=0, atol=1e-13)
+
+
+def test_auto_finishes_the_stiff_run_and_records_fallbacks() -> None:
+    sol = lf.integrate(
+        TODA, lf.schemes.get("midpoint"), W0, 0.8, steps=20, solver=lf.solvers.Auto()
+    )
+    assert sol.success and sol.n_steps == 20
+    assert set(sol.solvers) == {"newton"}  # fixed point never converges at this step size
+    easy = lf.integrate(
+        TODA, lf.schemes.get("midpoint"), W0, 0.1, steps=20, solver=lf.solvers.Auto()
+    )
+    assert set(easy.solvers) == {"fixed_point"}
+
+
+def test_truncate_returns_the_computed_steps() -> None:
+    sol = lf.integrate(TODA, lf.schemes.get("midpoint"), W0, 0.4, steps=5, on_failure="truncate")
+    assert sol.status is lf.Status.FAILED and not sol.success
+    assert sol.n_steps == 0 and sol.W.shape == (1, 4, 4)
+    assert sol.failure is not None and sol.failure.reason == "stalled"
+
+
+def test_max_iterations_is_an_error_not_a_silent_cap() -> None:
+    with pytest.raises(lf.ConvergenceError, match="max_iterations"):
+        lf.integrate(
+            TODA,
+            lf.schemes.get("gauss2"),
+            W0,
+            0.1,
+            steps=1,
+            solver=lf.solvers.FixedPoint(max_iter=3),
+        )
+
+
+def test_a_tolerance_below_roundoff_still_terminates() -> None:
+    res = lf.solvers.FixedPoint(rtol=1e-30).solve(MidpointProblem(TODA, W0, 0.01))
+    assert res.converged and res.reason in ("converged", "roundoff") and res.iterations < 30
+    ref = tight().solve(MidpointProblem(TODA, W0, 0.01))
+    np.testing.assert_allclose(res.x, ref.x, rtol=0, atol=1e-14)
+
+
+def test_stopping_rule_verdicts() -> None:
+    rule = lf.solvers.StoppingRule(rtol=1e-16, patience=3)
+    flat = [1e-3, 1e-8, 1e-15, 3e-16, 4e-16, 5e-16, 3.5e-16]
+    assert rule.verdict(flat[:4], met=False, growth=1.0) is None
+    assert rule.verdict(flat, met=False, growth=1.0) == "roundoff"
+    stuck = [1e-1, 1e-3, 2e-3, 3e-3, 2e-3]
+    assert rule.verdict(stuck, met=False, growth=1.0) == "stalled"
+    assert rule.verdict(stuck, met=False, growth=20.0) == "diverged"
+    assert rule.verdict([0.5], met=False, growth=1e3) == "diverged"
+    assert rule.verdict([float("nan")], met=False, growth=1.0) == "non_finite"
+    assert rule.verdict([1e-3], met=True, growth=1.0) == "converged"
+    slow = list(0.5 * 0.97 ** np.arange(12))
+    assert rule.verdict(slow, met=False, growth=1.0) == "stalled"  # would need ~1000 its
+    assert lf.solvers.StoppingRule(project=False).verdict(slow, False, 1.0) is None
+
+
+def test_anderson_cuts_iterations() -> None:
+    plain = lf.integrate(TODA, lf.schemes.get("midpoint"), W0, 0.1, steps=50)
+    anderson = lf.integrate(
+        TODA,
+        lf.schemes.get("midpoint"),
+        W0,
+        0.1,
+        steps=50,
+        solver=lf.solvers.FixedPoint(anderson=3),
+    )
+    assert anderson.iterations.sum() < 0.75 * plain.iterations.sum()
+    np.testing.assert_allclose(anderson.W_final, plain.W_final, rtol=0, atol=1e-12)
+
+
+def test_warm_start_cuts_iterations_and_keeps_the_solution() -> None:
+    system = lf.systems.get("generalized_rigid_body")
+    W = system.random_state(seed=1)
+    cold = lf.integrate(system, lf.schemes.get("gauss3"), W, 0.01, steps=100, warm_start=False)
+    warm = lf.integrate(system, lf.schemes.get("gauss3"), W, 0.01, steps=100)
+    assert warm.iterations.sum() < 0.8 * cold.iterations.sum()
+    np.testing.assert_allclose(warm.W_final, cold.W_final, rtol=0, atol=1e-13)
+
+
+def test_solver_options_are_validated() -> None:
+    with pytest.raises(lf.InputError):
+        lf.solvers.FixedPoint(rtol=0.0, atol=0.0)
+    with pytest.raises(lf.InputError):
+        lf.solvers.FixedPoint(rtol=-1.0)
+    with pytest.raises(lf.InputError):
+        lf.solvers.FixedPoint(anderson=-1)
+    with pytest.raises(lf.InputError):
+        lf.solvers.Newton(linear="lu")
+
+
+def test_newton_needs_the_derivative_of_a_nonlinear_B() -> None:
+    class Cubic(lf.IsospectralSystem):
+        algebra = lf.SO(3)
+
+        def B(self, W: np.ndarray) -> np.ndarray:
+            return -W * np.sum(W * W, axis=(-2, -1), keepdims=True)
+
+        def hamiltonian(self, W: np.ndarray) -> np.ndarray:
+            return np.sum(W * W, axis=(-2, -1)) ** 2
+
+    system = Cubic()
+    with pytest.raises(lf.LieflowError, match="B_derivative"):
+        lf.schemes.get("midpoint").step(system, system.random_state(0), 0.1, lf.solvers.Newton())
+    # the other solvers need no derivative
+    lf.schemes.get("midpoint").step(system, system.random_state(0), 0.1, lf.solvers.FrozenB())

@@ -1,0 +1,74 @@
+"""Geometric properties of every registered (system, scheme) pair, plugins included:
+isospectrality, coadjoint orbits (iterates stay in the algebra), Casimirs, time symmetry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import HermitianBody, TracelessHermitianBody, tight
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import lieflow as lf
+
+
+def _run(
+    system: lf.IsospectralSystem, scheme: lf.Scheme, W0: np.ndarray, steps: int
+) -> lf.Solution:
+    return lf.integrate(system, scheme, W0, h=0.05, steps=steps, solver=tight())
+
+
+def test_geometry_over_200_steps(system: lf.IsospectralSystem, scheme: lf.Scheme) -> None:
+    sol = _run(system, scheme, system.random_state(seed=7), steps=200)
+    assert sol.success and sol.n_steps == 200
+    assert sol.spectrum_drift().max() <= 1e-12
+    assert sol.algebra_distance().max() <= 1e-13
+    assert sol.casimir_drift is not None and sol.casimir_drift.max() <= 1e-12
+    assert sol.energy_error is not None and sol.energy_error.max() < 1e-2
+
+
+@pytest.mark.parametrize("system_cls", [HermitianBody, TracelessHermitianBody])
+@pytest.mark.parametrize("name", ["midpoint", "gauss2", "gauss3", "sydirk7", "modin_viviani"])
+def test_complex_algebras(system_cls: type, name: str) -> None:
+    system = system_cls()
+    sol = _run(system, lf.schemes.get(name), system.random_state(seed=3), steps=100)
+    assert sol.W.dtype == np.complex128
+    assert sol.spectrum_drift().max() <= 1e-12
+    assert sol.algebra_distance().max() <= 1e-13
+    assert sol.casimir_drift is not None and sol.casimir_drift.max() <= 1e-12
+
+
+def test_time_symmetry(system: lf.IsospectralSystem, scheme: lf.Scheme) -> None:
+    """Symmetric methods: step(-h) after step(h) is the identity (to solver tolerance)."""
+    if not scheme.tableau.is_symmetric():
+        pytest.skip(f"{scheme.name} is not a symmetric method")
+    W0 = system.random_state(seed=11)
+    W1 = scheme.step(system, W0, 0.1, tight()).W
+    back = scheme.step(system, W1, -0.1, tight()).W
+    np.testing.assert_allclose(back, W0, rtol=0, atol=1e-13)
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    seed=st.integers(0, 2**31),
+    h=st.floats(0.01, 0.2),
+    name=st.sampled_from(["midpoint", "gauss2", "gauss3"]),
+)
+def test_isospectral_for_random_rigid_bodies(seed: int, h: float, name: str) -> None:
+    rng = np.random.default_rng(seed)
+    system = lf.systems.GeneralizedRigidBody(rng.uniform(0.5, 3.0, size=4))
+    W0 = system.random_state(rng)
+    sol = lf.integrate(system, lf.schemes.get(name), W0, h=h, steps=20, solver=tight())
+    assert sol.spectrum_drift().max() <= 1e-12
+    assert sol.algebra_distance().max() <= 1e-14
+
+
+def test_ensemble_matches_individual_runs() -> None:
+    system = lf.systems.get("rigid_body")
+    stack = np.stack([system.random_state(seed=k) for k in range(5)])
+    scheme = lf.schemes.get("gauss2")
+    together = lf.integrate(system, scheme, stack, h=0.1, steps=30, solver=tight())
+    assert together.W.shape == (31, 5, 3, 3)
+    for k in range(5):
+        alone = lf.integrate(system, scheme, stack[k], h=0.1, steps=30, solver=tight())
+        np.testing.assert_allclose(together.W_final[k], alone.W_final, rtol=0, atol=1e-14)
