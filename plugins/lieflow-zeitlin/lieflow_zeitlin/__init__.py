@@ -1,0 +1,60 @@
+"""lieflow-zeitlin: Euler's equations on the sphere as the isospectral Euler–Zeitlin system.
+
+A lieflow plugin built on lieflow's public API only; installing the distribution registers
+the system ``"euler_zeitlin"`` through the ``lieflow`` entry-point group::
+
+    import lieflow as lf
+    import lieflow_zeitlin as lz
+
+    system = lf.systems.get("euler_zeitlin", N=64)
+    W0 = lz.random_vorticity(64, degree=8, seed=0)          # smooth, rms vorticity 1
+    sol = lf.integrate(system, lf.schemes.get("gauss2"), W0, h=0.5, steps=200)
+    omega = lz.matrix_to_grid(sol.W_final, lz.SphereGrid.for_size(64))   # back to a field
+
+Modules: :mod:`~lieflow_zeitlin.laplacian` (Hoppe–Yau Laplacian, O(N²) solve, quantized
+harmonics), :mod:`~lieflow_zeitlin.quantization` (fields ↔ matrices),
+:mod:`~lieflow_zeitlin.system` (the :class:`EulerZeitlin` system) and
+:mod:`~lieflow_zeitlin.plotting` (PNG figures; needs matplotlib, imported on demand).
+"""
+
+from __future__ import annotations
+
+from .laplacian import HoppeYauLaplacian, harmonics, spin_matrices, tridiagonal
+from .quantization import (
+    SphereGrid,
+    degrees_and_orders,
+    grid_to_matrix,
+    grid_to_sh,
+    hbar,
+    kappa,
+    lm_index,
+    matrix_to_grid,
+    matrix_to_sh,
+    random_sh,
+    random_vorticity,
+    sh_to_grid,
+    sh_to_matrix,
+)
+from .system import EulerZeitlin, VorticityAlgebra
+
+__all__ = [
+    "EulerZeitlin",
+    "HoppeYauLaplacian",
+    "SphereGrid",
+    "VorticityAlgebra",
+    "degrees_and_orders",
+    "grid_to_matrix",
+    "grid_to_sh",
+    "harmonics",
+    "hbar",
+    "kappa",
+    "lm_index",
+    "matrix_to_grid",
+    "matrix_to_sh",
+    "random_sh",
+    "random_vorticity",
+    "sh_to_grid",
+    "sh_to_matrix",
+    "spin_matrices",
+    "tridiagonal",
+]

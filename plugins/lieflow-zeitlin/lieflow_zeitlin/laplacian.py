@@ -1,0 +1,416 @@
+r"""The Hoppe–Yau Laplacian on su(N): application, O(N²) inverse, quantized harmonics.
+
+Spin matrices and index convention
+----------------------------------
+Rows and columns are indexed by ``i = 0..N-1`` ↔ the spin-``s`` weight ``μ = s - i``,
+``s = (N-1)/2``. The Hermitian spin matrices are
+
+.. math:: S_3 = \operatorname{diag}(s - i),\qquad (S_+)_{i-1,i} = \sqrt{i(N-i)},\qquad
+          S_- = S_+^T,\quad S_1 = \tfrac12(S_+ + S_-),\quad S_2 = \tfrac1{2i}(S_+ - S_-),
+
+so ``[S_1, S_2] = i S_3`` (cyclically) and ``Σ_a S_a² = s(s+1) I`` (:func:`spin_matrices`).
+
+The Laplacian
+-------------
+The Hoppe–Yau Laplacian (Hoppe 1982; Hoppe & Yau 1998) is minus the adjoint Casimir,
+
+.. math:: \Delta_N P = -\sum_{a=1}^{3} [S_a, [S_a, P]].
+
+Expanding the double commutators with the ladder matrices (lieflow SPEC §3) shows that it maps
+every diagonal ``m = j - k`` of ``P`` to itself and is tridiagonal there: with ``P_i`` the
+``i``-th entry ``P_{i+m, i}`` of diagonal ``m >= 0`` (``i = 0..N-m-1``),
+
+.. math::
+    (\Delta_N P)_i = -\big[(N-1)(2i+1+m) - 2i(i+m)\big] P_i + e_i P_{i-1} + e_{i+1} P_{i+1},
+    \qquad e_i = \sqrt{i (N-i) (i+m) (N-i-m)}.
+
+``Δ_N`` has real coefficients and commutes with transposition, so diagonal ``-m`` (entries
+``P_{i, i+m}``) carries the same tridiagonal matrix. Its spectrum is ``-l(l+1)``,
+``l = 0..N-1``, with multiplicity ``2l+1``: on diagonal ``±m`` the eigenvalues are
+``-l(l+1)`` for ``l = |m|..N-1`` (the eigenvector of degree ``l`` on diagonal ``m`` is the
+quantized spherical harmonic ``T_{l,∓m}``, see :meth:`HoppeYauLaplacian.harmonics`). The
+kernel is spanned by the identity (``l = 0``), so on su(N) ``Δ_N`` is invertible.
+
+Solving ``Δ_N P = W`` in O(N²): the packed layout
+-------------------------------------------------
+Copy the ``N²`` entries of ``W`` (row-major) into a zero buffer of ``N(N+1)`` entries and read
+it as an ``N × (N+1)`` matrix ``Y``. Since ``i(N+1) + q = iN + (i+q)``,
+
+.. math:: Y_{i,q} = W_{i, i+q}\ (i + q < N),\qquad Y_{i,q} = W_{i+1, i+q-N}\ (i + q \ge N),
+
+so column ``q`` of ``Y`` holds diagonal ``-q`` of ``W`` followed by diagonal ``N+1-q`` (and
+one zero pad): every column is two of the ``2N-1`` independent tridiagonal systems stacked,
+decoupled where they meet. One vectorised Thomas sweep down the rows of ``Y`` therefore
+solves all of them at once, for every matrix of a batch, without gathering diagonals. The
+``m = 0`` system (column 0) is singular; it is *pinned* by adding ``-1/2`` to its first
+diagonal entry (lieflow SPEC §3), which makes every system negative definite so that the
+``LDL^T`` factorisation needs no pivoting; the trace is removed before and after the solve,
+which makes :meth:`HoppeYauLaplacian.solve` the pseudo-inverse ``Δ_N^+`` (exact inverse on
+su(N)).
+
+To cut the Python overhead of ``2N`` row operations, the sweeps are *partitioned*: rows are
+split into ``≈ √N`` blocks of ``≈ √N`` rows; the recurrences run inside all blocks at once,
+then along the block boundaries, and a final broadcast adds each block's dependence on its
+predecessor (the coefficients of that dependence are products of the ``LDL^T`` multipliers,
+precomputed). That is ``O(√N)`` numpy calls per solve instead of ``O(N)``; complex data are
+processed as interleaved real arrays so that every call is a same-type real ufunc.
+``benchmarks/bench_laplacian.py`` compares this with LAPACK ``?pttrs`` on the concatenated
+block-diagonal system, ``scipy.linalg.solve_banded`` per diagonal and the plain row sweep.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from typing import Any
+
+import attrs
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.linalg import eigh_tridiagonal
+
+import lieflow
+
+Array = NDArray[Any]
+
+#: Added to the first diagonal entry of the singular ``m = 0`` block (SPEC §3).
+PIN = -0.5
+
+
+def matrix_size(N: int) -> int:
+    """``N`` as an int, or :class:`lieflow.InputError` unless it is an integer ``>= 2``."""
+    if isinstance(N, bool) or not isinstance(N, (int, np.integer)) or N < 2:
+        raise lieflow.InputError(f"the matrix size N must be an integer >= 2, got {N!r}")
+    return int(N)
+
+
+def spin_matrices(N: int) -> tuple[Array, Array, Array]:
+    r"""The Hermitian spin-``(N-1)/2`` matrices ``(S_1, S_2, S_3)`` of the module convention.
+
+    ``S_3 = diag(s - i)``, ``(S_+)_{i-1,i} = sqrt(i (N-i))``, ``S_± = S_1 ± i S_2``;
+    ``[S_1, S_2] = i S_3`` and ``S_1² + S_2² + S_3² = s(s+1) I`` with ``s = (N-1)/2``.
+    Dense ``N×N`` complex arrays (for checks and small examples; the Laplacian never forms
+    them).
+    """
+    N = matrix_size(N)
+    i = np.arange(1, N)
+    Sp = np.zeros((N, N), dtype=complex)
+    Sp[i - 1, i] = np.sqrt(i * (N - i))
+    Sm = Sp.T.copy()
+    S3 = np.diag((N - 1) / 2 - np.arange(N)).astype(complex)
+    return 0.5 * (Sp + Sm), (Sp - Sm) / 2j, S3
+
+
+def tridiagonal(N: int, m: int) -> tuple[Array, Array]:
+    r"""The tridiagonal matrix of ``Δ_N`` on diagonal ``±m``: ``(diagonal, off-diagonal)``.
+
+    Diagonal ``-[(N-1)(2i+1+m) - 2i(i+m)]`` for ``i = 0..N-|m|-1`` and off-diagonal
+    ``e_i = sqrt(i (N-i) (i+m) (N-i-m))`` for ``i = 1..N-|m|-1`` (SPEC §3). Unpinned (for
+    ``m = 0`` the matrix is singular with kernel ``(1, ..., 1)``).
+    """
+    N = matrix_size(N)
+    m = abs(int(m))
+    if m >= N:
+        raise lieflow.InputError(f"diagonal m must satisfy |m| < N = {N}, got {m}")
+    i = np.arange(N - m, dtype=float)
+    d = -((N - 1) * (2 * i + 1 + m) - 2 * i * (i + m))
+    k = i[1:]
+    e = np.sqrt(k * (N - k) * (k + m) * (N - k - m))
+    return d, e
+
+
+def _packed_coefficients(N: int) -> tuple[Array, Array, Array]:
+    """``Δ_N`` in the packed ``(N, N+1)`` layout: diagonal ``d``, the coupling ``e`` of each
+    row to the row above (zero where systems meet and on pads) and the mask of non-pad
+    entries (``d = 0`` on pads)."""
+    i = np.arange(N, dtype=float)[:, None]
+    q = np.arange(N + 1, dtype=float)[None, :]
+    first = i < N - q  # diagonal -q, entry index i
+    second = (i >= N - q) & (i <= N - 2)  # diagonal N+1-q, entry index i - (N-q)
+    m = np.where(first, q, N + 1 - q)
+    k = np.where(first, i, i - (N - q))
+    valid = first | second
+    d = np.where(valid, -((N - 1) * (2 * k + 1 + m) - 2 * k * (k + m)), 0.0)
+    coupled = valid & (k > 0)
+    e = np.where(coupled, np.sqrt(np.where(coupled, k * (N - k) * (k + m) * (N - k - m), 0.0)), 0)
+    return d, e, valid
+
+
+@attrs.frozen(eq=False)
+class _BlockedFactor:
+    """``LDL^T`` factors of the pinned packed Laplacian, arranged for the partitioned sweeps.
+
+    All arrays have shape ``(nb, b, width)`` with ``width = 2(N+1)`` (real and imaginary parts
+    interleaved, matching a complex buffer viewed as real) in one floating-point precision.
+    ``lower[r]`` multiplies row ``r-1`` in the forward sweep, ``upper[r]`` row ``r+1`` in the
+    backward sweep; ``carry_fwd`` / ``carry_bwd`` are the products of multipliers that carry a
+    block's boundary value into its successor / predecessor; ``dinv`` is ``scale / D``.
+    """
+
+    lower: Array
+    upper: Array
+    carry_fwd: Array
+    carry_bwd: Array
+    dinv: Array
+
+    @classmethod
+    def build(cls, N: int, block: int, scale: float, dtype: type) -> _BlockedFactor:
+        d_packed, e_packed, valid = _packed_coefficients(N)
+        C = N + 1
+        nb = -(-N // block)
+        R = nb * block
+        d = np.ones((R, C))
+        e = np.zeros((R, C))
+        d[:N] = np.where(valid, d_packed, 1.0)  # pads solve as the identity
+        e[:N] = e_packed
+        d[0, 0] += PIN
+        D = np.empty((R, C))
+        lower = np.zeros((R, C))
+        D[0] = d[0]
+        for r in range(1, R):  # setup only: O(N) vectorised steps
+            lower[r] = e[r] / D[r - 1]
+            D[r] = d[r] - lower[r] * e[r]
+        upper = np.zeros((R, C))
+        upper[:-1] = lower[1:]
+        L4 = lower.reshape(nb, block, C)
+        U4 = upper.reshape(nb, block, C)
+        fwd = np.empty((nb, block, C))
+        bwd = np.empty((nb, block, C))
+        fwd[:, 0] = -L4[:, 0]
+        for r in range(1, block):
+            fwd[:, r] = -L4[:, r] * fwd[:, r - 1]
+        bwd[:, block - 1] = -U4[:, block - 1]
+        for r in range(block - 2, -1, -1):
+            bwd[:, r] = -U4[:, r] * bwd[:, r + 1]
+
+        def interleave(a: Array) -> Array:
+            out = np.repeat(a.reshape(nb, block, C), 2, axis=-1).astype(dtype)
+            out.setflags(write=False)
+            return out
+
+        return cls(
+            interleave(L4),
+            interleave(U4),
+            interleave(fwd),
+            interleave(bwd),
+            interleave(scale / D),
+        )
+
+
+def _default_block(N: int) -> int:
+    return max(2, round(math.sqrt(N)))
+
+
+@attrs.frozen(eq=False)
+class HoppeYauLaplacian:
+    r"""The Hoppe–Yau Laplacian ``Δ_N = -Σ_a ad_{S_a}²`` on ``N×N`` matrices (module docs).
+
+    Parameters
+    ----------
+    N : int
+        Matrix size (``>= 2``); spin ``s = (N-1)/2``.
+    scale : float
+        :meth:`solve` returns ``scale · Δ_N^+ W`` (the Euler–Zeitlin system uses
+        ``scale = 1/ħ`` for the ħ-scaled bracket); :meth:`apply` is unaffected.
+    block : int, optional
+        Rows per block of the partitioned Thomas sweeps (default ``round(√N)``).
+
+    Notes
+    -----
+    Construction costs O(N²) time and memory (two precisions of the factors are kept, so
+    complex64 input is solved in single precision without conversions). Instances are
+    immutable and safe to share.
+    """
+
+    N: int = attrs.field(converter=matrix_size)
+    scale: float = attrs.field(default=1.0, converter=float)
+    block: int = attrs.field(kw_only=True)
+    _double: _BlockedFactor = attrs.field(init=False, repr=False)
+    _single: _BlockedFactor = attrs.field(init=False, repr=False)
+    _d: Array = attrs.field(init=False, repr=False)
+    _e: Array = attrs.field(init=False, repr=False)
+
+    @block.default
+    def _block_default(self) -> int:
+        return _default_block(self.N)
+
+    @block.validator
+    def _check_block(self, _attr: attrs.Attribute, value: int) -> None:
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise lieflow.InputError(f"block must be a positive integer, got {value!r}")
+
+    @_double.default
+    def _double_default(self) -> _BlockedFactor:
+        if not (math.isfinite(self.scale) and self.scale != 0):
+            raise lieflow.InputError(f"scale must be finite and non-zero, got {self.scale!r}")
+        return _BlockedFactor.build(self.N, self.block, self.scale, np.float64)
+
+    @_single.default
+    def _single_default(self) -> _BlockedFactor:
+        return _BlockedFactor.build(self.N, self.block, self.scale, np.float32)
+
+    @_d.default
+    def _d_default(self) -> Array:
+        return _packed_coefficients(self.N)[0]
+
+    @_e.default
+    def _e_default(self) -> Array:
+        return _packed_coefficients(self.N)[1]
+
+    # ------------------------------------------------------------------ application
+    def _check(self, X: ArrayLike, name: str) -> Array:
+        X = np.asarray(X)
+        if X.ndim < 2 or X.shape[-2:] != (self.N, self.N):
+            raise lieflow.InputError(
+                f"{name} has shape {X.shape}; the N = {self.N} Laplacian needs (..., {self.N}, "
+                f"{self.N})"
+            )
+        return X
+
+    def apply(self, P: ArrayLike) -> Array:
+        r"""``Δ_N P = -Σ_a [S_a, [S_a, P]]`` in O(N²), broadcasting over leading axes."""
+        P = self._check(P, "P")
+        N, C = self.N, self.N + 1
+        batch = P.shape[:-2]
+        dtype = np.result_type(P.dtype, np.complex64)
+        Y = np.zeros((*batch, N * C), dtype=dtype)
+        Y[..., : N * N] = P.reshape(*batch, N * N)
+        Y = Y.reshape(*batch, N, C)
+        out = self._d * Y
+        out[..., 1:, :] += self._e[1:] * Y[..., :-1, :]
+        out[..., :-1, :] += self._e[1:] * Y[..., 1:, :]
+        return out.reshape(*batch, N * C)[..., : N * N].reshape(P.shape)
+
+    def solve(self, W: ArrayLike) -> Array:
+        r"""``scale · Δ_N^+ W``: the traceless ``P`` with ``Δ_N P = scale · (W - (tr W/N) I)``.
+
+        One partitioned Thomas sweep over the packed layout (module docs) solves the
+        ``2N-1`` tridiagonal systems of all matrices of the batch at once: O(N²) work,
+        ``O(√N)`` numpy calls, one fresh output buffer. complex64 input is solved in single
+        precision, anything else in double precision (real input gives complex output).
+        Linear in ``W`` (the trace is projected out, not assumed zero), so it is also the
+        derivative needed by Newton's method.
+        """
+        W = self._check(W, "W")
+        single = W.dtype in (np.dtype(np.complex64), np.dtype(np.float32))
+        factor = self._single if single else self._double
+        dtype = np.complex64 if single else np.complex128
+        real = np.float32 if single else np.float64
+        N, C = self.N, self.N + 1
+        nb, b = factor.lower.shape[:2]
+        batch = W.shape[:-2]
+        K = math.prod(batch)
+        buf = np.empty((K, nb * b * C), dtype=dtype)
+        buf[:, : N * N] = W.reshape(K, N * N)
+        buf[:, N * N :] = 0
+        diag = buf[:, : N * N : C]
+        diag -= diag.mean(axis=-1, keepdims=True)
+        Y = buf.view(real).reshape(K, nb, b, 2 * C)
+        tmp = np.empty((K, nb, 2 * C), dtype=real)
+        row = tmp[:, 0]
+        L, U, F, G = factor.lower, factor.upper, factor.carry_fwd, factor.carry_bwd
+        # forward substitution with the unit lower factor, inside every block at once
+        for r in range(1, b):
+            np.multiply(L[:, r], Y[:, :, r - 1], out=tmp)
+            np.subtract(Y[:, :, r], tmp, out=Y[:, :, r])
+        # ... along the block boundaries (last row of each block), then into the blocks
+        for j in range(1, nb):
+            np.multiply(F[j, b - 1], Y[:, j - 1, b - 1], out=row)
+            np.add(Y[:, j, b - 1], row, out=Y[:, j, b - 1])
+        if nb > 1 and b > 1:
+            Y[:, 1:, : b - 1] += F[1:, : b - 1] * Y[:, :-1, b - 1 : b]
+        Y *= factor.dinv
+        # backward substitution with the unit upper factor, the same way round
+        for r in range(b - 2, -1, -1):
+            np.multiply(U[:, r], Y[:, :, r + 1], out=tmp)
+            np.subtract(Y[:, :, r], tmp, out=Y[:, :, r])
+        for j in range(nb - 2, -1, -1):
+            np.multiply(G[j, 0], Y[:, j + 1, 0], out=row)
+            np.add(Y[:, j, 0], row, out=Y[:, j, 0])
+        if nb > 1 and b > 1:
+            Y[:, :-1, 1:] += G[:-1, 1:] * Y[:, 1:, 0:1]
+        diag -= diag.mean(axis=-1, keepdims=True)
+        return buf[:, : N * N].reshape(*batch, N, N)
+
+    # ------------------------------------------------------------------ spectrum
+    def eigenvalues(self) -> Array:
+        """``-l(l+1)`` for every coefficient index ``l(l+1)+m`` (length ``N²``)."""
+        l = np.repeat(np.arange(self.N), 2 * np.arange(self.N) + 1)
+        return -(l * (l + 1)).astype(float)
+
+    def harmonics(self) -> Iterator[tuple[int, Array]]:
+        """The quantized spherical harmonics of size ``N``: see :func:`harmonics`."""
+        return harmonics(self.N)
+
+    def harmonic(self, l: int, m: int) -> Array:
+        r"""The dense matrix harmonic :math:`T_{l,m}` (unit Frobenius norm, real entries).
+
+        O(N³) time (it runs :meth:`harmonics` down to ``|m|``): for checks and examples.
+        """
+        N = self.N
+        if not (0 <= abs(m) <= l < N):
+            raise lieflow.InputError(f"need |m| <= l < N = {N}, got l = {l}, m = {m}")
+        for mm, V in harmonics(N):
+            if mm == abs(m):
+                T = np.zeros((N, N))
+                i = np.arange(N - mm)
+                v = V[:, l - mm]
+                if m >= 0:
+                    T[i, i + mm] = v
+                else:
+                    T[i + mm, i] = (-1) ** mm * v
+                return T
+        raise AssertionError("unreachable")  # pragma: no cover
+
+
+def harmonics(N: int) -> Iterator[tuple[int, Array]]:
+    r"""Quantized spherical harmonics, one diagonal at a time: ``(m, V_m)`` for
+    ``m = N-1, N-2, ..., 0``.
+
+    ``V_m`` is the real orthogonal ``(N-m)×(N-m)`` eigenvector matrix of the tridiagonal
+    ``Δ_N`` on diagonal ``m``; column ``l - m`` (``l = m..N-1``) has eigenvalue
+    ``-l(l+1)`` and, placed on the super-diagonal ``m`` (entries ``(i, i+m)``), is the
+    Frobenius-normalised matrix harmonic :math:`T_{l,m}`; :math:`T_{l,-m} = (-1)^m
+    T_{l,m}^T` lives on the sub-diagonal. Signs follow the Condon–Shortley convention of
+    :math:`Y_{lm}`, transported to matrices by ``L_a ↔ ad S_a``:
+
+    * :math:`T_{l,l}` is a positive multiple of :math:`(-1)^l S_+^l` (as
+      :math:`Y_{ll} ∝ (-1)^l (x+iy)^l`);
+    * :math:`[S_-, T_{l,m}] = \sqrt{(l+m)(l-m+1)}\, T_{l,m-1}` (as
+      :math:`L_- Y_{lm} = \sqrt{(l+m)(l-m+1)} Y_{l,m-1}`).
+
+    The second rule fixes the sign of every column from the previous diagonal through an
+    overlap that equals ``±sqrt((l+m)(l-m+1)) >= 1`` exactly, so it is robust at any
+    ``N`` (unlike reading the sign of one entry, which underflows for large ``N``).
+    Each diagonal costs one ``eigh_tridiagonal`` (O((N-m)²)); only two ``V`` are held
+    at a time, so memory is O(N²).
+    """
+    N = matrix_size(N)
+    prev: Array | None = None
+    for m in range(N - 1, -1, -1):
+        d, e = tridiagonal(N, m)
+        if N - m == 1:
+            V = np.ones((1, 1))
+        else:
+            _, V = eigh_tridiagonal(-d, -e)  # ascending l(l+1): column k <-> l = m + k
+        # l = m: all entries share one sign (Perron vector); make it (-1)^m
+        if (V[:, 0].sum() < 0) != (m % 2 == 1):
+            V[:, 0] *= -1
+        if prev is not None:
+            ladder = _lower_ladder(N, m + 1, prev)  # [S_-, T_{l,m+1}] on diagonal m
+            overlap = np.einsum("il,il->l", V[:, 1:], ladder)
+            V[:, 1:] *= np.where(overlap < 0, -1.0, 1.0)
+        yield m, V
+        prev = V
+
+
+def _lower_ladder(N: int, m: int, V: Array) -> Array:
+    r"""``[S_-, T]`` restricted to diagonal ``m-1`` for the columns ``T`` of ``V`` on
+    super-diagonal ``m``: ``u_i = sqrt(i(N-i)) v_{i-1} - sqrt((i+m)(N-i-m)) v_i``,
+    ``i = 0..N-m`` (with ``v_{-1} = v_{N-m} = 0``); O((N-m)²)."""
+    n = N - m
+    i = np.arange(n + 1, dtype=float)[:, None]
+    u = np.zeros((n + 1, V.shape[1]))
+    u[1:] += np.sqrt(i[1:] * (N - i[1:])) * V
+    u[:-1] -= np.sqrt((i[:-1] + m) * (N - i[:-1] - m)) * V
+    return u

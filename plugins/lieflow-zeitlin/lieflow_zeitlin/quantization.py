@@ -1,0 +1,390 @@
+r"""Fields on the sphere ↔ su(N) matrices: the Zeitlin quantization and its inverse.
+
+Conventions
+-----------
+*Spherical harmonics* are complex with the Condon–Shortley phase, as in
+:func:`scipy.special.sph_harm_y`: :math:`Y_{lm}(\theta, \phi)` with colatitude ``θ`` and
+longitude ``φ``, orthonormal on the unit sphere, :math:`Y_{l,-m} = (-1)^m \overline{Y_{lm}}`.
+A field ``f = Σ_{l<N, |m|<=l} ω_{lm} Y_{lm}`` is stored as the vector of its ``N²``
+coefficients at index :func:`lm_index` ``(l, m) = l(l+1) + m``; it is real exactly when
+:math:`ω_{l,-m} = (-1)^m \overline{ω_{lm}}`.
+
+*Matrix harmonics* :math:`T_{lm}` are the Frobenius-orthonormal eigenvectors of the
+Hoppe–Yau Laplacian with eigenvalue ``-l(l+1)``, with the signs of
+:func:`~lieflow_zeitlin.laplacian.harmonics` (Condon–Shortley transported by
+``L_a ↔ ad S_a``), so :math:`T_{l,-m} = (-1)^m T_{lm}^T` with real entries.
+
+*The quantization* is the linear bijection
+
+.. math:: Q(f) = -i\,\kappa \sum_{l<N} \sum_{|m| \le l} \omega_{lm}\, T_{lm},
+          \qquad \kappa = \sqrt{N / (4\pi)},
+
+which maps real fields onto skew-Hermitian matrices, zero-mean fields onto su(N), and
+:math:`\Delta` to :math:`\Delta_N` exactly (``Δ Y_lm = -l(l+1) Y_lm``). The factor ``κ``
+makes ``Q`` match the standard normalisation of Zeitlin's model (Hoppe 1982; Zeitlin 2004;
+Modin & Viviani 2020): the coordinate functions map to ``Q(x_a) = -i ħ S_a`` exactly, with
+``ħ = 2/sqrt(N²-1)``, so that
+
+.. math:: \tfrac1\hbar [Q(f), Q(g)] = Q(\{f, g\}) + O(1/N),\qquad
+          \{f, g\} = x \cdot (\nabla f \times \nabla g) = \partial_\phi f\, \partial_z g
+          - \partial_z f\, \partial_\phi g,
+
+and the eigenvalues of ``i Q(f)`` approximate the values of ``f`` (so ``ρ(W) ≈ max|ω|``),
+while ``||Q(f)||_F² ≈ N · mean(f²)``. Grid functions are sampled at colatitudes ``θ_j`` and
+longitudes ``φ_k = 2πk/n_lon`` (:class:`SphereGrid`) and transformed with quadrature that is
+exact for band-limited fields; the associated Legendre functions come from
+:func:`scipy.special.sph_legendre_p_all` (same normalisation and phase as ``sph_harm_y``).
+
+Every transform here costs O(N³) (one tridiagonal eigenproblem per diagonal) but holds only
+O(N²) memory (two diagonals' eigenvectors at a time); pass whole stacks ``(..., N, N)`` or
+``(..., N²)`` to amortise it.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Literal
+
+import attrs
+import numpy as np
+from numpy.typing import ArrayLike, DTypeLike, NDArray
+from scipy.special import sph_legendre_p_all
+
+import lieflow
+
+from .laplacian import harmonics, matrix_size
+
+Array = NDArray[Any]
+
+#: Target size (in float64 values) of one chunk of associated Legendre functions.
+_CHUNK_VALUES = 4_000_000
+
+
+def hbar(N: int) -> float:
+    """Zeitlin's ``ħ = 2/sqrt(N² - 1)`` (``Q(x_a) = -i ħ S_a``)."""
+    N = matrix_size(N)
+    return 2.0 / math.sqrt(N * N - 1)
+
+
+def kappa(N: int) -> float:
+    """The normalisation ``κ = sqrt(N/(4π))`` of the quantization map."""
+    return math.sqrt(matrix_size(N) / (4 * math.pi))
+
+
+def lm_index(l: ArrayLike, m: ArrayLike) -> Any:
+    """Position ``l(l+1) + m`` of the coefficient ``ω_lm`` (``|m| <= l``)."""
+    l = np.asarray(l)
+    return l * (l + 1) + np.asarray(m)
+
+
+def degrees_and_orders(N: int) -> tuple[Array, Array]:
+    """Arrays ``(l, m)`` of length ``N²``: the degree and order of each coefficient index."""
+    N = matrix_size(N)
+    l = np.repeat(np.arange(N), 2 * np.arange(N) + 1)
+    m = np.arange(N * N) - l * (l + 1)
+    return l, m
+
+
+def _size_from_coefficients(coeffs: Array) -> int:
+    n2 = coeffs.shape[-1] if coeffs.ndim else 0
+    N = math.isqrt(n2)
+    if coeffs.ndim < 1 or N * N != n2 or N < 2:
+        raise lieflow.InputError(
+            f"coefficients must have shape (..., N²) with N >= 2 (index l(l+1)+m for l < N), "
+            f"got shape {coeffs.shape}"
+        )
+    return N
+
+
+def sh_to_matrix(coeffs: ArrayLike, *, dtype: DTypeLike = np.complex128) -> Array:
+    r"""The matrix ``W = Q(f)`` of the field with coefficients ``coeffs`` (module docs).
+
+    Parameters
+    ----------
+    coeffs : array_like, shape (..., N²)
+        Spherical-harmonic coefficients ``ω_lm`` at index ``l(l+1) + m``, ``l < N``.
+    dtype : complex dtype
+        dtype of the result.
+
+    Returns
+    -------
+    ndarray, shape (..., N, N)
+        ``-i κ Σ ω_lm T_lm``; skew-Hermitian if the field is real, traceless if ``ω_00 = 0``.
+    """
+    c = np.asarray(coeffs)
+    N = _size_from_coefficients(c)
+    out = np.zeros((*c.shape[:-1], N, N), dtype=dtype)
+    factor = -1j * kappa(N)
+    for m, V in harmonics(N):
+        l = np.arange(m, N)
+        i = np.arange(N - m)
+        out[..., i, i + m] = factor * (c[..., lm_index(l, m)] @ V.T)
+        if m:
+            out[..., i + m, i] = (factor * (-1) ** m) * (c[..., lm_index(l, -m)] @ V.T)
+    return out
+
+
+def matrix_to_sh(W: ArrayLike) -> Array:
+    r"""Coefficients ``ω_lm`` of the field ``f = Q^{-1}(W)``: the exact inverse of
+    :func:`sh_to_matrix` (``ω_lm = (i/κ) <T_lm, W>_F``).
+
+    Parameters
+    ----------
+    W : array_like, shape (..., N, N)
+
+    Returns
+    -------
+    ndarray, shape (..., N²), complex128
+    """
+    W = np.asarray(W)
+    if W.ndim < 2 or W.shape[-1] != W.shape[-2]:
+        raise lieflow.InputError(f"W must have shape (..., N, N), got {W.shape}")
+    N = matrix_size(W.shape[-1])
+    out = np.zeros((*W.shape[:-2], N * N), dtype=np.complex128)
+    factor = 1j / kappa(N)
+    for m, V in harmonics(N):
+        l = np.arange(m, N)
+        upper = np.diagonal(W, offset=m, axis1=-2, axis2=-1)
+        out[..., lm_index(l, m)] = factor * (upper @ V)
+        if m:
+            lower = np.diagonal(W, offset=-m, axis1=-2, axis2=-1)
+            out[..., lm_index(l, -m)] = (factor * (-1) ** m) * (lower @ V)
+    return out
+
+
+def _fejer_weights(n: int) -> Array:
+    r"""Fejér's first rule on ``x_j = cos θ_j``, ``θ_j = (j + 1/2)π/n``: weights for
+    ``∫_{-1}^{1} g(x) dx``, exact for polynomials of degree ``< n`` (Fejér 1933):
+    ``w_j = (2/n) [1 - 2 Σ_{k=1}^{⌊n/2⌋} cos(2kθ_j) / (4k² - 1)]``."""
+    theta = (np.arange(n) + 0.5) * np.pi / n
+    k = np.arange(1, n // 2 + 1)
+    s = np.cos(2 * np.outer(theta, k)) / (4 * k * k - 1)
+    return (2.0 / n) * (1 - 2 * s.sum(axis=1))
+
+
+def _positive(_inst: object, attr: attrs.Attribute, value: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise lieflow.InputError(f"{attr.name} must be a positive integer, got {value!r}")
+
+
+@attrs.frozen(eq=False)
+class SphereGrid:
+    r"""A latitude–longitude grid with a quadrature rule for ``∫ f dΩ``.
+
+    Colatitudes ``θ_j`` (north to south) are Gauss–Legendre nodes in ``cos θ``
+    (``kind="gauss"``) or the equiangular midpoints ``(j + 1/2)π/n_lat``
+    (``kind="equiangular"``, Fejér's first rule); longitudes are ``φ_k = 2πk/n_lon``.
+    The quadrature ``Σ_jk w_j (2π/n_lon) f(θ_j, φ_k)`` integrates ``Y_lm conj(Y_l'm')``
+    exactly for ``l, l' < N`` if ``n_lon >= 2N - 1`` and ``n_lat >= N`` (Gauss) or
+    ``n_lat >= 2N - 1`` (equiangular); :meth:`for_size` builds such a grid.
+    """
+
+    nlat: int = attrs.field(validator=_positive)
+    nlon: int = attrs.field(validator=_positive)
+    kind: Literal["gauss", "equiangular"] = attrs.field(
+        default="gauss", validator=attrs.validators.in_(("gauss", "equiangular"))
+    )
+    theta: Array = attrs.field(init=False, repr=False)
+    weights: Array = attrs.field(init=False, repr=False)
+
+    @theta.default
+    def _theta(self) -> Array:
+        if self.kind == "gauss":
+            x, _ = np.polynomial.legendre.leggauss(self.nlat)
+            t = np.arccos(x[::-1])
+        else:
+            t = (np.arange(self.nlat) + 0.5) * np.pi / self.nlat
+        t.setflags(write=False)
+        return t
+
+    @weights.default
+    def _weights(self) -> Array:
+        if self.kind == "gauss":
+            w = np.polynomial.legendre.leggauss(self.nlat)[1][::-1].copy()
+        else:
+            w = _fejer_weights(self.nlat)
+        w.setflags(write=False)
+        return w
+
+    @classmethod
+    def for_size(
+        cls, N: int, kind: Literal["gauss", "equiangular"] = "gauss", oversample: int = 1
+    ) -> SphereGrid:
+        """The smallest grid (times ``oversample``) on which degrees ``< N`` are exact."""
+        N = matrix_size(N)
+        nlat = N if kind == "gauss" else 2 * N - 1
+        return cls(oversample * nlat, oversample * 2 * N, kind)
+
+    @property
+    def phi(self) -> Array:
+        """Longitudes ``2πk/n_lon`` in radians, shape ``(n_lon,)``."""
+        return 2 * np.pi * np.arange(self.nlon) / self.nlon
+
+    @property
+    def lat(self) -> Array:
+        """Latitudes ``90° - θ`` in degrees (north to south)."""
+        return 90.0 - np.degrees(self.theta)
+
+    @property
+    def lon(self) -> Array:
+        """Longitudes in degrees, ``[0, 360)``."""
+        return np.degrees(self.phi)
+
+    def exact_for(self, N: int) -> bool:
+        """Whether analysis of fields of degree ``< N`` on this grid is exact."""
+        need_lat = N if self.kind == "gauss" else 2 * N - 1
+        return self.nlat >= need_lat and self.nlon >= 2 * N - 1
+
+    def integrate(self, f: ArrayLike) -> Array:
+        """``∫ f dΩ`` by the grid's quadrature, over the last two axes ``(n_lat, n_lon)``."""
+        f = np.asarray(f)
+        return (2 * np.pi / self.nlon) * np.einsum("...jk,j->...", f, self.weights)
+
+
+def _legendre_chunks(N: int, theta: Array) -> Any:
+    """Yield ``(slice, P)`` with ``P[l, m, j] = Y_lm(θ_j, 0)`` for ``0 <= m <= l < N``."""
+    chunk = max(1, _CHUNK_VALUES // (N * (2 * N - 1)))
+    for start in range(0, theta.size, chunk):
+        sl = slice(start, min(start + chunk, theta.size))
+        P = sph_legendre_p_all(N - 1, N - 1, theta[sl])[0]  # (N, 2N-1, c), m < 0 at the end
+        yield sl, P[:, :N, :]
+
+
+def _nonnegative_table(coeffs: Array, N: int) -> Array:
+    """``ω_lm`` for ``m >= 0`` as a ``(..., l, m)`` table (zero where ``m > l``)."""
+    l, m = np.tril_indices(N)
+    table = np.zeros((*coeffs.shape[:-1], N, N), dtype=np.complex128)
+    table[..., l, m] = coeffs[..., lm_index(l, m)]
+    return table
+
+
+def sh_to_grid(coeffs: ArrayLike, grid: SphereGrid) -> Array:
+    r"""Values of the *real* field ``f = Σ ω_lm Y_lm`` on ``grid``, shape ``(..., n_lat, n_lon)``.
+
+    Uses the coefficients with ``m >= 0``; those with ``m < 0`` are taken to be
+    :math:`(-1)^m \overline{ω_{l,|m|}}` (a real field). Exact on any grid (longitudes are
+    summed with an FFT, frequencies folded if ``n_lon < 2N - 1``).
+    """
+    c = np.asarray(coeffs)
+    N = _size_from_coefficients(c)
+    table = _nonnegative_table(c, N)
+    batch = c.shape[:-1]
+    spectrum = np.zeros((*batch, grid.nlat, grid.nlon), dtype=np.complex128)
+    for sl, P in _legendre_chunks(N, grid.theta):
+        F = np.einsum("...lm,lmj->...jm", table, P)  # F[..., j, m] = Σ_l ω_lm P_lm(θ_j)
+        F[..., 1:] *= 2.0  # f = Re(F_0 + 2 Σ_{m>0} F_m e^{imφ})
+        for start in range(0, N, grid.nlon):  # fold frequencies m >= n_lon onto m mod n_lon
+            part = F[..., start : start + grid.nlon]
+            spectrum[..., sl, : part.shape[-1]] += part
+    return np.fft.ifft(spectrum, axis=-1).real * grid.nlon
+
+
+def grid_to_sh(f: ArrayLike, grid: SphereGrid, N: int) -> Array:
+    r"""Coefficients ``ω_lm`` (``l < N``) of the real field sampled as ``f`` on ``grid``.
+
+    The L² projection onto degrees ``< N`` by the grid's quadrature: an FFT in longitude,
+    then ``ω_lm = Σ_j w_j Y_lm(θ_j, 0) · (2π/n_lon) Σ_k f_jk e^{-imφ_k}``; ``ω_{l,-m}``
+    is set to :math:`(-1)^m \overline{ω_{lm}}` so that the field is exactly real. Exact
+    (a round trip with :func:`sh_to_grid` reproduces the coefficients to roundoff) when
+    ``grid.exact_for(N)``; otherwise :class:`lieflow.InputError` is raised.
+
+    Parameters
+    ----------
+    f : array_like, shape (..., n_lat, n_lon)
+        Real samples.
+    grid : SphereGrid
+    N : int
+        Number of degrees to keep (the matrix size of the quantization).
+    """
+    N = matrix_size(N)
+    f = np.asarray(f)
+    if f.ndim < 2 or f.shape[-2:] != (grid.nlat, grid.nlon):
+        raise lieflow.InputError(
+            f"f has shape {f.shape}; the grid needs (..., {grid.nlat}, {grid.nlon})"
+        )
+    if np.iscomplexobj(f):
+        raise lieflow.InputError("grid_to_sh transforms real fields; pass real samples")
+    if not grid.exact_for(N):
+        raise lieflow.InputError(
+            f"a {grid.kind} grid of {grid.nlat}×{grid.nlon} cannot resolve degree {N - 1}: "
+            f"use SphereGrid.for_size({N}, {grid.kind!r}) or a finer grid"
+        )
+    spectrum = np.fft.rfft(f, axis=-1)[..., :N] * (2 * np.pi / grid.nlon)  # (..., j, m)
+    spectrum = spectrum * grid.weights[:, None]
+    table = np.zeros((*f.shape[:-2], N, N), dtype=np.complex128)
+    for sl, P in _legendre_chunks(N, grid.theta):
+        table += np.einsum("lmj,...jm->...lm", P, spectrum[..., sl, :])
+    l, m = np.tril_indices(N)
+    out = np.zeros((*f.shape[:-2], N * N), dtype=np.complex128)
+    values = table[..., l, m]
+    out[..., lm_index(l, m)] = values
+    negative = m > 0
+    out[..., lm_index(l[negative], -m[negative])] = (-1.0) ** m[negative] * np.conj(
+        values[..., negative]
+    )
+    out[..., lm_index(l[~negative], 0)] = values[..., ~negative].real
+    return out
+
+
+def matrix_to_grid(W: ArrayLike, grid: SphereGrid) -> Array:
+    """The real field ``Q^{-1}(W)`` of a skew-Hermitian ``W`` on ``grid``,
+    shape ``(..., n_lat, n_lon)``."""
+    return sh_to_grid(matrix_to_sh(W), grid)
+
+
+def grid_to_matrix(
+    f: ArrayLike, grid: SphereGrid, N: int, *, dtype: DTypeLike = np.complex128
+) -> Array:
+    """The skew-Hermitian matrix ``Q(f)`` of the real field sampled on ``grid``, projected
+    onto degrees ``< N`` (:func:`grid_to_sh`); the mean (``l = 0``) is kept, subtract it
+    (or ``tr W/N``) for su(N)."""
+    return sh_to_matrix(grid_to_sh(f, grid, N), dtype=dtype)
+
+
+def random_sh(
+    N: int,
+    degree: int,
+    seed: int | np.random.Generator | None = None,
+    rms: float = 1.0,
+) -> Array:
+    r"""Coefficients of a seeded random smooth real field with zero mean.
+
+    ``ω_lm`` for ``1 <= l <= min(degree, N-1)`` are i.i.d. standard complex normals
+    (real for ``m = 0``) completed by :math:`ω_{l,-m} = (-1)^m \overline{ω_{lm}}`; all
+    others are zero. The result is scaled so that the field's root-mean-square over the
+    sphere, ``sqrt(Σ|ω_lm|² / 4π)``, equals ``rms``.
+    """
+    N = matrix_size(N)
+    if isinstance(degree, bool) or not isinstance(degree, (int, np.integer)) or degree < 1:
+        raise lieflow.InputError(f"degree must be a positive integer, got {degree!r}")
+    if not (math.isfinite(rms) and rms >= 0):
+        raise lieflow.InputError(f"rms must be finite and non-negative, got {rms!r}")
+    L = min(int(degree), N - 1)
+    rng = np.random.default_rng(seed)
+    l, m = np.tril_indices(L + 1)
+    keep = l >= 1
+    l, m = l[keep], m[keep]
+    values = rng.standard_normal(l.size) + 1j * rng.standard_normal(l.size)
+    values = np.where(m == 0, values.real * math.sqrt(2), values) / math.sqrt(2)
+    out = np.zeros(N * N, dtype=np.complex128)
+    out[lm_index(l, m)] = values
+    pos = m > 0
+    out[lm_index(l[pos], -m[pos])] = (-1.0) ** m[pos] * np.conj(values[pos])
+    norm = math.sqrt(float(np.sum(np.abs(out) ** 2)) / (4 * math.pi))
+    return out * (rms / norm) if norm > 0 else out
+
+
+def random_vorticity(
+    N: int,
+    degree: int = 8,
+    seed: int | np.random.Generator | None = None,
+    rms: float = 1.0,
+    *,
+    dtype: DTypeLike = np.complex128,
+) -> Array:
+    """A seeded random smooth vorticity matrix in su(N): ``Q`` of :func:`random_sh`.
+
+    Band-limited to degrees ``1..degree`` with a flat spectrum, root-mean-square vorticity
+    ``rms``; exactly skew-Hermitian and traceless.
+    """
+    return sh_to_matrix(random_sh(N, degree, seed, rms), dtype=dtype)
