@@ -97,17 +97,3 @@ def batch_norm(x: Array, core_ndim: int) -> Array:
     if np.iscomplexobj(flat):
         flat = flat.view(flat.real.dtype)
     return np.sqrt(np.einsum("...i,...i->...", flat, flat))
-
-
-def relative_change(
-    new: Array, old: Array, core_ndim: int, atol: float, rtol: float
-) -> tuple[float, bool]:
-    """``max ||new - old|| / ||new||`` over the batch, and whether every member meets
-    ``||new - old|| <= atol + rtol ||new||`` (SPEC §5). NaN if anything is not finite."""
-    with np.errstate(invalid="ignore", over="ignore"):
-        step = batch_norm(new - old, core_ndim)
-        size = batch_norm(new, core_ndim)
-        if not (np.all(np.isfinite(step)) and np.all(np.isfinite(size))):
-            return float("nan"), False
-        rel = float(np.max(step / np.maximum(size, np.finfo(float).tiny)))
-    return rel, bool(np.all(step <= atol + rtol * size))

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..algebras import Array
 from ..errors import InputError
-from .base import ImplicitProblem, SolveResult, batch_norm, relative_change
+from .base import ImplicitProblem, SolveResult, batch_norm
 
 _EPS = float(np.finfo(float).eps)
 
@@ -91,6 +91,36 @@ class StoppingRule:
         return None
 
 
+class IterationMonitor:
+    """The bookkeeping of one solve for a :class:`StoppingRule`: the history of relative
+    updates and the growth of the iterate. Local to a ``solve`` call (never shared)."""
+
+    def __init__(self, rule: StoppingRule, core_ndim: int, x0: Array) -> None:
+        self.rule = rule
+        self.core = core_ndim
+        self.residuals: list[float] = []
+        self._size0 = batch_norm(x0, core_ndim)
+
+    def check(self, new: Array, old: Array) -> str | None:
+        """Record the update ``old -> new``; ``None`` to go on, else the reason to stop.
+
+        Growth is measured against ``max(||x0||, ||F(x0)||)`` so a zero initial guess works.
+        """
+        rule = self.rule
+        with np.errstate(invalid="ignore", over="ignore"):
+            step = batch_norm(new - old, self.core)
+            size = batch_norm(new, self.core)
+            if not (np.all(np.isfinite(step)) and np.all(np.isfinite(size))):
+                self.residuals.append(float("nan"))
+                return "non_finite"
+            if not self.residuals:
+                self._size0 = np.maximum(np.maximum(self._size0, size), np.finfo(float).tiny)
+            rel = float(np.max(step / np.maximum(size, np.finfo(float).tiny)))
+        self.residuals.append(rel)
+        met = bool(np.all(step <= rule.atol + rule.rtol * size))
+        return rule.verdict(self.residuals, met, float(np.max(size / self._size0)))
+
+
 def _anderson_step(
     xs: list[np.ndarray], gs: list[np.ndarray], regularization: float = 1e-12
 ) -> np.ndarray:
@@ -138,14 +168,10 @@ class FixedPoint:
 
     name = "fixed_point"
 
-    def __attrs_post_init__(self) -> None:
-        if self.anderson < 0:
-            raise InputError(f"anderson depth must be >= 0, got {self.anderson}")
-        _ = self.rule  # validate now, not at the first solve
+    rule: StoppingRule = attrs.field(init=False, repr=False, eq=False)
 
-    @property
-    def rule(self) -> StoppingRule:
-        """The stopping rule these options define."""
+    @rule.default
+    def _rule(self) -> StoppingRule:
         return StoppingRule(
             self.rtol,
             self.atol,
@@ -155,31 +181,27 @@ class FixedPoint:
             self.divergence_factor,
         )
 
+    def __attrs_post_init__(self) -> None:
+        if self.anderson < 0:
+            raise InputError(f"anderson depth must be >= 0, got {self.anderson}")
+
     def _map(self, problem: ImplicitProblem) -> Callable[[Array], Array]:
         return problem.map
 
     def solve(self, problem: ImplicitProblem) -> SolveResult:
         """Iterate the scheme's map from ``problem.x0`` until the stopping rule fires."""
         F = self._map(problem)
-        rule, core = self.rule, problem.core_ndim
         x = problem.x0
-        residuals: list[float] = []
+        monitor = IterationMonitor(self.rule, problem.core_ndim, x)
         xs: list[np.ndarray] = []
         gs: list[np.ndarray] = []
-        size0 = batch_norm(x, core)  # growth is measured against max(||x0||, ||F(x0)||)
         while True:
             g = F(x)
-            rel, met = relative_change(g, x, core, rule.atol, rule.rtol)
-            residuals.append(rel)
-            size = batch_norm(g, core)
-            if len(residuals) == 1:
-                size0 = np.maximum(np.maximum(size0, size), np.finfo(float).tiny)
-            reason = rule.verdict(residuals, met, float(np.max(size / size0)))
+            reason = monitor.check(g, x)
             if reason is not None:
                 ok = reason in ("converged", "roundoff")
-                return SolveResult(
-                    g if ok else x, ok, len(residuals), tuple(residuals), reason, self.name
-                )
+                res = monitor.residuals
+                return SolveResult(g if ok else x, ok, len(res), tuple(res), reason, self.name)
             if self.anderson:
                 xs.append(x.ravel())
                 gs.append(g.ravel())

@@ -10,8 +10,8 @@ import scipy.sparse.linalg as spla
 
 from ..algebras import Array
 from ..errors import InputError
-from .base import ImplicitProblem, Solver, SolveResult, batch_norm, relative_change
-from .fixed_point import _EPS, FixedPoint, StoppingRule
+from .base import ImplicitProblem, Solver, SolveResult
+from .fixed_point import _EPS, FixedPoint, IterationMonitor, StoppingRule
 
 
 def _to_real(x: Array, core_ndim: int) -> np.ndarray:
@@ -58,14 +58,10 @@ class Newton:
 
     name = "newton"
 
-    def __attrs_post_init__(self) -> None:
-        if self.linear not in ("auto", "dense", "gmres"):
-            raise InputError(f"linear must be 'auto', 'dense' or 'gmres', got {self.linear!r}")
-        _ = self.rule
+    rule: StoppingRule = attrs.field(init=False, repr=False, eq=False)
 
-    @property
-    def rule(self) -> StoppingRule:
-        """The stopping rule these options define."""
+    @rule.default
+    def _rule(self) -> StoppingRule:
         return StoppingRule(
             self.rtol,
             self.atol,
@@ -76,27 +72,25 @@ class Newton:
             project=False,
         )
 
+    def __attrs_post_init__(self) -> None:
+        if self.linear not in ("auto", "dense", "gmres"):
+            raise InputError(f"linear must be 'auto', 'dense' or 'gmres', got {self.linear!r}")
+
     def solve(self, problem: ImplicitProblem) -> SolveResult:
         """Newton iteration from ``problem.x0``."""
-        rule, core = self.rule, problem.core_ndim
+        core = problem.core_ndim
         x = problem.x0
-        residuals: list[float] = []
+        monitor = IterationMonitor(self.rule, core, x)
         m_real = _to_real(x, core).shape[1]
         dense = self.linear == "dense" or (self.linear == "auto" and m_real <= self.dense_max)
-        size0 = batch_norm(x, core)  # growth is measured against max(||x0||, ||F(x0)||)
         Fx = problem.map(x)
         while True:
-            rel, met = relative_change(Fx, x, core, rule.atol, rule.rtol)
-            residuals.append(rel)
-            size = batch_norm(Fx, core)
-            if len(residuals) == 1:
-                size0 = np.maximum(np.maximum(size0, size), np.finfo(float).tiny)
-            reason = rule.verdict(residuals, met, float(np.max(size / size0)))
+            reason = monitor.check(Fx, x)
             if reason is not None:
                 ok = reason in ("converged", "roundoff")
-                return SolveResult(
-                    Fx if ok else x, ok, len(residuals) - 1, tuple(residuals), reason, self.name
-                )
+                res = monitor.residuals
+                return SolveResult(Fx if ok else x, ok, len(res) - 1, tuple(res), reason, self.name)
+            rel = monitor.residuals[-1]
             rhs = Fx - x
             d = (
                 self._dense_step(problem, x, rhs, core)
@@ -179,4 +173,4 @@ class Auto:
         )
 
 
-__all__ = ["Auto", "Newton", "batch_norm"]
+__all__ = ["Auto", "Newton"]
