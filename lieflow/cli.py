@@ -56,7 +56,8 @@ def _cmd_list(args: argparse.Namespace) -> int:
 
 
 class _RichMonitor:
-    """Progress bar for ``lieflow run``: steps, rate, iterations per step, energy error."""
+    """Progress bar for ``lieflow run``: steps, rate, mean iterations per step and the
+    largest relative energy error so far (dE/E), refreshed at most every 0.1 s."""
 
     def __init__(self) -> None:
         self._progress: Any = None
@@ -74,17 +75,15 @@ class _RichMonitor:
             MofNCompleteColumn,
             Progress,
             TextColumn,
-            TimeElapsedColumn,
             TimeRemainingColumn,
         )
 
         self._progress = Progress(
-            TextColumn("[bold]steps"),
-            BarColumn(),
+            BarColumn(bar_width=16),
             MofNCompleteColumn(),
-            TextColumn("{task.fields[rate]} steps/s  {task.fields[its]} it/step"),
-            TextColumn("max energy error {task.fields[err]}"),
-            TimeElapsedColumn(),
+            TextColumn(
+                "{task.fields[rate]} steps/s, {task.fields[its]} it/step, dE/E {task.fields[err]}"
+            ),
             TimeRemainingColumn(),
             console=Console(stderr=True),
         )
@@ -193,7 +192,8 @@ def _parser() -> argparse.ArgumentParser:
             "Integrate the run described by CONFIG (TOML with [system], [initial], [scheme], "
             "optional [solver], and [run] tables; see examples/*.toml). The trajectory, "
             "diagnostics and a checkpoint are written to HDF5 at every save, so an "
-            "interrupted run can be continued bit-for-bit with --resume."
+            "interrupted run can be continued bit-for-bit with --resume. Paths inside CONFIG "
+            "are relative to its directory; --out is relative to the current directory."
         ),
     )
     p.add_argument("config", type=Path, metavar="CONFIG.toml")

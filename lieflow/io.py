@@ -105,12 +105,12 @@ def environment() -> dict[str, str]:
 @attrs.frozen(eq=False)
 class Checkpoint:
     """A resumable state: ``W`` after step ``step`` and the warm-start state of
-    :func:`lieflow.iterate` (``None`` before the first step)."""
+    :func:`lieflow.iterate` (its default before the first step)."""
 
     step: int
     t: float
     W: Array = attrs.field(repr=False)
-    warm: WarmStart | None = attrs.field(repr=False)
+    warm: WarmStart = attrs.field(repr=False)
 
 
 @attrs.frozen(eq=False)
@@ -192,13 +192,15 @@ def _check_format(f: h5py.File, path: Path) -> None:
 
 def _read_checkpoint(f: h5py.File) -> Checkpoint:
     slot = f["checkpoint"][f"slot{int(f['checkpoint'].attrs['current'])}"]
-    warm = _read_warm(slot) if bool(slot.attrs["has_warm"]) else None
-    return Checkpoint(int(slot.attrs["step"]), float(slot.attrs["t"]), slot["W"][()], warm)
+    return Checkpoint(
+        int(slot.attrs["step"]), float(slot.attrs["t"]), slot["W"][()], _read_warm(slot)
+    )
 
 
 def _read_warm(slot: h5py.Group) -> WarmStart:
     """Rebuild the :class:`WarmStart` a checkpoint stored field by field: arrays as datasets
-    ``warm/<field>``, other values as attributes (``"none"`` for ``None``)."""
+    ``warm/<field>``, other values as attributes (``"none"`` for ``None``); a field not
+    stored (step 0) keeps its default."""
     values: dict[str, Any] = {}
     for field in attrs.fields(WarmStart):
         key = f"warm/{field.name}"
@@ -370,12 +372,16 @@ class TrajectoryWriter:
 
     # -- writing ---------------------------------------------------------------------------
 
+    def _energy_error(self, H: Array) -> Array:
+        """``|H - H0| / |H0|`` (as :attr:`lieflow.Solution.energy_error`)."""
+        return np.abs(H - self._H0) / np.maximum(np.abs(self._H0), _TINY)
+
     def add(self, step: Step) -> float:
         """Buffer the diagnostics of ``step``; return its relative energy error."""
         W = step.W
         H = self._system.hamiltonian(W)
         C = self._system.casimirs(W)
-        err = float(np.max(np.abs(H - self._H0) / np.maximum(np.abs(self._H0), _TINY)))
+        err = float(np.max(self._energy_error(H)))
         self._max_error = max(self._max_error, err)
         self._buffer.append((H, C, step.result.iterations, step.result.residual))
         return err
@@ -394,7 +400,7 @@ class TrajectoryWriter:
             C = np.asarray([b[1] for b in buf])
             columns = {
                 "energy": H,
-                "energy_error": np.abs(H - self._H0) / np.maximum(np.abs(self._H0), _TINY),
+                "energy_error": self._energy_error(H),
                 "casimirs": C,
                 "casimir_drift": np.abs(C - self._C0) / self._cscale,
                 "iterations": np.asarray([b[2] for b in buf], dtype=np.int64),
@@ -421,18 +427,16 @@ class TrajectoryWriter:
         slot_id = 1 - self._slot
         slot, cache = self._slots[slot_id], self._slot_data[slot_id]
         _put(slot, "W", W, cache)
-        for field in attrs.fields(type(warm)):
+        for field in attrs.fields(WarmStart):
             value = getattr(warm, field.name)
             key = f"warm/{field.name}"
             if isinstance(value, np.ndarray):
                 _put(slot, key, value, cache)
-            elif key in slot:
+                continue
+            if key in slot:
                 cache.pop(key, None)
                 del slot[key]
-            if not isinstance(value, np.ndarray):
-                slot.attrs[key] = "none" if value is None else value
-        if "has_warm" not in cache:  # one attribute write fewer per save
-            slot.attrs["has_warm"] = cache["has_warm"] = True
+            slot.attrs[key] = "none" if value is None else value
         slot.attrs["step"] = index
         slot.attrs["t"] = t
         self._f.flush()
@@ -521,7 +525,6 @@ def _initialise(f: h5py.File, setup: RunSetup) -> None:
     for i in (0, 1):
         slot = ck.create_group(f"slot{i}")
         slot.create_dataset("W", data=W0)
-        slot.attrs["has_warm"] = False
         slot.attrs["step"] = 0
         slot.attrs["t"] = 0.0
     ck.attrs["current"] = 0

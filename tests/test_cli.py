@@ -265,3 +265,16 @@ def test_plot(dirs: tuple[Path, Path], capsys: pytest.CaptureFixture[str]) -> No
 def test_plot_of_a_missing_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["plot", str(tmp_path / "missing.h5")]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_heavy_dependencies_are_imported_lazily() -> None:
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, lieflow, lieflow.cli, lieflow.config, lieflow.io, lieflow.plotting, "
+        "lieflow.reproduce; "
+        "print([m for m in ('h5py', 'matplotlib', 'rich') if m in sys.modules])"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
