@@ -1,0 +1,18 @@
+"""lieflow's benchmark suite: speed figures as ratios against baselines run in the same process.
+
+Run it with one command from the repository root::
+
+    python -m benchmarks            # full run (~15 min on 2 cores), writes docs/benchmarks.md
+    python -m benchmarks --quick    # tiny sizes, well under a minute
+
+Every speed figure is a ratio of two timings taken in the same process on the same input,
+interleaved and best-of-k, because shared machines are noisy. The baselines are
+
+* the paper's block algorithm *as published* (:mod:`benchmarks.paper_baseline`): dense
+  ``sn×sn`` block matrices built every iteration, fixed-point iteration from a cold start,
+  the same relative stopping rule;
+* lieflow's own earlier formulations where an optimization replaced one: the block form of
+  :class:`lieflow.schemes.BlockGauss` (``3s²`` products) against the reduced stage form
+  (``3s``), warm starts off against on, plain fixed-point against Anderson acceleration;
+* published wall times of the paper (Tables 1, 3, 5) for the reproduction suite.
+"""

@@ -1,0 +1,141 @@
+"""Euler–Zeitlin on the sphere (plugin ``lieflow-zeitlin``): seconds per step at N = 128…512.
+
+Complex su(N) matrices, ``B`` a tridiagonal Laplacian solve per diagonal (O(N²)), h = 0.5,
+rtol 1e-14, ``system.random_state(seed)``. Skipped, with a note, when the plugin is missing.
+"""
+
+from __future__ import annotations
+
+import time
+
+import attrs
+import numpy as np
+
+import lieflow as lf
+
+from ..config import BenchContext
+from ..contenders import AsPublished, Contender
+from ..measure import stats, time_contenders
+from ..report import Section, Table, ratio, seconds
+from ..timing import matmul_seconds
+
+H = 0.5
+SCHEMES = ("midpoint", "gauss2")
+
+
+@attrs.frozen
+class ZeitlinRow:
+    """One ``(N, scheme)`` cell (seconds per step; ``None``: not run)."""
+
+    N: int
+    scheme: str
+    steps: int
+    default: float
+    mean_iterations: float
+    max_iterations: int
+    product: float
+    paper: float | None
+    block: float | None
+    cold: float
+    engines: tuple[tuple[str, float], ...]
+
+
+def get_system(N: int) -> lf.IsospectralSystem | None:
+    """The Euler–Zeitlin system, or ``None`` if the plugin is not installed."""
+    try:
+        return lf.systems.get("euler_zeitlin", N=N)
+    except lf.LieflowError:
+        return None
+
+
+def measure(ctx: BenchContext, system: lf.IsospectralSystem, N: int, scheme: str) -> ZeitlinRow:
+    """Time lieflow's default and its baselines at size ``N``."""
+    cfg = ctx.config
+    W0 = system.random_state(ctx.seed)
+    steps = 2
+    default, cold = ctx.lieflow(scheme), ctx.lieflow(scheme, warm_start=False)
+    block = ctx.lieflow(scheme, form="block") if scheme.startswith("gauss") else None
+    paper = AsPublished(scheme) if N <= cfg.zeitlin_paper_max_n else None
+    engines = ctx.engine_runs(scheme, N)
+    contenders: list[Contender] = [default, cold, *engines]
+    contenders += [c for c in (block, paper) if c is not None]
+    repeats = cfg.repeats if N < 256 else cfg.large_repeats
+    t = time_contenders(contenders, system, W0, H, steps, repeats)
+    result = stats(t[default.label])
+    return ZeitlinRow(
+        N=N,
+        scheme=scheme,
+        steps=steps,
+        default=t[default.label].best / steps,
+        mean_iterations=result.mean_iterations,
+        max_iterations=result.max_iterations,
+        product=matmul_seconds(N, 1, 3, np.complex128),
+        paper=None if paper is None else t[paper.label].best / steps,
+        block=None if block is None else t[block.label].best / steps,
+        cold=t[cold.label].best / steps,
+        engines=tuple((e.engine or "", t[e.label].best / steps) for e in engines),
+    )
+
+
+def run(ctx: BenchContext) -> Section:
+    """All sizes with midpoint and gauss2 (or a skip note)."""
+    start = time.perf_counter()
+    title = "Euler–Zeitlin on the sphere (su(N), complex)"
+    probe = get_system(ctx.config.zeitlin_sizes[0])
+    if probe is None:
+        return Section(
+            title=title,
+            intro="Skipped: the `lieflow-zeitlin` plugin is not installed "
+            "(`pip install -e plugins/lieflow-zeitlin`).",
+            seconds=time.perf_counter() - start,
+        )
+    ctx.lieflow("midpoint").run(probe, probe.random_state(0), H, 1)
+    rows = []
+    for N in ctx.config.zeitlin_sizes:
+        system = get_system(N)
+        assert system is not None
+        rows += [measure(ctx, system, N, s) for s in SCHEMES]
+    header = [
+        "N",
+        "scheme",
+        "lieflow s/step",
+        "updates/step mean / max",
+        "s/step in complex N×N products",
+        "× vs as published",
+        "× vs block form",
+        "× vs warm starts off",
+    ]
+    header += [f"× engine={e} vs {ctx.base_engine}" for e in ctx.engines]
+    cells = []
+    for r in rows:
+        cell = [
+            str(r.N),
+            r.scheme,
+            seconds(r.default),
+            f"{r.mean_iterations:.1f} / {r.max_iterations}",
+            f"{r.default / r.product:.0f}",
+            "—" if r.paper is None else ratio(r.paper, r.default),
+            "—" if r.block is None else ratio(r.block, r.default),
+            ratio(r.cold, r.default),
+        ]
+        found = dict(r.engines)
+        cell += ["—" if e not in found else ratio(r.default, found[e]) for e in ctx.engines]
+        cells.append(tuple(cell))
+    table = Table(
+        tuple(header),
+        tuple(cells),
+        caption=f"Euler–Zeitlin, h = {H}, rtol 1e-14, 2 steps from system.random_state("
+        f"{ctx.seed}) (unit Frobenius norm).",
+    )
+    notes = [
+        "‘s/step in complex N×N products’: seconds per step divided by the time of one "
+        "complex128 N×N matmul — the step's cost in product-equivalents.",
+        f"The as-published dense baseline runs up to N = {ctx.config.zeitlin_paper_max_n}.",
+    ]
+    return Section(
+        title=title,
+        intro="A fluid: products of complex N×N matrices dominate; B costs O(N²).",
+        tables=(table,),
+        notes=tuple(notes),
+        seconds=time.perf_counter() - start,
+    )

@@ -1,0 +1,131 @@
+"""Timing and memory measurement: best-of-k, interleaved, in one process.
+
+Shared machines are noisy, so absolute seconds drift from run to run; the *ratio* of two
+codes timed alternately in the same process on the same input is stable. :func:`compare`
+runs every contender once per round, for ``repeats`` rounds, and keeps each one's fastest
+round (the least-disturbed measurement).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import tracemalloc
+from collections.abc import Callable, Mapping
+from typing import Generic, TypeVar
+
+import attrs
+import numpy as np
+
+T = TypeVar("T")
+
+
+@attrs.frozen
+class Timing(Generic[T]):
+    """Wall times of repeated runs of one callable and the last run's result.
+
+    Attributes
+    ----------
+    runs : tuple of float
+        Seconds of each run (empty if the first run raised).
+    result : object or None
+        What the last run returned (e.g. statistics carrying iteration counts).
+    error : str or None
+        ``"ExceptionName: message"`` if the callable raised (an engine that cannot run a
+        case, a baseline that does not converge); it is then not run again.
+    """
+
+    runs: tuple[float, ...]
+    result: T | None = attrs.field(repr=False)
+    error: str | None = None
+
+    @property
+    def best(self) -> float:
+        """The fastest run, seconds (``inf`` if none completed)."""
+        return min(self.runs, default=math.inf)
+
+    @property
+    def value(self) -> T:
+        """The last result; raises if the callable failed."""
+        if self.result is None:
+            raise RuntimeError(f"a required benchmark run failed: {self.error}")
+        return self.result
+
+    @property
+    def ok(self) -> bool:
+        """Whether every run completed."""
+        return self.error is None
+
+
+def best_of(fn: Callable[[], T], repeats: int) -> Timing[T]:
+    """Run ``fn`` ``repeats`` times; every run's seconds and the last result."""
+    start = time.perf_counter()
+    result = fn()
+    runs = [time.perf_counter() - start]
+    for _ in range(repeats - 1):
+        start = time.perf_counter()
+        result = fn()
+        runs.append(time.perf_counter() - start)
+    return Timing(tuple(runs), result)
+
+
+def compare(contenders: Mapping[str, Callable[[], T]], repeats: int) -> dict[str, Timing[T]]:
+    """Time every contender once per round, ``repeats`` rounds, interleaved.
+
+    Interleaving puts every contender under the same background load, so ratios of the
+    best rounds are robust to noise that comes and goes.
+    """
+    runs: dict[str, list[float]] = {name: [] for name in contenders}
+    results: dict[str, T] = {}
+    errors: dict[str, str] = {}
+    for _ in range(max(1, repeats)):
+        for name, fn in contenders.items():
+            if name in errors:
+                continue
+            start = time.perf_counter()
+            try:
+                results[name] = fn()
+            except Exception as exc:  # recorded and reported as n/a, never hidden
+                errors[name] = f"{type(exc).__name__}: {exc}"
+                continue
+            runs[name].append(time.perf_counter() - start)
+    return {
+        name: Timing(tuple(runs[name]), results.get(name), errors.get(name)) for name in contenders
+    }
+
+
+def peak_memory(fn: Callable[[], object]) -> int:
+    """Peak bytes allocated while ``fn`` runs (``tracemalloc``; numpy reports its buffers).
+
+    Run it separately from timed runs: tracing slows allocation down.
+    """
+    was_tracing = tracemalloc.is_tracing()
+    if not was_tracing:
+        tracemalloc.start()
+    tracemalloc.reset_peak()
+    base = tracemalloc.get_traced_memory()[0]
+    try:
+        fn()
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        if not was_tracing:
+            tracemalloc.stop()
+    return max(0, peak - base)
+
+
+def matmul_seconds(n: int, count: int, repeats: int, dtype: type = np.float64) -> float:
+    """Best-of-``repeats`` seconds of ``count`` ``n×n`` products into a preallocated output.
+
+    The BLAS bound of an iteration that needs ``count`` products.
+    """
+    rng = np.random.default_rng(0)
+    a: np.ndarray = rng.standard_normal((n, n)).astype(dtype)
+    b: np.ndarray = rng.standard_normal((n, n)).astype(dtype)
+    out: np.ndarray = np.empty((n, n), dtype=dtype)
+
+    def products() -> None:
+        for _ in range(count):
+            np.matmul(a, b, out=out)
+
+    products()
+    return best_of(products, repeats).best
