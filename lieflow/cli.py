@@ -7,7 +7,8 @@ Subcommands::
             [--resume] [--out FILE] [--force] [--no-progress]
     lieflow reproduce [--out DIR]     the paper's experiments: figures, report.md, results.csv
             [--quick] [--seed N]
-    lieflow plot FILE.h5 [--out DIR]  energy error, Casimir drift and iterations per step
+    lieflow plot FILE.h5 [--out DIR]  energy error, Casimir drift and iterations per step,
+                                      plus the figures a plugin registered for the system
 
 :func:`main` returns the exit code: 0 on success, 2 for any lieflow error (the message, one
 paragraph naming the problem and the fix, goes to stderr; no traceback), 130 when a run was
@@ -218,7 +219,15 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no per-run log lines")
     p.set_defaults(func=_cmd_reproduce)
 
-    p = sub.add_parser("plot", help="plot the diagnostics of a trajectory file")
+    p = sub.add_parser(
+        "plot",
+        help="plot the diagnostics of a trajectory file",
+        description=(
+            "Write PNGs of a trajectory file's energy error, Casimir drift and solver updates "
+            "per step, then the figures a plugin registered for its system (for example "
+            "vorticity snapshots of euler_zeitlin runs), and print their paths."
+        ),
+    )
     p.add_argument("file", type=Path, metavar="FILE.h5")
     p.add_argument("--out", type=Path, metavar="DIR", help="output directory (default: FILE's)")
     p.set_defaults(func=_cmd_plot)

@@ -1,5 +1,6 @@
 """PNG figures: energy-error panels (``lieflow reproduce``) and trajectory-file diagnostics
-(``lieflow plot``).
+(``lieflow plot``, plus the figures a plugin registers for its system with
+``registry.add_plotter``).
 
 matplotlib is imported inside the functions and only its object-oriented API is used with
 the Agg canvas: no pyplot, no global backend switch, no figure registry to leak.
@@ -15,9 +16,12 @@ import attrs
 import numpy as np
 
 from .algebras import Array
+from .errors import LieflowError, PluginError
 
 if TYPE_CHECKING:  # pragma: no cover
     from matplotlib.figure import Figure
+
+    from .plugins import Registry
 
 __all__ = ["FLOOR", "Curve", "Panel", "energy_figure", "plot_trajectory"]
 
@@ -105,8 +109,11 @@ def _worst(values: Array, keep: int) -> Array:
     return np.max(v, axis=axes) if axes else v
 
 
-def plot_trajectory(path: Path | str, out_dir: Path | str | None = None) -> list[Path]:
-    """Plot a trajectory file's energy error, Casimir drift and iterations per step.
+def plot_trajectory(
+    path: Path | str, out_dir: Path | str | None = None, *, registry: Registry | None = None
+) -> list[Path]:
+    """Plot a trajectory file's energy error, Casimir drift and iterations per step, and the
+    figures of the plotter a plugin registered for its system (if any).
 
     Parameters
     ----------
@@ -114,13 +121,23 @@ def plot_trajectory(path: Path | str, out_dir: Path | str | None = None) -> list
         A file written by ``lieflow run``.
     out_dir : path, optional
         Where the PNGs go (default: next to the file).
+    registry : Registry, optional
+        Where to look up the system's :class:`~lieflow.plugins.Plotter` (default: the
+        installed plugins, :func:`~lieflow.default_registry`).
 
     Returns
     -------
     list of Path
-        ``<stem>_energy.png``, ``<stem>_casimirs.png`` and ``<stem>_iterations.png``.
+        ``<stem>_energy.png``, ``<stem>_casimirs.png``, ``<stem>_iterations.png``, then the
+        plotter's files.
+
+    Raises
+    ------
+    PluginError
+        The system's plotter failed (the message names the plugin and the reason).
     """
     from .io import read_trajectory
+    from .plugins import default_registry
 
     traj = read_trajectory(path)
     src = Path(path)
@@ -157,4 +174,17 @@ def plot_trajectory(path: Path | str, out_dir: Path | str | None = None) -> list
     ax.set_ylabel("solver updates per step")
     ax.grid(True, alpha=0.3)
     written.append(_save(fig, out / f"{stem}_iterations.png"))
+
+    plotter = (registry or default_registry()).plotters.get(str(meta["system"]))
+    if plotter is not None:
+        try:
+            written.extend(Path(p) for p in plotter.function(traj, out, stem))
+        except LieflowError:
+            raise
+        except Exception as exc:
+            raise PluginError(
+                f"the lieflow plot figures for {meta['system']!r} (from {plotter.source}) "
+                f"failed: {type(exc).__name__}: {exc}. The generic figures were written; "
+                "fix or update that plugin for the rest"
+            ) from exc
     return written

@@ -13,6 +13,10 @@ point in the group ``lieflow`` pointing at a module (or object) with a hook impl
     def lieflow_register(registry):
         registry.add_system("point_vortices", PointVortices, "N point vortices on the sphere")
 
+A plugin may also register extra ``lieflow plot`` figures for trajectory files of a system,
+``registry.add_plotter("euler_zeitlin", plot_run)`` with ``plot_run(trajectory, out_dir,
+stem) -> list of PNG paths`` (see :class:`Plotter`).
+
 Each entry point is loaded and called inside a guard: a plugin that fails to import, whose
 hook raises, or that registers something invalid (a duplicate name, a class of the wrong
 kind, a scheme on a non-symplectic tableau) yields a :class:`~lieflow.errors.PluginError`
@@ -32,7 +36,8 @@ import inspect
 import os
 import re
 import warnings
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Literal
 
@@ -64,7 +69,12 @@ class HookSpecs:
     @hookspec
     def lieflow_register(self, registry: RegistryBuilder) -> None:
         """Register systems, schemes and solvers by calling ``registry.add_system(...)``,
-        ``registry.add_scheme(...)`` and ``registry.add_solver(...)``."""
+        ``registry.add_scheme(...)`` and ``registry.add_solver(...)`` (and, optionally,
+        ``lieflow plot`` figures with ``registry.add_plotter(...)``)."""
+
+
+#: ``plotter(trajectory, out_dir, stem) -> paths``: extra PNGs of ``lieflow plot`` for a system.
+PlotFunction = Callable[[Any, Path, str], Sequence[Path]]
 
 
 @attrs.frozen
@@ -112,13 +122,30 @@ def _check_kind(kind: Kind, obj: Any) -> str | None:
     )
 
 
+@attrs.frozen
+class Plotter:
+    """Extra figures that ``lieflow plot`` draws for trajectory files of one system.
+
+    ``function(trajectory, out_dir, stem)`` receives the file's
+    :class:`~lieflow.io.Trajectory`, the output directory and the file's stem, writes PNGs
+    (conventionally ``out_dir / f"{stem}_<what>.png"``) and returns their paths.
+    """
+
+    system: str
+    function: PlotFunction = attrs.field(repr=False)
+    description: str
+    source: str
+
+
 class RegistryBuilder:
     """Collects registrations while plugins load (handed to ``lieflow_register``)."""
 
     def __init__(self) -> None:
         self._entries: dict[Kind, dict[str, Entry]] = {k: {} for k in KINDS}
+        self._plotters: dict[str, Plotter] = {}
         self._source = "?"
         self._pending: list[Entry] = []
+        self._pending_plotters: list[Plotter] = []
 
     def add_system(self, name: str, factory: Callable[..., Any], description: str = "") -> None:
         """Register an :class:`~lieflow.IsospectralSystem` subclass or factory."""
@@ -131,6 +158,28 @@ class RegistryBuilder:
     def add_solver(self, name: str, factory: Callable[..., Any], description: str = "") -> None:
         """Register a :class:`~lieflow.solvers.Solver` class or factory."""
         self._add("solver", name, factory, description)
+
+    def add_plotter(self, system: str, function: PlotFunction, description: str = "") -> None:
+        """Register extra ``lieflow plot`` figures for trajectory files of ``system``.
+
+        ``function(trajectory, out_dir, stem)`` returns the paths of the PNGs it wrote (see
+        :class:`Plotter`); it runs after the generic figures. The system may come from any
+        plugin; at most one plotter per system name.
+        """
+        if not isinstance(system, str) or not _NAME.match(system):
+            raise PluginError(
+                f"invalid system name {system!r} for a plotter: use lower-case letters, "
+                "digits and underscores"
+            )
+        if not callable(function):
+            raise PluginError(f"plotter for {system!r}: {function!r} is not callable")
+        taken = self._plotters.get(system) or next(
+            (p for p in self._pending_plotters if p.system == system), None
+        )
+        if taken is not None:
+            raise PluginError(f"a plotter for {system!r} is already registered by {taken.source}")
+        doc = description or (inspect.getdoc(function) or "").split("\n")[0]
+        self._pending_plotters.append(Plotter(system, function, doc, self._source))
 
     def _add(self, kind: Kind, name: str, factory: Callable[..., Any], description: str) -> None:
         if not isinstance(name, str) or not _NAME.match(name):
@@ -175,20 +224,30 @@ class RegistryBuilder:
     def _commit(self) -> None:
         for e in self._pending:
             self._entries[e.kind][e.name] = e
+        for p in self._pending_plotters:
+            self._plotters[p.system] = p
         self._pending = []
+        self._pending_plotters = []
+
+    def _discard(self) -> None:
+        self._pending = []
+        self._pending_plotters = []
 
     def freeze(self) -> Registry:
         """The immutable registry."""
-        return Registry(**{f"{k}s": MappingProxyType(dict(v)) for k, v in self._entries.items()})
+        tables = {f"{k}s": MappingProxyType(dict(v)) for k, v in self._entries.items()}
+        return Registry(**tables, plotters=MappingProxyType(dict(self._plotters)))
 
 
 @attrs.frozen
 class Registry:
-    """Immutable name -> :class:`Entry` tables for systems, schemes and solvers."""
+    """Immutable name -> :class:`Entry` tables for systems, schemes and solvers, and the
+    system name -> :class:`Plotter` table of extra ``lieflow plot`` figures."""
 
     systems: Mapping[str, Entry]
     schemes: Mapping[str, Entry]
     solvers: Mapping[str, Entry]
+    plotters: Mapping[str, Plotter] = attrs.field(factory=lambda: MappingProxyType({}))
 
     def table(self, kind: Kind) -> Mapping[str, Entry]:
         """The entries of one kind."""
@@ -275,7 +334,7 @@ def load_registry(
             pm.subset_hook_caller("lieflow_register", remove_plugins=others)(registry=builder)
             builder._commit()
         except Exception as exc:
-            builder._pending = []
+            builder._discard()
             if plugin is not None and pm.is_registered(plugin):
                 pm.unregister(plugin)
             reason = str(exc) if isinstance(exc, PluginError) else f"{type(exc).__name__}: {exc}"

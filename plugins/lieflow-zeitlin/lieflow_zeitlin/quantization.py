@@ -385,6 +385,10 @@ def random_vorticity(
     """A seeded random smooth vorticity matrix in su(N): ``Q`` of :func:`random_sh`.
 
     Band-limited to degrees ``1..degree`` with a flat spectrum, root-mean-square vorticity
-    ``rms``; exactly skew-Hermitian and traceless.
+    ``rms``; exactly skew-Hermitian (by construction) and traceless (the roundoff trace of
+    the ``l >= 1`` harmonics is removed).
     """
-    return sh_to_matrix(random_sh(N, degree, seed, rms), dtype=dtype)
+    W = sh_to_matrix(random_sh(N, degree, seed, rms), dtype=dtype)
+    diag = np.einsum("ii->i", W)  # a writable view of the diagonal
+    diag -= np.mean(diag)
+    return W
