@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any, Literal
 
 import attrs
@@ -161,6 +161,104 @@ def _resolve_steps(h: float, steps: int | None, t_final: float | None) -> int:
     return n
 
 
+Engine = Literal["auto", "numpy", "compiled"]
+
+#: At most this many steps per call of the compiled engine (a progress-bar tick each).
+_CHUNK_STEPS = 1024
+#: ... and at most this many float64 entries of saved states per call (8 MiB).
+_CHUNK_ENTRIES = 1 << 20
+
+
+@attrs.frozen
+class _Chunk:
+    """Consecutive completed steps ``start + 1 .. start + len(W)`` for :func:`integrate`."""
+
+    start: int
+    W: Array = attrs.field(repr=False)  # (m, *batch, n, n)
+    iterations: Array = attrs.field(repr=False)  # (m,)
+    solvers: tuple[str, ...]
+
+    @classmethod
+    def of(cls, step: Step) -> _Chunk:
+        res = step.result
+        return cls(step.index - 1, res.W[None], np.array([res.iterations]), (res.solver,))
+
+
+def _numpy_chunks(
+    system: IsospectralSystem, scheme: Scheme, W0: Array, h: float, solver: Solver,
+    warm_start: bool, n_steps: int,
+) -> Iterator[_Chunk]:  # fmt: skip
+    for step in iterate(system, scheme, W0, h, solver, warm_start=warm_start):
+        yield _Chunk.of(step)
+        if step.index == n_steps:
+            return
+
+
+def _compiled_chunks(
+    compiled: Any, system: IsospectralSystem, scheme: Scheme, W0: Array, h: float,
+    solver: Solver, warm_start: bool, n_steps: int,
+) -> Iterator[_Chunk]:  # fmt: skip
+    """Chunks from the compiled engine (:mod:`lieflow.compiled`); a step it does not accept
+    is taken by :func:`iterate` from the last good state and warm state (so errors and
+    ``Auto``'s fallbacks are exactly the numpy path's), and the compiled engine resumes."""
+    per_step = max(1, W0.size)
+    size = max(1, min(_CHUNK_STEPS, _CHUNK_ENTRIES // per_step))
+    W, k, warm = W0, 0, WarmStart()
+    while k < n_steps:
+        m = min(size, n_steps - k)
+        chunk = compiled.advance(
+            W, h, m, warm.last, warm.previous, warm.trusted, warm_start=warm_start
+        )
+        if chunk.done:
+            yield _Chunk(k, chunk.states, chunk.iterations, (compiled.solver_name,) * chunk.done)
+            W, k = chunk.states[-1], k + chunk.done
+            warm = WarmStart(chunk.last, chunk.previous, chunk.trusted)
+        if not chunk.complete:
+            step = next(iterate(system, scheme, W, h, solver, start=k, warm=warm,
+                                warm_start=warm_start))  # fmt: skip
+            yield _Chunk.of(step)
+            W, k, warm = step.W, step.index, step.warm
+
+
+def _per_state(f: Callable[[Array], Array], W: Array) -> Array:
+    """``f`` of each state in ``W`` (``(m, *batch, n, n)``), stacked: one vectorised call,
+    or for a single state a call on that state (as before chunks existed)."""
+    if W.shape[0] == 1:
+        return np.asarray(f(W[0]))[None]
+    return np.asarray(f(W))
+
+
+def _select_engine(
+    engine: str, system: IsospectralSystem, scheme: Scheme, solver: Solver, W0: Array
+) -> Any:
+    """The :class:`lieflow.compiled.CompiledPlan` to run, or ``None`` for numpy."""
+    if engine == "numpy":
+        return None
+    if engine not in ("auto", "compiled"):
+        raise InputError(f"engine must be 'auto', 'numpy' or 'compiled', got {engine!r}")
+    from . import compiled
+
+    if engine == "auto" and not compiled.available():
+        return None
+    plan = compiled.plan(system, scheme, solver, W0)
+    if isinstance(plan, str):
+        if engine == "compiled":
+            raise InputError(f"engine='compiled' cannot run this case: {plan}; use engine='auto'")
+        return None
+    if engine == "auto" and not compiled.wins(plan):
+        return None
+    try:
+        compiled.kernels()
+    except ImportError as exc:
+        if engine == "compiled":
+            raise InputError(
+                "engine='compiled' needs numba: pip install 'lieflow[fast]' "
+                f"(importing it failed: {exc})"
+            ) from exc
+        return None
+    return plan
+
+
 def integrate(
     system: IsospectralSystem,
     scheme: Scheme,
@@ -175,6 +273,7 @@ def integrate(
     warm_start: bool = True,
     on_failure: Literal["raise", "truncate"] = "raise",
     progress: bool = False,
+    engine: Engine = "auto",
 ) -> Solution:
     """Integrate ``dW/dt = [B(W), W]`` from ``W0`` with a fixed step ``h``.
 
@@ -201,6 +300,17 @@ def integrate(
         with ``status = FAILED`` and the error in ``failure``.
     progress : bool
         Show a progress bar (needs ``rich``).
+    engine : {"auto", "numpy", "compiled"}
+        How the steps are computed. ``"numpy"``: one vectorised numpy step at a time (any
+        system, scheme, solver, dtype). ``"compiled"``: loops compiled with numba
+        (``pip install 'lieflow[fast]'``) that advance many steps per call, for systems
+        with ``B(W) = S ⊙ W`` (rigid bodies, periodic Toda), SyDIRK or reduced-form
+        BlockGauss schemes, real data, and ``FixedPoint`` (or ``Auto``) solvers; same
+        iterations and stopping rule, results equal to roundoff, and a step it cannot
+        finish is handed to the numpy path (see :mod:`lieflow.compiled`); raises
+        :class:`InputError` if numba is missing or the case is not supported. ``"auto"``
+        (default): compiled where supported, numba is installed, and it is faster
+        (``n <= lieflow.compiled.AUTO_MAX_N``), else numpy.
     """
     solver = FixedPoint() if solver is None else solver
     _check_types(system, scheme, solver)
@@ -215,61 +325,66 @@ def integrate(
     if on_failure not in ("raise", "truncate"):
         raise InputError(f"on_failure must be 'raise' or 'truncate', got {on_failure!r}")
     W0a = system.validate(W0)
+    compiled = _select_engine(engine, system, scheme, solver, W0a)
 
-    saved_t, saved_W, saved_k = [0.0], [W0a], [0]
+    saved_t, saved_W, saved_k = [np.zeros(1)], [W0a[None]], [np.zeros(1, dtype=np.int64)]
     iterations = np.zeros(n_steps, dtype=np.int64)
     solvers: list[str] = []
     H, C = [], []
     if diagnostics:
-        H.append(system.hamiltonian(W0a))
-        C.append(system.casimirs(W0a))
+        H.append(_per_state(system.hamiltonian, W0a[None]))
+        C.append(_per_state(system.casimirs, W0a[None]))
     failure: ConvergenceError | None = None
     bar = _progress(n_steps) if progress else None
-    last: Step | None = None
+    done, last_W = 0, W0a
+    if compiled is None:
+        chunks = _numpy_chunks(system, scheme, W0a, h, solver, warm_start, n_steps)
+    else:
+        chunks = _compiled_chunks(compiled, system, scheme, W0a, h, solver, warm_start, n_steps)
     start = time.perf_counter()
     try:
-        for step in iterate(system, scheme, W0a, h, solver, warm_start=warm_start):
-            last = step
-            iterations[step.index - 1] = step.result.iterations
-            solvers.append(step.result.solver)
+        for chunk in chunks:
+            m = chunk.iterations.shape[0]
+            index = np.arange(chunk.start + 1, chunk.start + m + 1)
+            iterations[chunk.start : chunk.start + m] = chunk.iterations
+            solvers.extend(chunk.solvers)
             if diagnostics:
-                H.append(system.hamiltonian(step.W))
-                C.append(system.casimirs(step.W))
-            if step.index % save_every == 0 or step.index == n_steps:
-                saved_t.append(step.t)
-                saved_W.append(step.W)
-                saved_k.append(step.index)
+                H.append(_per_state(system.hamiltonian, chunk.W))
+                C.append(_per_state(system.casimirs, chunk.W))
+            keep = (index % save_every == 0) | (index == n_steps)
+            if keep.any():
+                saved_t.append(index[keep] * h)
+                saved_W.append(chunk.W[keep])
+                saved_k.append(index[keep])
+            done, last_W = chunk.start + m, chunk.W[-1]
             if bar is not None:
-                bar.advance(step.result.iterations)
-            if step.index == n_steps:
-                break
+                bar.advance(m, int(chunk.iterations.sum()))
     except ConvergenceError as exc:
         if on_failure == "raise":
             raise
         failure = exc
-        if last is not None and saved_k[-1] != last.index:
-            saved_t.append(last.t)
-            saved_W.append(last.W)
-            saved_k.append(last.index)
+        if done and saved_k[-1][-1] != done:
+            saved_t.append(np.array([done * h]))
+            saved_W.append(last_W[None])
+            saved_k.append(np.array([done]))
     finally:
         if bar is not None:
             bar.close()
     wall = time.perf_counter() - start
 
-    done = 0 if last is None else last.index
     energy_error = casimir_drift = None
     if diagnostics:
-        Ha = np.asarray(H, dtype=float)
+        Ha = np.concatenate(H).astype(float, copy=False)
         energy_error = np.abs(Ha - Ha[0]) / np.maximum(np.abs(Ha[0]), np.finfo(float).tiny)
-        Ca = np.asarray(C)
+        Ca = np.concatenate(C)
         casimir_drift = np.abs(Ca - Ca[0]) / system.casimir_scale(W0a)
     return Solution(
         system=system,
         scheme=scheme.name,
         h=h,
-        t=np.asarray(saved_t),
-        W=np.stack(saved_W),
-        saved_steps=np.asarray(saved_k),
+        t=np.concatenate(saved_t),
+        W=np.concatenate(saved_W),
+        saved_steps=np.concatenate(saved_k),
         iterations=iterations[:done],
         solvers=tuple(solvers),
         energy_error=energy_error,
@@ -305,13 +420,13 @@ class _Progress:
         self._its = 0
         self._p.start()
 
-    def advance(self, iterations: int) -> None:
-        self._n += 1
+    def advance(self, steps: int, iterations: int) -> None:
+        self._n += steps
         self._its += iterations
         elapsed = max(time.perf_counter() - self._start, 1e-9)
         self._p.update(
             self._task,
-            advance=1,
+            advance=steps,
             rate=f"{self._n / elapsed:,.0f}",
             its=f"{self._its / self._n:.1f}",
         )

@@ -57,6 +57,19 @@ class IsospectralSystem(ABC):
         """A short human-readable name."""
         return type(self).__name__
 
+    @property
+    def hadamard_factor(self) -> Array | None:
+        r"""The constant matrix ``S`` with :math:`B(W) = S \odot W` (entrywise product), or
+        ``None`` (the default) when ``B`` is not of that form.
+
+        Rigid bodies (:math:`B = -\mathcal I^{-1}W`, SPEC §3) and the periodic Toda lattice
+        are. A system that exposes ``S`` can be advanced by :func:`lieflow.integrate`'s
+        compiled engine, which evaluates ``B`` entrywise inside its loops; it is checked
+        against :meth:`B` on the initial state before use. A subclass that overrides
+        :meth:`B` must override this property too (or return ``None``).
+        """
+        return None
+
     def B_derivative(self, W: Array, dW: Array) -> Array:
         """Fréchet derivative ``B'(W)[dW]``; needed by Newton's method (SPEC §5).
 

@@ -60,6 +60,11 @@ class GeneralizedRigidBody(IsospectralSystem):
     def B(self, W: Array) -> Array:
         return -W * self.weights
 
+    @property
+    def hadamard_factor(self) -> Array:
+        """``S = -weights``: :math:`B(W) = S \\odot W` (SPEC §3)."""
+        return -self.weights
+
     def hamiltonian(self, W: Array) -> Array:
         return 0.5 * np.sum(W * W * self.weights, axis=(-2, -1))
 
@@ -98,6 +103,11 @@ class RigidBody(IsospectralSystem):
 
     def B(self, W: Array) -> Array:
         return -W * self.weights
+
+    @property
+    def hadamard_factor(self) -> Array:
+        """``S = -weights``: :math:`B(W) = S \\odot W` (SPEC §3)."""
+        return -self.weights
 
     def hamiltonian(self, W: Array) -> Array:
         return 0.5 * np.sum(W * W * self.weights, axis=(-2, -1))

@@ -63,6 +63,11 @@ class PeriodicToda(IsospectralSystem):
     def B(self, W: Array) -> Array:
         return W * self.sign
 
+    @property
+    def hadamard_factor(self) -> Array:
+        """``S = sign``: :math:`B(W) = S \\odot W` (SPEC §3); a copy."""
+        return self.sign.copy()
+
     def hamiltonian(self, W: Array) -> Array:
         tr_W2 = np.einsum("...ij,...ji->...", W, W)
         return 2.0 * tr_W2 - 0.5 * np.sum(W * self.B(W), axis=(-2, -1))

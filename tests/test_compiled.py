@@ -1,0 +1,280 @@
+"""The compiled engine (lieflow.compiled): same steps as numpy to roundoff, same iterations,
+same failures via the handover to numpy, clear errors for unsupported cases."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+
+import lieflow as lf
+from lieflow import compiled
+
+TODA_W0 = lf.systems.PAPER_W0
+
+HADAMARD = {
+    "rigid_body": lf.systems.RigidBody((1.0, 2.0, 3.0)),
+    "generalized_rigid_body": lf.systems.GeneralizedRigidBody.random_inertia(6, seed=3),
+    "periodic_toda": lf.systems.PeriodicToda(5),
+}
+SCHEMES = ["midpoint", "triple_jump", "sydirk7", "gauss2", "gauss3"]
+
+
+@pytest.fixture
+def numba() -> Any:
+    return pytest.importorskip("numba")
+
+
+def _state(system: lf.IsospectralSystem, seed: int = 0) -> np.ndarray:
+    return 0.8 * system.random_state(seed=seed)
+
+
+def _both(*args: Any, **kwargs: Any) -> tuple[lf.Solution, lf.Solution]:
+    return (
+        lf.integrate(*args, **kwargs, engine="numpy"),
+        lf.integrate(*args, **kwargs, engine="compiled"),
+    )
+
+
+def _assert_same(ref: lf.Solution, fast: lf.Solution, atol: float = 1e-13) -> None:
+    assert fast.status is ref.status and fast.n_steps == ref.n_steps
+    scale = max(1.0, float(np.max(np.abs(ref.W))))
+    np.testing.assert_allclose(fast.W, ref.W, rtol=0, atol=atol * scale)
+    np.testing.assert_array_equal(fast.t, ref.t)
+    np.testing.assert_array_equal(fast.saved_steps, ref.saved_steps)
+    assert np.max(np.abs(fast.iterations - ref.iterations), initial=0) <= 1
+    assert fast.solvers == ref.solvers
+    for a, b in ((ref.energy_error, fast.energy_error), (ref.casimir_drift, fast.casimir_drift)):
+        assert (a is None) == (b is None)
+        if a is not None and b is not None:
+            assert a.shape == b.shape and a.dtype == b.dtype
+            np.testing.assert_allclose(b, a, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", sorted(HADAMARD))
+def test_hadamard_factor_reproduces_B(name: str) -> None:
+    system = HADAMARD[name]
+    S = system.hadamard_factor
+    assert S is not None and S.shape == (system.algebra.n,) * 2
+    W = np.stack([system.random_state(seed=k) for k in range(3)])
+    np.testing.assert_array_equal(S * W, system.B(W))
+    S[...] = 0.0  # a copy: mutating it cannot corrupt the system
+    np.testing.assert_array_equal(system.hadamard_factor * W, system.B(W))
+
+
+def test_hadamard_factor_defaults_to_none() -> None:
+    class Cubic(lf.IsospectralSystem):
+        algebra = lf.SO(3)
+
+        def B(self, W: np.ndarray) -> np.ndarray:
+            return -(W**3)
+
+        def hamiltonian(self, W: np.ndarray) -> np.ndarray:
+            return 0.25 * np.sum(W**4, axis=(-2, -1))
+
+    assert Cubic().hadamard_factor is None
+
+
+@pytest.mark.usefixtures("numba")
+@pytest.mark.parametrize("scheme_name", SCHEMES)
+@pytest.mark.parametrize("name", sorted(HADAMARD))
+def test_engines_agree(name: str, scheme_name: str) -> None:
+    system = HADAMARD[name]
+    ref, fast = _both(system, lf.schemes.get(scheme_name), _state(system), 0.1, steps=40)
+    _assert_same(ref, fast)
+
+
+@pytest.mark.usefixtures("numba")
+def test_engines_agree_cold_saving_and_tolerances() -> None:
+    system = HADAMARD["generalized_rigid_body"]
+    solver = lf.solvers.FixedPoint(rtol=1e-10, atol=1e-12, max_iter=40)
+    for scheme in ("midpoint", "gauss3"):
+        ref, fast = _both(
+            system, lf.schemes.get(scheme), _state(system), 0.05, steps=23, save_every=5,
+            warm_start=False, solver=solver,
+        )  # fmt: skip
+        _assert_same(ref, fast, atol=1e-9)
+        np.testing.assert_array_equal(fast.saved_steps, [0, 5, 10, 15, 20, 23])
+    ref, fast = _both(system, lf.schemes.get("midpoint"), _state(system), 0.1, steps=7,
+                      diagnostics=False)  # fmt: skip
+    assert fast.energy_error is None and fast.casimir_drift is None
+    _assert_same(ref, fast)
+
+
+@pytest.mark.usefixtures("numba")
+@pytest.mark.parametrize("scheme_name", ["midpoint", "gauss3"])
+def test_ensemble_matches_single_runs(scheme_name: str) -> None:
+    system = HADAMARD["rigid_body"]
+    scheme = lf.schemes.get(scheme_name)
+    W = np.stack([_state(system, seed=k) for k in range(4)]).reshape(2, 2, 3, 3)
+    ref, fast = _both(system, scheme, W, 0.1, steps=30, save_every=10)
+    _assert_same(ref, fast)
+    assert fast.W.shape == (4, 2, 2, 3, 3)
+    assert fast.energy_error is not None and fast.energy_error.shape == (31, 2, 2)
+    assert fast.casimir_drift is not None and fast.casimir_drift.shape == (31, 2, 2, 1)
+    for i in range(2):
+        for j in range(2):
+            one = lf.integrate(system, scheme, W[i, j], 0.1, steps=30, engine="compiled")
+            np.testing.assert_allclose(fast.W_final[i, j], one.W_final, rtol=0, atol=1e-13)
+
+
+@pytest.mark.usefixtures("numba")
+def test_long_run_spans_chunks_and_preserves_structure() -> None:
+    system = HADAMARD["rigid_body"]
+    W0 = _state(system)
+    ref, fast = _both(system, lf.schemes.get("midpoint"), W0, 0.1, steps=2500, save_every=500)
+    _assert_same(ref, fast, atol=1e-12)
+    assert fast.casimir_drift is not None and fast.casimir_drift.max() < 1e-13
+    assert float(np.max(np.abs(fast.W + np.swapaxes(fast.W, -1, -2)))) == 0.0
+
+
+@pytest.mark.usefixtures("numba")
+@pytest.mark.parametrize("scheme_name", ["midpoint", "sydirk7"])
+def test_hard_step_raises_the_same_error(scheme_name: str) -> None:
+    toda = lf.systems.PeriodicToda()
+    errors = []
+    for engine in ("numpy", "compiled"):
+        with pytest.raises(lf.ConvergenceError) as info:
+            lf.integrate(toda, lf.schemes.get(scheme_name), TODA_W0, 0.8, steps=5, engine=engine)
+        errors.append(info.value)
+    a, b = errors
+    assert (a.reason, a.step, a.t, a.solver, a.iterations) == (
+        b.reason, b.step, b.t, b.solver, b.iterations,
+    )  # fmt: skip
+    assert a.residuals == b.residuals
+
+
+@pytest.mark.usefixtures("numba")
+@pytest.mark.parametrize("h", [0.35, 0.8])
+def test_auto_finishes_hard_steps_through_the_handover(h: float) -> None:
+    """At h = 0.35 some steps are finished by Newton (handed over), others compiled."""
+    toda = lf.systems.PeriodicToda()
+    ref, fast = _both(toda, lf.schemes.get("midpoint"), TODA_W0, h, steps=20,
+                      solver=lf.solvers.Auto())  # fmt: skip
+    _assert_same(ref, fast, atol=1e-12)
+    assert "newton" in fast.solvers
+
+
+@pytest.mark.usefixtures("numba")
+def test_truncate_after_handover() -> None:
+    toda = lf.systems.PeriodicToda()
+    ref, fast = _both(toda, lf.schemes.get("midpoint"), TODA_W0, 0.4, steps=5,
+                      on_failure="truncate")  # fmt: skip
+    assert fast.status is lf.Status.FAILED and fast.failure is not None
+    assert ref.failure is not None and fast.failure.reason == ref.failure.reason
+    _assert_same(ref, fast)
+
+
+@pytest.mark.usefixtures("numba")
+def test_progress_bar_advances_per_chunk() -> None:
+    pytest.importorskip("rich")
+    system = HADAMARD["rigid_body"]
+    sol = lf.integrate(system, lf.schemes.get("midpoint"), _state(system), 0.1, steps=1500,
+                       progress=True, engine="compiled")  # fmt: skip
+    assert sol.success and sol.n_steps == 1500
+
+
+@pytest.mark.usefixtures("numba")
+@pytest.mark.parametrize(
+    ("case", "match"),
+    [
+        ({"solver": lf.solvers.Newton()}, "solver 'newton'"),
+        ({"solver": lf.solvers.FrozenB()}, "solver 'frozen_b'"),
+        ({"solver": lf.solvers.FixedPoint(anderson=2)}, "Anderson"),
+        ({"solver": lf.solvers.Auto(first=lf.solvers.FrozenB())}, "solver 'auto'"),
+        ({"scheme": lf.schemes.get("gauss2", form="block")}, "not compiled"),
+        ({"scheme": lf.schemes.get("modin_viviani")}, "not compiled"),
+        ({"W0": np.float32}, "float64"),
+    ],
+)
+def test_compiled_refuses_unsupported_cases(case: dict[str, Any], match: str) -> None:
+    system = HADAMARD["rigid_body"]
+    W0 = _state(system)
+    scheme = case.get("scheme", lf.schemes.get("midpoint"))
+    solver = case.get("solver")
+    if case.get("W0") is np.float32:
+        W0 = W0.astype(np.float32)
+    with pytest.raises(lf.InputError, match=match):
+        lf.integrate(system, scheme, W0, 0.1, steps=2, solver=solver, engine="compiled")
+    auto = lf.integrate(system, scheme, W0, 0.1, steps=2, solver=solver)  # falls back to numpy
+    assert auto.success
+
+
+@pytest.mark.usefixtures("numba")
+def test_compiled_refuses_systems_without_a_faithful_hadamard_factor() -> None:
+    class Liar(lf.systems.RigidBody):
+        def B(self, W: np.ndarray) -> np.ndarray:  # B changed, hadamard_factor not updated
+            return 2.0 * super().B(W)
+
+    liar = Liar()
+    with pytest.raises(lf.InputError, match="does not reproduce"):
+        lf.integrate(liar, lf.schemes.get("midpoint"), _state(liar), 0.01, steps=2,
+                     engine="compiled")  # fmt: skip
+    ref = lf.integrate(liar, lf.schemes.get("midpoint"), _state(liar), 0.01, steps=2,
+                       engine="numpy")  # fmt: skip
+    auto = lf.integrate(liar, lf.schemes.get("midpoint"), _state(liar), 0.01, steps=2)
+    np.testing.assert_array_equal(auto.W, ref.W)
+
+
+@pytest.mark.usefixtures("numba")
+def test_compiled_refuses_systems_without_a_hadamard_factor() -> None:
+    vortices = pytest.importorskip("lieflow_vortices")
+    system = vortices.PointVortices()
+    with pytest.raises(lf.InputError, match="hadamard_factor is None"):
+        lf.integrate(system, lf.schemes.get("midpoint"), system.random_state(seed=0), 0.01,
+                     steps=2, engine="compiled")  # fmt: skip
+
+
+def test_engine_is_validated_and_numba_is_optional(monkeypatch: pytest.MonkeyPatch) -> None:
+    system = HADAMARD["rigid_body"]
+    W0, mid = _state(system), lf.schemes.get("midpoint")
+    with pytest.raises(lf.InputError, match="engine"):
+        lf.integrate(system, mid, W0, 0.1, steps=2, engine="fortran")  # type: ignore[arg-type]
+
+    def missing() -> Any:
+        raise ImportError("No module named 'numba'")
+
+    monkeypatch.setattr(compiled, "kernels", missing)
+    with pytest.raises(lf.InputError, match=r"lieflow\[fast\]"):
+        lf.integrate(system, mid, W0, 0.1, steps=2, engine="compiled")
+    assert lf.integrate(system, mid, W0, 0.1, steps=2).success  # auto: numpy
+    monkeypatch.setattr(compiled, "available", lambda: False)
+    assert lf.integrate(system, mid, W0, 0.1, steps=2).success
+
+
+@pytest.mark.usefixtures("numba")
+def test_auto_picks_compiled_only_for_small_n() -> None:
+    small = lf.systems.GeneralizedRigidBody.random_inertia(4, seed=0)
+    large = lf.systems.GeneralizedRigidBody.random_inertia(compiled.AUTO_MAX_N + 1, seed=0)
+    fp, mid = lf.solvers.FixedPoint(), lf.schemes.get("midpoint")
+    for system, wins in ((small, True), (large, False)):
+        plan = compiled.plan(system, mid, fp, system.random_state(seed=0))
+        assert isinstance(plan, compiled.CompiledPlan) and compiled.wins(plan) is wins
+
+
+@pytest.mark.usefixtures("numba")
+def test_stopping_rule_matches_the_numpy_rule() -> None:
+    from lieflow import _kernels
+
+    rule = lf.solvers.StoppingRule(rtol=1e-16, patience=3)
+    fl = np.array([rule.rtol, rule.atol, rule.roundoff_floor, rule.divergence_factor])
+    il = np.array([rule.max_iter, rule.patience, rule.window, rule.project], dtype=np.int64)
+    names = {0: None, 1: "accept", 2: "fail"}
+    cases = [
+        [1e-3, 1e-8, 1e-15, 3e-16],
+        [1e-3, 1e-8, 1e-15, 3e-16, 4e-16, 5e-16, 3.5e-16],
+        [1e-1, 1e-3, 2e-3, 3e-3, 2e-3],
+        [0.5],
+        [float("nan")],
+        list(0.5 * 0.97 ** np.arange(12)),
+        list(0.5 * 0.5 ** np.arange(12)),
+    ]
+    for res in cases:
+        for growth in (1.0, 20.0, 1e3):
+            for met in (False, True):
+                want = rule.verdict(list(res), met, growth)
+                want = None if want is None else ("accept" if want in ("converged", "roundoff")
+                                                  else "fail")  # fmt: skip
+                got = _kernels._verdict(np.array(res), len(res), met, growth, fl, il)
+                assert names[got] == want, (res, growth, met)
