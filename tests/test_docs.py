@@ -118,3 +118,19 @@ def test_site_builds_strict(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "WARNING" not in proc.stderr, proc.stderr
     assert (tmp_path / "index.html").is_file()
+
+
+def test_griffe_extension_rewrites_rst() -> None:
+    """docs/griffe_lieflow.py turns the docstrings' reStructuredText into Markdown."""
+    pytest.importorskip("griffe")
+    sys.path.insert(0, str(DOCS))
+    try:
+        from griffe_lieflow import rst_to_markdown, split_groups
+    finally:
+        sys.path.remove(str(DOCS))
+    text = "See :class:`~lieflow.errors.InputError` and :math:`h^2`:\n\n.. math:: a = b\n"
+    assert rst_to_markdown(text) == "See `InputError` and \\(h^2\\):\n\n\n\\[\na = b\n\\]\n"
+    doc = "Parameters\n----------\nrtol, atol : float, float\n    Tolerances.\n"
+    assert split_groups(doc) == (
+        "Parameters\n----------\nrtol : float\n    Tolerances.\natol : float\n    Tolerances."
+    )
