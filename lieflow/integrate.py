@@ -229,7 +229,12 @@ def _per_state(f: Callable[[Array], Array], W: Array) -> Array:
 
 
 def _select_engine(
-    engine: str, system: IsospectralSystem, scheme: Scheme, solver: Solver, W0: Array
+    engine: str,
+    system: IsospectralSystem,
+    scheme: Scheme,
+    solver: Solver,
+    W0: Array,
+    n_steps: int,
 ) -> Any:
     """The :class:`lieflow.compiled.CompiledPlan` to run, or ``None`` for numpy."""
     if engine == "numpy":
@@ -245,7 +250,7 @@ def _select_engine(
         if engine == "compiled":
             raise InputError(f"engine='compiled' cannot run this case: {plan}; use engine='auto'")
         return None
-    if engine == "auto" and not compiled.wins(plan):
+    if engine == "auto" and not compiled.wins(plan, n_steps, W0.size // plan.n**2):
         return None
     try:
         compiled.kernels()
@@ -310,7 +315,8 @@ def integrate(
         finish is handed to the numpy path (see :mod:`lieflow.compiled`); raises
         :class:`InputError` if numba is missing or the case is not supported. ``"auto"``
         (default): compiled where supported, numba is installed, and it is faster
-        (``n <= lieflow.compiled.AUTO_MAX_N``), else numpy.
+        (``n <= 64`` and at least 1000 trajectory-steps, see
+        :func:`lieflow.compiled.wins`), else numpy.
     """
     solver = FixedPoint() if solver is None else solver
     _check_types(system, scheme, solver)
@@ -325,7 +331,7 @@ def integrate(
     if on_failure not in ("raise", "truncate"):
         raise InputError(f"on_failure must be 'raise' or 'truncate', got {on_failure!r}")
     W0a = system.validate(W0)
-    compiled = _select_engine(engine, system, scheme, solver, W0a)
+    compiled = _select_engine(engine, system, scheme, solver, W0a, n_steps)
 
     saved_t, saved_W, saved_k = [np.zeros(1)], [W0a[None]], [np.zeros(1, dtype=np.int64)]
     iterations = np.zeros(n_steps, dtype=np.int64)

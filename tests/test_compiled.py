@@ -238,9 +238,10 @@ def test_engine_is_validated_and_numba_is_optional(monkeypatch: pytest.MonkeyPat
     monkeypatch.setattr(compiled, "kernels", missing)
     with pytest.raises(lf.InputError, match=r"lieflow\[fast\]"):
         lf.integrate(system, mid, W0, 0.1, steps=2, engine="compiled")
-    assert lf.integrate(system, mid, W0, 0.1, steps=2).success  # auto: numpy
+    ensemble = np.broadcast_to(W0, (compiled.AUTO_MIN_WORK // 2, 3, 3))
+    assert lf.integrate(system, mid, ensemble, 0.1, steps=2).success  # auto: numpy
     monkeypatch.setattr(compiled, "available", lambda: False)
-    assert lf.integrate(system, mid, W0, 0.1, steps=2).success
+    assert lf.integrate(system, mid, ensemble, 0.1, steps=2).success
 
 
 @pytest.mark.usefixtures("numba")
@@ -248,9 +249,16 @@ def test_auto_picks_compiled_only_for_small_n() -> None:
     small = lf.systems.GeneralizedRigidBody.random_inertia(4, seed=0)
     large = lf.systems.GeneralizedRigidBody.random_inertia(compiled.AUTO_MAX_N + 1, seed=0)
     fp, mid = lf.solvers.FixedPoint(), lf.schemes.get("midpoint")
-    for system, wins in ((small, True), (large, False)):
+    work = compiled.AUTO_MIN_WORK
+    for system, steps, K, wins in (
+        (small, work, 1, True),
+        (small, work // 4, 4, True),
+        (small, work - 1, 1, False),
+        (large, work, 1, False),
+    ):
         plan = compiled.plan(system, mid, fp, system.random_state(seed=0))
-        assert isinstance(plan, compiled.CompiledPlan) and compiled.wins(plan) is wins
+        assert isinstance(plan, compiled.CompiledPlan)
+        assert compiled.wins(plan, steps, K) is wins
 
 
 @pytest.mark.usefixtures("numba")
