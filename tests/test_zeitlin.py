@@ -251,6 +251,13 @@ def test_energy_and_casimirs() -> None:
     eps = 1e-6
     dH = (system.hamiltonian(W[0] + eps * dW) - system.hamiltonian(W[0] - eps * dW)) / (2 * eps)
     assert dH == pytest.approx(float(np.real(np.sum(np.conj(P[0].conj().T) * dW))), rel=1e-7)
+    # the fluid's energy and enstrophy, exactly: H = (N/4π) ½∫|∇ψ|² = (N/4π) ½ Σ |ω_lm|²/(l(l+1))
+    c = lz.matrix_to_sh(W)
+    l, _ = lz.degrees_and_orders(N)
+    k2 = N / (4 * math.pi)
+    fluid_H = 0.5 * k2 * np.sum(np.abs(c[:, 1:]) ** 2 / (l[1:] * (l[1:] + 1.0)), axis=-1)
+    np.testing.assert_allclose(H, fluid_H, rtol=1e-12)
+    np.testing.assert_allclose(system.enstrophy(W), k2 * np.sum(np.abs(c) ** 2, axis=-1))
     C = system.casimirs(W)
     lam = np.linalg.eigvalsh(1j * W)  # iW is Hermitian
     expected = np.stack([np.sum(lam**k, axis=-1) for k in system.casimir_powers], axis=-1)

@@ -26,13 +26,14 @@ The Hamiltonian is the kinetic energy
           = -\tfrac{\sigma}{2} \langle W, \Delta_N^{-1} W\rangle_F \;\ge\; 0,
 
 positive because ``Δ_N`` is negative definite on su(N); then ``B = (grad η)^†`` as lieflow
-requires (SPEC §1). It approximates ``(σ N/4π) · ½∫|∇ψ|² dΩ`` for ``W = Q(ω)``.
+requires (SPEC §1). For ``W = Q(ω)`` it *equals* ``(σ N/4π) · ½∫|∇ψ|² dΩ``, ``Δψ = ω``
+(``Q`` maps ``Δ`` to ``Δ_N`` and is an isometry up to ``κ² = N/4π``).
 The Casimirs are the real traces
 
 .. math:: C_k(W) = \operatorname{tr}\big((iW)^k\big),\qquad k \in \texttt{casimir\_powers},
 
 (``iW`` is Hermitian, with eigenvalues ``≈`` the vorticity values); ``C_2 = ||W||_F²`` is the
-enstrophy (``≈ (N/4π) ∫ω² dΩ``). ``tr W^k`` itself is imaginary for odd ``k``, which is why
+enstrophy (``= (N/4π) ∫ω² dΩ`` exactly). ``tr W^k`` itself is imaginary for odd ``k``, which is why
 :meth:`EulerZeitlin.casimirs` overrides lieflow's default ``Re tr W^k``.
 """
 
