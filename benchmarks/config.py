@@ -104,8 +104,8 @@ def full() -> BenchConfig:
         zeitlin_sizes=(128, 256, 512),
         zeitlin_paper_max_n=128,
         wp_n=50,
-        wp_time=0.5,
-        wp_steps=(10, 20, 40, 80, 160),
+        wp_time=1.0,
+        wp_steps=(5, 10, 20, 40, 80),
     )
 
 

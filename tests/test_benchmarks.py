@@ -28,9 +28,7 @@ def _grb(n: int) -> tuple[lf.IsospectralSystem, np.ndarray]:
 
 @pytest.mark.parametrize("stages", [1, 2, 3])
 @pytest.mark.parametrize("form", ["reduced", "block"])
-def test_dense_baseline_matches_block_gauss(
-    stages: int, form: Literal["reduced", "block"]
-) -> None:
+def test_dense_baseline_matches_block_gauss(stages: int, form: Literal["reduced", "block"]) -> None:
     """The as-published dense algorithm takes the same step as lieflow's BlockGauss."""
     system, W0 = _grb(7)
     tableau = gauss(stages)
