@@ -13,17 +13,26 @@ when the stopping rule reports a failure (the caller then hands the step to nump
 
 from __future__ import annotations
 
+import importlib
 import math
 from collections.abc import Callable
 from typing import Any, TypeVar, cast
 
-import numba
 import numpy as np
+
+numba: Any
+try:
+    numba = importlib.import_module("numba")
+except ImportError:  # pragma: no cover - importable without numba (doctest collection, docs)
+    numba = None
 
 F = TypeVar("F", bound=Callable[..., Any])
 
 _TINY = float(np.finfo(float).tiny)
 _GO, _ACCEPT, _FAIL = 0, 1, 2
+#: Up to this ``n`` a skew ``B M B`` is formed as a strict upper triangle of dot products;
+#: above it a full product in vectorisable loop order is faster.
+_SMALL = 8
 
 
 def _jit(func: F) -> F:
@@ -31,8 +40,12 @@ def _jit(func: F) -> F:
 
     numba writes its cache next to the module, or, when the package directory is read-only,
     to a per-user cache directory; if neither is possible, decoration raises
-    ``RuntimeError`` and we compile in memory on every first call instead.
+    ``RuntimeError`` and we compile in memory on every first call instead. Without numba
+    the plain function is returned (so the module imports) and
+    :func:`lieflow.compiled.kernels` raises ``ImportError``.
     """
+    if numba is None:  # pragma: no cover - lieflow.compiled.kernels() refuses this case
+        return func
     try:
         return cast(F, numba.njit(cache=True, error_model="numpy")(func))
     except RuntimeError:  # pragma: no cover - no writable cache location
@@ -165,9 +178,9 @@ def _midpoint_solve(
     """Fixed-point iteration of the midpoint map (SPEC §4.1) from the guess in ``x``:
 
     ``M <- W0 + q (B M - M B) + q^2 B M B``, ``B = S ⊙ M``, ``q = h/2``;
-    for skew algebras ``M B = (B M)^T`` (two products per iteration). The new iterate
-    overwrites ``x`` entry by entry once the products are formed; on acceptance ``x`` holds
-    the solution.
+    for skew algebras ``M B = (B M)^T`` (two products per iteration, SPEC §4.1), and for
+    small ``n`` only half of the skew ``B M B`` is formed. The new iterate overwrites ``x``
+    entry by entry once the products are formed; on acceptance ``x`` holds the solution.
     """
     n = W0.shape[0]
     B, BM, BMB, MB = scratch[1], scratch[2], scratch[3], scratch[4]
@@ -179,19 +192,42 @@ def _midpoint_solve(
             for j in range(n):
                 B[i, j] = S[i, j] * x[i, j]
         _matmul(B, x, BM)
-        _matmul(BM, B, BMB)
-        if not skew:
-            _matmul(x, B, MB)
         step2 = 0.0
         size2 = 0.0
-        for i in range(n):
-            for j in range(n):
-                mb = BM[j, i] if skew else MB[i, j]
-                g = W0[i, j] + q * (BM[i, j] - mb) + qq * BMB[i, j]
-                d = g - x[i, j]
+        if skew and n <= _SMALL:
+            # B M B is skew for skew B, M: form its strict upper triangle only (its diagonal
+            # is zero in exact arithmetic) and mirror it, half a product instead of one.
+            for i in range(n):
+                g = W0[i, i]
+                d = g - x[i, i]
                 step2 += d * d
                 size2 += g * g
-                x[i, j] = g
+                x[i, i] = g
+                for j in range(i + 1, n):
+                    bmb = 0.0
+                    for c in range(n):
+                        bmb += BM[i, c] * B[c, j]
+                    c1 = BM[i, j] - BM[j, i]
+                    g = W0[i, j] + q * c1 + qq * bmb
+                    gt = W0[j, i] - q * c1 - qq * bmb
+                    d = g - x[i, j]
+                    dt = gt - x[j, i]
+                    step2 += d * d + dt * dt
+                    size2 += g * g + gt * gt
+                    x[i, j] = g
+                    x[j, i] = gt
+        else:
+            _matmul(BM, B, BMB)
+            if not skew:
+                _matmul(x, B, MB)
+            for i in range(n):
+                for j in range(n):
+                    mb = BM[j, i] if skew else MB[i, j]
+                    g = W0[i, j] + q * (BM[i, j] - mb) + qq * BMB[i, j]
+                    d = g - x[i, j]
+                    step2 += d * d
+                    size2 += g * g
+                    x[i, j] = g
         k += 1
         verdict, size0 = _judge(step2, size2, k, size0, res, rule, irule)
         if verdict == _ACCEPT:
@@ -222,36 +258,35 @@ def _commutator_add(W: Any, S: Any, hb: float, skew: bool, M: Any, scratch: Any)
 
 @_jit
 def _predict(last: Any, prev: Any, has_prev: bool, out: Any) -> None:
-    """The warm-start prediction ``2 last - prev`` (``last`` alone after one step)."""
-    lf, pf, of = last.reshape(last.size), prev.reshape(prev.size), out.reshape(out.size)
-    for i in range(of.size):
-        of[i] = 2.0 * lf[i] - pf[i] if has_prev else lf[i]
+    """The warm-start prediction ``2 last - prev`` (``last`` alone after one step), 1-D."""
+    for i in range(out.size):
+        out[i] = 2.0 * last[i] - prev[i] if has_prev else last[i]
 
 
 @_jit
-def _commit(
-    W: Any, new: Any, solved: Any, last: Any, prev: Any, flags: Any, diff2: float, norm2: float
-) -> None:
-    """End of a step for the whole stack: state and :class:`WarmStart` ``advance``."""
-    W[:] = new
+def _commit(solved: Any, last: Any, prev: Any, flags: Any, diff2: float, norm2: float) -> None:
+    """:meth:`WarmStart.advance` for the whole stack (warm arrays flattened to ``(K, m)``)."""
     flags[2] = 1 if flags[0] == 0 or math.sqrt(diff2) < math.sqrt(norm2) else 0
+    K, m = last.shape
+    for kk in range(K):
+        for i in range(m):
+            if flags[0] != 0:
+                prev[kk, i] = last[kk, i]
+            last[kk, i] = solved[kk, i]
     if flags[0] != 0:
-        prev[:] = last
         flags[1] = 1
-    last[:] = solved
     flags[0] = 1
 
 
 @_jit
 def _distance2(a: Any, b: Any) -> tuple[float, float]:
-    """``||a - b||^2`` and ``||a||^2``."""
-    af, bf = a.reshape(a.size), b.reshape(b.size)
+    """``||a - b||^2`` and ``||a||^2`` of 1-D arrays."""
     d2 = 0.0
     n2 = 0.0
-    for i in range(af.size):
-        d = af[i] - bf[i]
+    for i in range(a.size):
+        d = a[i] - b[i]
         d2 += d * d
-        n2 += af[i] * af[i]
+        n2 += a[i] * a[i]
     return d2, n2
 
 
@@ -270,20 +305,20 @@ def sydirk_advance(
     states: Any,
     iters: Any,
 ) -> int:
-    """Advance the stack ``W`` (``(K, n, n)``, in place) by up to ``states.shape[0]`` steps of
-    the composition of midpoint steps with fractions ``b`` (SPEC §4.2).
+    """Advance the stack ``W`` (``(K, n, n)``) by up to ``states.shape[0]`` steps of the
+    composition of midpoint steps with fractions ``b`` (SPEC §4.2).
 
-    ``last``/``prev`` (``(K, s, n, n)``) and ``flags = (has_last, has_prev, trusted)`` are the
-    warm-start state, updated in place after every completed step. ``irule`` holds
+    ``last``/``prev`` (``(K, s n n)``: the ``(K, s, n, n)`` offsets, flattened) and
+    ``flags = (has_last, has_prev, trusted)`` are the warm-start state, updated in place
+    after every completed step. ``irule`` holds
     ``(max_iter, patience, window, project, retry_cold, use_warm)``. Writes each step's states
     and its iteration count (max over the stack) and returns how many steps completed; fewer
     than asked means the next step failed and nothing of it was committed.
     """
     K, n, s = W.shape[0], W.shape[1], b.shape[0]
     retry_cold, use_warm = irule[4] != 0, irule[5] != 0
-    solved = np.empty((K, s, n, n))
-    pred = np.empty((s, n, n))
-    Wc = np.empty((n, n))
+    solved = np.empty((K, s * n * n))
+    pred = np.empty(s * n * n)
     x = np.empty((n, n))
     scratch = np.empty((5, n, n))
     res = np.empty(irule[0])
@@ -296,7 +331,11 @@ def sydirk_advance(
         for kk in range(K):
             if has_last:
                 _predict(last[kk], prev[kk], has_prev, pred)
-            Wc[:, :] = W[kk]
+            Wc = states[step, kk]  # the state, advanced in place through the sub-steps
+            cur = W[kk] if step == 0 else states[step - 1, kk]
+            for a in range(n):
+                for c in range(n):
+                    Wc[a, c] = cur[a, c]
             total = 0
             for i in range(s):
                 q = 0.5 * (b[i] * h)
@@ -304,33 +343,34 @@ def sydirk_advance(
                 if guessing:
                     for a in range(n):
                         for c in range(n):
-                            x[a, c] = Wc[a, c] + pred[i, a, c]
+                            x[a, c] = Wc[a, c] + pred[(i * n + a) * n + c]
                     its = _midpoint_solve(Wc, S, q, skew, x, scratch, res, rule, irule)
                     if its < 0:
                         total -= its
                         if not retry_cold:
                             return step
                 if its < 0:
-                    x[:, :] = Wc
+                    for a in range(n):
+                        for c in range(n):
+                            x[a, c] = Wc[a, c]
                     its = _midpoint_solve(Wc, S, q, skew, x, scratch, res, rule, irule)
                     if its < 0:
                         return step
                 total += its
                 for a in range(n):
                     for c in range(n):
-                        solved[kk, i, a, c] = x[a, c] - Wc[a, c]
+                        solved[kk, (i * n + a) * n + c] = x[a, c] - Wc[a, c]
                 _commutator_add(Wc, S, 2.0 * q, skew, x, scratch)
             for a in range(n):
                 for c in range(n):
                     if not math.isfinite(Wc[a, c]):
                         return step
-            states[step, kk] = Wc
             d2, n2 = _distance2(solved[kk], pred)
             norm2 += n2
             if has_last:
                 diff2 += d2
             most = max(most, total)
-        _commit(W, states[step], solved, last, prev, flags, diff2, norm2)
+        _commit(solved, last, prev, flags, diff2, norm2)
         iters[step] = most
     return states.shape[0]
 
@@ -447,8 +487,9 @@ def reduced_advance(
     ``G`` from ``I`` and of ``P`` from ``W0``)."""
     K, n, s = W.shape[0], W.shape[1], hb.shape[0]
     retry_cold, use_warm = irule[4] != 0, irule[5] != 0
-    solved = np.empty((K, 2, s, n, n))
-    pred = np.empty((2, s, n, n))
+    m = s * n * n
+    solved = np.empty((K, 2 * m))
+    pred = np.empty(2 * m)
     x = np.empty((2, s, n, n))
     scratch = np.empty((5, s, n, n))
     res = np.empty(irule[0])
@@ -459,7 +500,7 @@ def reduced_advance(
         norm2 = 0.0
         most = 0
         for kk in range(K):
-            W0 = W[kk]
+            W0 = W[kk] if step == 0 else states[step - 1, kk]
             if has_last:
                 _predict(last[kk], prev[kk], has_prev, pred)
             total = 0
@@ -468,8 +509,9 @@ def reduced_advance(
                 for i in range(s):
                     for a in range(n):
                         for c in range(n):
-                            x[0, i, a, c] = (1.0 if a == c else 0.0) + pred[0, i, a, c]
-                            x[1, i, a, c] = W0[a, c] + pred[1, i, a, c]
+                            e = (i * n + a) * n + c
+                            x[0, i, a, c] = (1.0 if a == c else 0.0) + pred[e]
+                            x[1, i, a, c] = W0[a, c] + pred[m + e]
                 its = _reduced_solve(W0, S, hA, skew, x, scratch, res, rule, irule)
                 if its < 0:
                     total -= its
@@ -488,8 +530,9 @@ def reduced_advance(
             for i in range(s):
                 for a in range(n):
                     for c in range(n):
-                        solved[kk, 0, i, a, c] = x[0, i, a, c] - (1.0 if a == c else 0.0)
-                        solved[kk, 1, i, a, c] = x[1, i, a, c] - W0[a, c]
+                        e = (i * n + a) * n + c
+                        solved[kk, e] = x[0, i, a, c] - (1.0 if a == c else 0.0)
+                        solved[kk, m + e] = x[1, i, a, c] - W0[a, c]
             out = states[step, kk]
             _reduced_update(W0, S, hb, skew, x, out, scratch)
             for a in range(n):
@@ -501,6 +544,6 @@ def reduced_advance(
             if has_last:
                 diff2 += d2
             most = max(most, total)
-        _commit(W, states[step], solved, last, prev, flags, diff2, norm2)
+        _commit(solved, last, prev, flags, diff2, norm2)
         iters[step] = most
     return states.shape[0]

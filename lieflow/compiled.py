@@ -55,13 +55,18 @@ AUTO_MIN_WORK = 1000
 
 def available() -> bool:
     """Whether numba can be found (without importing it)."""
-    return importlib.util.find_spec("numba") is not None
+    try:
+        return importlib.util.find_spec("numba") is not None
+    except (ImportError, ValueError):  # a broken or blocked installation
+        return False
 
 
 def kernels() -> ModuleType:
     """The compiled loops (imports numba; raises ``ImportError`` without it)."""
     from . import _kernels
 
+    if _kernels.numba is None:
+        raise ImportError("No module named 'numba'")
     return _kernels
 
 
@@ -145,12 +150,14 @@ class CompiledPlan:
         batch, n = W.shape[:-2], self.n
         K = int(np.prod(batch, dtype=np.int64))
         core = self.warm_shape()
-        Wk = np.array(W, dtype=np.float64, order="C").reshape(K, n, n)
+        Wk = np.ascontiguousarray(W, dtype=np.float64).reshape(K, n, n)
+
+        size = int(np.prod(core))
 
         def unpack(a: Array | None) -> Array:
             if a is None:
-                return np.zeros((K, *core))
-            return np.array(a, dtype=np.float64, order="C").reshape(K, *core)
+                return np.zeros((K, size))
+            return np.array(a, dtype=np.float64, order="C").reshape(K, size)
 
         lastk, prevk = unpack(last), unpack(previous)
         flags = np.array([last is not None, previous is not None, trusted], dtype=np.int64)

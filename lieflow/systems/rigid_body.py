@@ -66,7 +66,7 @@ class GeneralizedRigidBody(IsospectralSystem):
         return -self.weights
 
     def hamiltonian(self, W: Array) -> Array:
-        return 0.5 * np.sum(W * W * self.weights, axis=(-2, -1))
+        return 0.5 * np.einsum("...ij,...ij,ij->...", W, W, self.weights)
 
     @classmethod
     def random_inertia(cls, n: int, seed: int | None = None) -> GeneralizedRigidBody:
@@ -110,7 +110,11 @@ class RigidBody(IsospectralSystem):
         return -self.weights
 
     def hamiltonian(self, W: Array) -> Array:
-        return 0.5 * np.sum(W * W * self.weights, axis=(-2, -1))
+        return 0.5 * np.einsum("...ij,...ij,ij->...", W, W, self.weights)
+
+    def casimirs(self, W: Array) -> Array:
+        """``tr W^2 = sum_ij W_ij W_ji`` (``-2 |m|^2``), without a matrix product."""
+        return np.einsum("...ij,...ji->...", W, W)[..., None]
 
 
 def hat(m: Array) -> Array:
