@@ -88,7 +88,8 @@ class LieAlgebra(ABC):
         """Return ``X`` as an array of this algebra's dtype, or raise a clear error.
 
         Checks shape ``(..., n, n)``, dtype (complex data for a real algebra is refused),
-        finiteness and membership to relative tolerance ``tol``.
+        finiteness and membership to relative tolerance ``tol``, which is raised to
+        ``64 eps`` of the data's precision (single-precision data cannot do better).
         """
         try:
             arr = np.asarray(X)
@@ -108,6 +109,7 @@ class LieAlgebra(ABC):
         if not np.all(np.isfinite(arr)):
             raise InputError(f"{name} contains NaN or Inf entries; pass finite values")
         arr = np.array(arr, dtype=self.working_dtype(arr.dtype), copy=True)
+        tol = max(tol, 64 * float(np.finfo(arr.dtype).eps))
         if not self.contains(arr, tol):
             worst = float(np.max(self.distance(arr)))
             raise AlgebraError(

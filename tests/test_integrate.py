@@ -81,6 +81,7 @@ def test_system_parameters_are_validated() -> None:
         lf.systems.get("periodic_toda", n=2)
 
 
+@pytest.mark.filterwarnings("ignore:overflow:RuntimeWarning")  # the point of the test
 def test_non_finite_step_is_an_error() -> None:
     class Blowup(lf.IsospectralSystem):
         algebra = lf.SO(3)

@@ -354,17 +354,12 @@ def test_complex64(name: str) -> None:
     assert _rel(sol.W_final, ref.W_final) <= 1e-5
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="lieflow core promotes complex64 to complex128 inside a step (NumPy 2 / NEP 50): "
-    "the float64 scalar b_i h of the tableau in SyDIRK/MidpointProblem and the float64 "
-    "weights in schemes.base.commutator_update; the plugin's B and validate keep complex64",
-)
-@pytest.mark.parametrize("name", ["midpoint", "gauss2"])
-def test_complex64_stays_single_precision_through_a_step(name: str) -> None:
+@pytest.mark.parametrize("solver", ["fixed_point", "newton", "frozen_b"])
+@pytest.mark.parametrize("name", ["midpoint", "sydirk7", "gauss2", "block", "modin_viviani"])
+def test_complex64_stays_single_precision_through_a_step(name: str, solver: str) -> None:
     system = lz.EulerZeitlin(8, dtype="complex64")
     W0 = system.algebra.random(13)
-    step = lf.schemes.get(name).step(system, W0, 0.25, lf.solvers.FixedPoint(rtol=1e-6))
+    step = lf.schemes.get(name).step(system, W0, 0.25, lf.solvers.get(solver, rtol=1e-5))
     assert step.W.dtype == np.complex64
 
 

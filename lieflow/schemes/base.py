@@ -100,15 +100,36 @@ def solve(
     return problem, res
 
 
+class TableauProblem:
+    """What the stage equations of every tableau-based scheme hold: the system, ``W0``,
+    ``h`` and the coefficients ``A``, ``b``.
+
+    The coefficients are kept in ``W0``'s real precision and ``h`` as a Python float, so a
+    single-precision state stays single (NumPy promotes ``complex64`` times a ``float64``
+    array to ``complex128``).
+    """
+
+    def __init__(
+        self, system: IsospectralSystem, W0: Array, h: float, tableau: ButcherTableau
+    ) -> None:
+        self.system = system
+        self.W0 = W0
+        self.h = float(h)
+        self.A = tableau.A.astype(W0.real.dtype)
+        self.b = tableau.b.astype(W0.real.dtype)
+
+
 def commutator_update(system: IsospectralSystem, W0: Array, stages: Array, hb: Array) -> Array:
     """``W1 = W0 + sum_i (h b_i) [B(W_i), W_i]`` for stage values ``stages[..., i, :, :]``.
 
     One batched call of ``B``; for skew algebras ``W_i B_i = (B_i W_i)^†`` saves a product.
+    The weights are cast to ``W0``'s real precision (single precision stays single).
     """
     B = system.B(stages)
     BW = B @ stages
     WB = dagger(BW) if system.algebra.skew else stages @ B
-    return W0 + np.einsum("i,...iab->...ab", hb, BW - WB)
+    weights = np.asarray(hb, dtype=W0.real.dtype)
+    return W0 + np.einsum("i,...iab->...ab", weights, BW - WB)
 
 
 def symplectic(tableau: ButcherTableau) -> ButcherTableau:

@@ -13,7 +13,15 @@ from ..algebras import Array, dagger
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau, gauss
-from .base import Scheme, StepResult, commutator_update, solve, solve_right, symplectic
+from .base import (
+    Scheme,
+    StepResult,
+    TableauProblem,
+    commutator_update,
+    solve,
+    solve_right,
+    symplectic,
+)
 
 
 def blocks_to_dense(X: Array) -> Array:
@@ -37,7 +45,7 @@ def _block_coefficient_matrix(coef: np.ndarray, mats: Array) -> Array:
     return blocks_to_dense(coef[:, :, None, None] * mats)
 
 
-class BlockProblem:
+class BlockProblem(TableauProblem):
     r"""The block algorithm's implicit equation (SPEC §4.3), evaluated block-wise.
 
     Unknown ``M`` with ``n×n`` blocks ``M_kl``, shape ``(..., s, s, n, n)``;
@@ -66,11 +74,7 @@ class BlockProblem:
         tableau: ButcherTableau,
         warm: Array | None = None,
     ) -> None:
-        self.system = system
-        self.W0 = W0
-        self.h = h
-        self.A = tableau.A
-        self.b = tableau.b
+        super().__init__(system, W0, h, tableau)
         s = tableau.stages
         self.diag = np.arange(s)
         trivial = np.broadcast_to(W0[..., None, None, :, :], (*W0.shape[:-2], s, s, *W0.shape[-2:]))
@@ -123,7 +127,7 @@ class BlockProblem:
         return M - self.W0[..., None, None, :, :]
 
 
-class ReducedProblem:
+class ReducedProblem(TableauProblem):
     r"""The reduced stage form (SPEC §4.5): the lifted RK stages with ``g0 = I``, ``p0 = W0``.
 
     .. math::
@@ -144,11 +148,7 @@ class ReducedProblem:
         tableau: ButcherTableau,
         warm: Array | None = None,
     ) -> None:
-        self.system = system
-        self.W0 = W0
-        self.h = h
-        self.A = tableau.A
-        self.b = tableau.b
+        super().__init__(system, W0, h, tableau)
         self.skew = system.algebra.skew
         s, n = tableau.stages, W0.shape[-1]
         trivial = np.empty((*W0.shape[:-2], 2, s, n, n), dtype=W0.dtype)

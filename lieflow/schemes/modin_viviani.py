@@ -9,11 +9,19 @@ from ..algebras import Array
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau
-from .base import Scheme, StepResult, commutator_update, solve, solve_right, symplectic
+from .base import (
+    Scheme,
+    StepResult,
+    TableauProblem,
+    commutator_update,
+    solve,
+    solve_right,
+    symplectic,
+)
 from .block import _block_coefficient_matrix, _gauss2
 
 
-class ModinVivianiProblem:
+class ModinVivianiProblem(TableauProblem):
     r"""Unknowns ``X_i, Y_i, K_ij`` (stacked as ``(..., 2s + s^2, n, n)``) with
 
     .. math::
@@ -36,11 +44,7 @@ class ModinVivianiProblem:
         tableau: ButcherTableau,
         warm: Array | None = None,
     ) -> None:
-        self.system = system
-        self.W0 = W0
-        self.h = h
-        self.A = tableau.A
-        self.b = tableau.b
+        super().__init__(system, W0, h, tableau)
         self.s = s = tableau.stages
         shape = (*W0.shape[:-2], 2 * s + s * s, *W0.shape[-2:])
         self.x0 = np.array(warm, dtype=W0.dtype) if warm is not None else np.zeros(shape, W0.dtype)

@@ -31,7 +31,7 @@ class MidpointProblem:
     ) -> None:
         self.system = system
         self.W0 = W0
-        self.half = 0.5 * h
+        self.half = 0.5 * float(h)
         self.skew = system.algebra.skew
         self.x0 = W0 + warm if warm is not None else W0.copy()
 

@@ -36,7 +36,9 @@ class StoppingRule:
       initial guess;
     * **stalled** / **roundoff**: the relative update ``r_k`` set no new minimum for
       ``patience`` iterations — accepted as ``"roundoff"`` when the best ``r`` is below
-      ``roundoff_floor`` (no floating-point iteration can do better), ``"diverged"`` if the
+      ``roundoff_floor`` (no floating-point iteration can do better; the floor is given for
+      double precision and scaled by the ratio of machine epsilons for single-precision
+      iterates, see :class:`IterationMonitor`), ``"diverged"`` if the
       iterate has grown tenfold meanwhile, ``"stalled"`` otherwise;
     * **stalled** (too slow): with ``project=True``, once ``window`` iterations are done,
       the contraction rate measured over the last ``window`` iterations predicts that
@@ -96,6 +98,9 @@ class IterationMonitor:
     updates and the growth of the iterate. Local to a ``solve`` call (never shared)."""
 
     def __init__(self, rule: StoppingRule, core_ndim: int, x0: Array) -> None:
+        eps = float(np.finfo(x0.dtype).eps) if x0.dtype.kind in "fc" else _EPS
+        if eps > _EPS:  # single precision: the floor scales with machine epsilon
+            rule = attrs.evolve(rule, roundoff_floor=rule.roundoff_floor * (eps / _EPS))
         self.rule = rule
         self.core = core_ndim
         self.residuals: list[float] = []

@@ -171,15 +171,6 @@ class EulerZeitlin(lieflow.IsospectralSystem):
         ]
         return np.stack(out, axis=-1)
 
-    def validate(self, W0: ArrayLike, tol: float = 1e-12) -> Array:
-        """Check an initial condition (lieflow's membership test), with a tolerance of at
-        least ``64 ε`` of the data's precision: a complex64 matrix cannot be traceless to
-        ``1e-12`` (its trace and the projection are computed in single precision)."""
-        dtype = np.asarray(W0).dtype
-        if dtype in (np.dtype(np.complex64), np.dtype(np.float32)):
-            tol = max(tol, 64 * float(np.finfo(np.float32).eps))
-        return super().validate(W0, tol)
-
     def enstrophy(self, W: ArrayLike) -> Array:
         """``||W||_F² = tr((iW)²)`` (the ``k = 2`` Casimir)."""
         W = np.asarray(W)
