@@ -19,14 +19,14 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TextIO
 
 from . import __version__
 from .errors import LieflowError
 from .integrate import Step
+from .progress import ProgressBar
 
 __all__ = ["main"]
 
@@ -56,64 +56,22 @@ def _cmd_list(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-class _RichMonitor:
-    """Progress bar for ``lieflow run``: steps, rate, mean iterations per step and the
-    largest relative energy error so far (dE/E), refreshed at most every 0.1 s."""
+class _ProgressMonitor:
+    """The :class:`lieflow.io.Monitor` of ``lieflow run``: a :class:`ProgressBar`."""
 
     def __init__(self) -> None:
-        self._progress: Any = None
-        self._task: Any = None
-        self._steps = 0
-        self._iterations = 0
-        self._start = 0.0
-        self._last_update = 0.0
-        self._max_err = 0.0
+        self._bar: ProgressBar | None = None
 
     def start(self, done: int, total: int) -> None:
-        from rich.console import Console
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            TextColumn,
-            TimeRemainingColumn,
-        )
-
-        self._progress = Progress(
-            BarColumn(bar_width=16),
-            MofNCompleteColumn(),
-            TextColumn(
-                "{task.fields[rate]} steps/s, {task.fields[its]} it/step, dE/E {task.fields[err]}"
-            ),
-            TimeRemainingColumn(),
-            console=Console(stderr=True),
-        )
-        self._task = self._progress.add_task(
-            "run", total=total, completed=done, rate="-", its="-", err="-"
-        )
-        self._start = time.perf_counter()
-        self._progress.start()
+        self._bar = ProgressBar(total, done)
 
     def advance(self, step: Step, energy_error: float) -> None:
-        self._steps += 1
-        self._iterations += step.result.iterations
-        now = time.perf_counter()
-        self._max_err = max(self._max_err, energy_error)
-        if now - self._last_update < 0.1:
-            self._progress.update(self._task, completed=step.index)
-            return
-        self._last_update = now
-        self._progress.update(
-            self._task,
-            completed=step.index,
-            rate=f"{self._steps / max(now - self._start, 1e-9):,.0f}",
-            its=f"{self._iterations / self._steps:.1f}",
-            err=f"{self._max_err:.2e}",
-        )
+        assert self._bar is not None
+        self._bar.advance(1, step.result.iterations, energy_error)
 
     def stop(self) -> None:
-        if self._progress is not None:
-            self._progress.stop()
+        if self._bar is not None:
+            self._bar.close()
 
 
 def _show_progress(args: argparse.Namespace) -> bool:
@@ -134,7 +92,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
             key,
         )
     summary = run(
-        setup, resume=args.resume, monitor=_RichMonitor() if _show_progress(args) else None
+        setup, resume=args.resume, monitor=_ProgressMonitor() if _show_progress(args) else None
     )
     rate = summary.new_steps / summary.wall_time if summary.wall_time > 0 else 0.0
     print(

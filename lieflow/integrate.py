@@ -14,6 +14,7 @@ from numpy.typing import ArrayLike
 
 from .algebras import Array
 from .errors import ConvergenceError, InputError
+from .progress import ProgressBar
 from .schemes.base import Scheme, StepResult
 from .solution import Solution, Status
 from .solvers.base import Solver
@@ -341,7 +342,7 @@ def integrate(
         H.append(_per_state(system.hamiltonian, W0a[None]))
         C.append(_per_state(system.casimirs, W0a[None]))
     failure: ConvergenceError | None = None
-    bar = _progress(n_steps) if progress else None
+    bar = ProgressBar(n_steps) if progress else None
     done, last_W = 0, W0a
     if compiled is None:
         chunks = _numpy_chunks(system, scheme, W0a, h, solver, warm_start, n_steps)
@@ -399,52 +400,3 @@ def integrate(
         failure=failure,
         wall_time=wall,
     )
-
-
-class _Progress:
-    """A rich progress bar showing steps, rate and mean iterations per step."""
-
-    def __init__(self, total: int) -> None:
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            TextColumn,
-            TimeRemainingColumn,
-        )
-
-        self._p = Progress(
-            TextColumn("[bold]integrating"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("{task.fields[rate]} steps/s, {task.fields[its]} it/step"),
-            TimeRemainingColumn(),
-        )
-        self._task = self._p.add_task("steps", total=total, rate="-", its="-")
-        self._start = time.perf_counter()
-        self._n = 0
-        self._its = 0
-        self._p.start()
-
-    def advance(self, steps: int, iterations: int) -> None:
-        self._n += steps
-        self._its += iterations
-        elapsed = max(time.perf_counter() - self._start, 1e-9)
-        self._p.update(
-            self._task,
-            advance=steps,
-            rate=f"{self._n / elapsed:,.0f}",
-            its=f"{self._its / self._n:.1f}",
-        )
-
-    def close(self) -> None:
-        self._p.stop()
-
-
-def _progress(total: int) -> Any:
-    try:
-        return _Progress(total)
-    except ImportError as exc:
-        raise InputError(
-            "progress=True needs the 'rich' package: pip install 'lieflow[cli]'"
-        ) from exc

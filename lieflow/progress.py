@@ -1,0 +1,85 @@
+"""The progress bar of long runs (``integrate(..., progress=True)`` and ``lieflow run``)."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from .errors import InputError
+
+
+class ProgressBar:
+    """A rich progress bar on stderr: steps done of ``total``, steps per second, mean
+    iterations per step and, when reported, the largest relative energy error so far.
+
+    The numbers are refreshed at most every 0.1 s (the bar itself on every call), so a
+    fast run does not spend its time drawing.
+
+    Parameters
+    ----------
+    total : int
+        Steps the run will have when complete.
+    done : int
+        Steps already done (a resumed run).
+
+    Raises
+    ------
+    InputError
+        If ``rich`` is not installed.
+    """
+
+    def __init__(self, total: int, done: int = 0) -> None:
+        try:
+            from rich.console import Console
+            from rich.progress import (
+                BarColumn,
+                MofNCompleteColumn,
+                Progress,
+                TextColumn,
+                TimeRemainingColumn,
+            )
+        except ImportError as exc:
+            raise InputError(
+                "a progress bar needs the 'rich' package: pip install 'lieflow[cli]'"
+            ) from exc
+        self._progress: Any = Progress(
+            BarColumn(bar_width=16),
+            MofNCompleteColumn(),
+            TextColumn("{task.fields[rate]} steps/s, {task.fields[its]} it/step{task.fields[err]}"),
+            TimeRemainingColumn(),
+            console=Console(stderr=True),
+        )
+        self._task = self._progress.add_task(
+            "run", total=total, completed=done, rate="-", its="-", err=""
+        )
+        self._completed = done
+        self._steps = 0
+        self._iterations = 0
+        self._max_err: float | None = None
+        self._start = self._last_refresh = time.perf_counter()
+        self._progress.start()
+
+    def advance(self, steps: int, iterations: int, energy_error: float | None = None) -> None:
+        """Record ``steps`` more steps that took ``iterations`` in all, and (optionally) the
+        largest relative energy error among them."""
+        self._completed += steps
+        self._steps += steps
+        self._iterations += iterations
+        if energy_error is not None:
+            self._max_err = max(self._max_err or 0.0, energy_error)
+        now = time.perf_counter()
+        if now - self._last_refresh < 0.1:
+            self._progress.update(self._task, completed=self._completed)
+            return
+        self._last_refresh = now
+        self._progress.update(
+            self._task,
+            completed=self._completed,
+            rate=f"{self._steps / max(now - self._start, 1e-9):,.0f}",
+            its=f"{self._iterations / max(self._steps, 1):.1f}",
+            err="" if self._max_err is None else f", dE/E {self._max_err:.2e}",
+        )
+
+    def close(self) -> None:
+        """Stop drawing (the bar stays on the terminal)."""
+        self._progress.stop()
