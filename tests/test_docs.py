@@ -54,6 +54,19 @@ def python_blocks(text: str) -> list[tuple[int, str]]:
     return blocks
 
 
+def run_blocks(blocks: list[tuple[int, str]], page: str) -> dict[str, object]:
+    """Run the blocks in order in one fresh namespace; an exception fails with its location."""
+    namespace: dict[str, object] = {"__name__": "docs_" + re.sub(r"\W", "_", page)}
+    for line, source in blocks:
+        label = f"{page}:{line}"
+        code = compile(source, label, "exec")
+        try:
+            exec(code, namespace)
+        except Exception as exc:
+            raise AssertionError(f"the example at {label} raised {type(exc).__name__}") from exc
+    return namespace
+
+
 def test_fence_parser() -> None:
     text = "\n".join(
         [
@@ -76,6 +89,13 @@ def test_fence_parser() -> None:
     assert python_blocks(text) == [(1, "a = 1\n"), (12, "b = a + 1\n")]
 
 
+def test_a_failing_example_fails() -> None:
+    blocks = python_blocks("```python\nx = 1\n```\n\n```python\ny = x / 0\n```\n")
+    with pytest.raises(AssertionError, match=r"page.md:5 raised ZeroDivisionError"):
+        run_blocks(blocks, "page.md")
+    assert run_blocks(blocks[:1], "page.md")["x"] == 1
+
+
 def test_every_page_is_checked() -> None:
     """Each page with Python examples is exercised; the tutorial pages have some."""
     with_code = {p.name for p in PAGES if python_blocks(p.read_text(encoding="utf-8"))}
@@ -90,14 +110,7 @@ def test_examples_run(page: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatc
         pytest.skip("no python examples")
     pytest.importorskip("matplotlib").use("Agg")
     monkeypatch.chdir(tmp_path)
-    namespace: dict[str, object] = {"__name__": f"docs_{page.stem.replace('-', '_')}"}
-    for line, source in blocks:
-        label = f"{page.relative_to(ROOT).as_posix()}:{line}"
-        code = compile(source, label, "exec")
-        try:
-            exec(code, namespace)
-        except Exception as exc:
-            raise AssertionError(f"the example at {label} raised {type(exc).__name__}") from exc
+    run_blocks(blocks, page.relative_to(ROOT).as_posix())
 
 
 @pytest.mark.skipif(
