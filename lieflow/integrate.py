@@ -287,8 +287,9 @@ def integrate(
     ----------
     system, scheme : IsospectralSystem, Scheme
         What to integrate and how (``lieflow.systems.get``, ``lieflow.schemes.get``).
-    W0 : array_like, shape (n, n) or (..., n, n)
-        Initial condition in the system's algebra; a stack is an ensemble advanced together.
+    W0 : array_like
+        Initial condition in the system's algebra, shape ``(n, n)``; a stack of shape
+        ``(..., n, n)`` is an ensemble advanced together.
     h : float
         Step size, positive.
     steps, t_final : int or float

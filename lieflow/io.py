@@ -1,12 +1,12 @@
 """HDF5 trajectory files: a writer that saves as the run proceeds, a reader, and resume.
 
-File layout (``format = "lieflow-trajectory"``, ``format_version = 1``)::
+File layout (format ``lieflow-trajectory``, format version 1)::
 
     /                         attributes: lieflow version, the configuration's full text and
                               identity, system / scheme / solver, h, save_every, requested
                               and completed steps, status, wall time, platform and versions
     /initial/W0               the initial condition
-    /trajectory/step, t, W    saved states (every ``save_every``-th step and the last)
+    /trajectory/step, t, W    saved states (every save_every-th step and the last)
     /diagnostics/energy       eta(W_k), k = 0..K            (one row per step, K = completed)
     /diagnostics/energy_error |eta(W_k) - eta(W_0)| / |eta(W_0)|
     /diagnostics/casimirs     Casimirs C_j(W_k), shape (K + 1, n_casimirs)
@@ -14,7 +14,7 @@ File layout (``format = "lieflow-trajectory"``, ``format_version = 1``)::
     /diagnostics/iterations   solver updates of steps 1..K
     /diagnostics/residual     last relative update of each step's solve
     /checkpoint/slot0, slot1  (W, warm) at a step, written alternately; the root group's
-                              ``current`` attribute names the valid one and is set last
+                              "current" attribute names the valid one and is set last
 
 All datasets are chunked and resizable. Per-step diagnostics are buffered between saves; at
 every save the buffers are appended, the state is checkpointed (step index, ``W`` and the
