@@ -66,7 +66,17 @@ def _git_commit() -> str:
         )
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
-    return out.stdout.strip()
+    commit = out.stdout.strip()
+    try:
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "lieflow", "plugins"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        dirty = ""
+    return commit + (" + uncommitted lieflow/plugins changes" if dirty else "")
 
 
 def header(ctx: BenchContext, total: float, command: str) -> str:
@@ -89,7 +99,7 @@ def header(ctx: BenchContext, total: float, command: str) -> str:
         "python -m benchmarks --quick    # tiny sizes, well under a minute",
         "```",
         "",
-        f"This page: `{command}`, lieflow {lf.__version__} at commit `{_git_commit()}`, "
+        f"This page: `{command}`, lieflow {lf.__version__} at commit {_git_commit()}, "
         f"{total / 60:.1f} min"
         + (
             " (**quick mode**: tiny sizes — the target verdicts below mean nothing)"

@@ -177,11 +177,15 @@ def run(ctx: BenchContext) -> Section:
                 for c in slowest
             )
             + f"; on the 3×3 and 4×4 cases a step costs {seconds(tiny_rate)} for "
-            f"{tiny_its:.1f} updates (per-step Python and diagnostics); at n = 50 "
-            f"np.linalg.norm of a {size:,}-entry array — gauss3's warm-start offsets, two "
-            f"norms per step in WarmStart.advance — costs {seconds(blas)} here against "
-            f"{seconds(plain)} for an einsum sum of squares (OpenBLAS threading on a busy "
-            "2-core machine; 7s-SyDIRK's 17,500 entries likewise)"
+            f"{tiny_its:.1f} updates (per-step Python and diagnostics)"
+            + (
+                f"; at n = 50 np.linalg.norm of a {size:,}-entry array — gauss3's warm-start "
+                f"offsets, two norms per step in WarmStart.advance — costs {seconds(blas)} "
+                f"here against {seconds(plain)} for an einsum sum of squares (OpenBLAS "
+                "threading on a busy 2-core machine; 7s-SyDIRK's 17,500 entries likewise)"
+                if blas > 10 * plain
+                else ""
+            )
         ),
     )
     notes = [
