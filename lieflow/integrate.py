@@ -17,7 +17,7 @@ from .errors import ConvergenceError, InputError
 from .progress import ProgressBar
 from .schemes.base import Scheme, StepResult
 from .solution import Solution, Status
-from .solvers.base import Solver
+from .solvers.base import Solver, batch_norm
 from .solvers.fixed_point import FixedPoint
 from .systems.base import IsospectralSystem
 
@@ -53,7 +53,7 @@ class WarmStart:
         """The state after a step whose solved offsets are ``solved``."""
         predicted = self.prediction()
         trusted = predicted is None or bool(
-            np.linalg.norm(solved - predicted) < np.linalg.norm(solved)
+            batch_norm(solved - predicted, solved.ndim) < batch_norm(solved, solved.ndim)
         )
         return WarmStart(solved, self.last, trusted)
 

@@ -140,7 +140,7 @@ def _anderson_step(
     # Real least squares on stacked real/imaginary parts (works for complex unknowns).
     lhs = np.concatenate([dF.real, dF.imag]) if np.iscomplexobj(dF) else dF
     rhs = np.concatenate([f[-1].real, f[-1].imag]) if np.iscomplexobj(dF) else f[-1]
-    scale = np.linalg.norm(lhs) + np.finfo(float).tiny
+    scale = float(batch_norm(lhs, lhs.ndim)) + np.finfo(float).tiny
     lhs_reg = np.vstack([lhs, regularization * scale * np.eye(lhs.shape[1])])
     rhs_reg = np.concatenate([rhs, np.zeros(lhs.shape[1])])
     gamma = np.linalg.lstsq(lhs_reg, rhs_reg, rcond=None)[0]

@@ -10,7 +10,7 @@ import scipy.sparse.linalg as spla
 
 from ..algebras import Array
 from ..errors import InputError
-from .base import ImplicitProblem, Solver, SolveResult
+from .base import ImplicitProblem, Solver, SolveResult, batch_norm
 from .fixed_point import _EPS, FixedPoint, IterationMonitor, StoppingRule
 
 
@@ -97,7 +97,7 @@ class Newton:
                 if dense
                 else self._gmres_step(problem, x, rhs, core, rel)
             )
-            x, Fx = self._line_search(problem, x, d, float(np.linalg.norm(rhs)))
+            x, Fx = self._line_search(problem, x, d, float(batch_norm(rhs, rhs.ndim)))
 
     def _line_search(
         self, problem: ImplicitProblem, x: Array, d: Array, merit: float
@@ -110,7 +110,7 @@ class Newton:
             xn = x + lam * d
             Fn = problem.map(xn)
             with np.errstate(invalid="ignore", over="ignore"):
-                trial = float(np.linalg.norm(Fn - xn))
+                trial = float(batch_norm(Fn - xn, Fn.ndim))
             if trial <= (1.0 - 1e-4 * lam) * merit:
                 return xn, Fn
             lam *= 0.5
