@@ -47,7 +47,7 @@ from .solvers.newton import Auto
 from .systems.base import IsospectralSystem
 
 #: ``engine="auto"`` picks the compiled engine for matrix sizes ``n <= AUTO_MAX_N`` ...
-AUTO_MAX_N = 64
+AUTO_MAX_N = 128
 #: ... and runs of at least this many trajectory-steps (``steps * K``): below it, importing
 #: numba and loading the cached loops (~0.4 s) costs more than numpy's steps.
 AUTO_MIN_WORK = 1000
@@ -248,11 +248,12 @@ def wins(compiled: CompiledPlan, steps: int, trajectories: int = 1) -> bool:
     ``trajectories`` trajectories: ``n <= AUTO_MAX_N`` and
     ``steps * trajectories >= AUTO_MIN_WORK``.
 
-    Measured on the generalized rigid body (one BLAS thread, fixed point at rtol 1e-14,
-    h = 0.1), numpy time / compiled time per step for midpoint, Gauss-3, 7-stage SyDIRK:
-    n = 3: 260, 67, 500; n = 10: 31, 19, 63; n = 50: 2.6, 1.4, 2.0; n = 64: 3.0, 1.3, 2.2;
-    n = 96: 1.4, 0.95, 1.25; n = 128: 0.93, 0.77, 0.96. Loop products lose to BLAS from
-    n ~ 100 on (and multithreaded BLAS moves that down), hence the cut at 64. Ensembles
-    gain less (numpy batches their products): 1.2-1.7 for n = 10-64, 2-5 at n = 3.
+    Measured on the generalized rigid body (fixed point at rtol 1e-14, h = 0.01), numpy
+    time / compiled time per step for midpoint, Gauss-3, 7-stage SyDIRK: n = 10: 42, 18,
+    107; n = 20: 16, 5.8, 25; n = 50: 4.9, 2.2, 5.4; n = 64: 3.1, 1.9, 4.5; n = 96: 2.2,
+    1.6, 2.6; n = 128: 2.5, 1.0, 1.7; n = 256: 1.4, 1.2, 1.2. Above n = 8 the compiled loops
+    call BLAS for their products, so the gain at large n is numpy's per-call overhead and
+    temporaries; it fades from n ~ 128 on, hence the cut there. Ensembles gain less (numpy
+    batches their products): 1.2-1.7 for n = 10-64, 2-5 at n = 3.
     """
     return compiled.n <= AUTO_MAX_N and steps * trajectories >= AUTO_MIN_WORK

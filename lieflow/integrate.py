@@ -317,7 +317,7 @@ def integrate(
         finish is handed to the numpy path (see :mod:`lieflow.compiled`); raises
         :class:`InputError` if numba is missing or the case is not supported. ``"auto"``
         (default): compiled where supported, numba is installed, and it is faster
-        (``n <= 64`` and at least 1000 trajectory-steps, see
+        (``n <= 128`` and at least 1000 trajectory-steps, see
         :func:`lieflow.compiled.wins`), else numpy.
     """
     solver = FixedPoint() if solver is None else solver
