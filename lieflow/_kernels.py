@@ -79,41 +79,14 @@ def _matmul(A: Any, B: Any, out: Any) -> None:
 
 @_jit
 def _matmul_tn(A: Any, B: Any, out: Any) -> None:
-    """``out = A^T @ B`` (BLAS above ``_SMALL``)."""
-    n = A.shape[0]
-    if n > _SMALL:
-        np.dot(A.T, B, out)
-        return
-    if n == 3:
-        for i in range(3):
-            a0, a1, a2 = A[0, i], A[1, i], A[2, i]
-            out[i, 0] = a0 * B[0, 0] + a1 * B[1, 0] + a2 * B[2, 0]
-            out[i, 1] = a0 * B[0, 1] + a1 * B[1, 1] + a2 * B[2, 1]
-            out[i, 2] = a0 * B[0, 2] + a1 * B[1, 2] + a2 * B[2, 2]
-        return
-    for i in range(n):
-        for j in range(n):
-            out[i, j] = 0.0
-    for k in range(n):
-        for i in range(n):
-            a = A[k, i]
-            for j in range(n):
-                out[i, j] += a * B[k, j]
+    """``out = A^T @ B`` (:func:`_matmul` on the transposed view)."""
+    _matmul(A.T, B, out)
 
 
 @_jit
 def _matmul_nt(A: Any, B: Any, out: Any) -> None:
-    """``out = A @ B^T`` (BLAS above ``_SMALL``)."""
-    n = A.shape[0]
-    if n > _SMALL:
-        np.dot(A, B.T, out)
-        return
-    for i in range(n):
-        for j in range(n):
-            acc = 0.0
-            for k in range(n):
-                acc += A[i, k] * B[j, k]
-            out[i, j] = acc
+    """``out = A @ B^T`` (:func:`_matmul` on the transposed view)."""
+    _matmul(A, B.T, out)
 
 
 @_jit
