@@ -221,10 +221,12 @@ def _midpoint_solve(
 
 
 @_jit
-def _commutator_add(W: Any, S: Any, hb: float, skew: bool, M: Any, scratch: Any) -> None:
-    """``W += hb [S ⊙ M, M]`` in place (one product for skew algebras)."""
+def _commutator_add(
+    W: Any, S: Any, hb: float, skew: bool, M: Any, B: Any, BM: Any, MB: Any
+) -> None:
+    """``W += hb [S ⊙ M, M]`` in place (one product for skew algebras); ``B``, ``BM``,
+    ``MB`` are scratch matrices."""
     n = W.shape[0]
-    B, BM, MB = scratch[1], scratch[2], scratch[4]
     for i in range(n):
         for j in range(n):
             B[i, j] = S[i, j] * M[i, j]
@@ -344,7 +346,7 @@ def sydirk_advance(
                 for a in range(n):
                     for c in range(n):
                         solved[kk, (i * n + a) * n + c] = x[a, c] - Wc[a, c]
-                _commutator_add(Wc, S, 2.0 * q, skew, x, scratch)
+                _commutator_add(Wc, S, 2.0 * q, skew, x, scratch[1], scratch[2], scratch[4])
             for a in range(n):
                 for c in range(n):
                     if not math.isfinite(Wc[a, c]):
@@ -426,29 +428,11 @@ def _reduced_solve(
 @_jit
 def _reduced_update(W0: Any, S: Any, hb: Any, skew: bool, x: Any, out: Any, scratch: Any) -> None:
     """``out = W0 + sum_i h b_i [B_i, W_i]``, ``W_i = G_i^T P_i``, ``B_i = S ⊙ W_i``."""
-    s, n = hb.shape[0], W0.shape[0]
-    Wi, Bi, BW, WB, acc = scratch[0, 0], scratch[1, 0], scratch[2, 0], scratch[3, 0], scratch[4, 0]
-    for a in range(n):
-        for c in range(n):
-            acc[a, c] = 0.0
-    for i in range(s):
+    Wi, Bi, BW, WB = scratch[0, 0], scratch[1, 0], scratch[2, 0], scratch[3, 0]
+    out[:, :] = W0
+    for i in range(hb.shape[0]):
         _matmul_tn(x[0, i], x[1, i], Wi)
-        for a in range(n):
-            for c in range(n):
-                Bi[a, c] = S[a, c] * Wi[a, c]
-        _matmul(Bi, Wi, BW)
-        if skew:
-            for a in range(n):
-                for c in range(n):
-                    WB[a, c] = BW[c, a]
-        else:
-            _matmul(Wi, Bi, WB)
-        for a in range(n):
-            for c in range(n):
-                acc[a, c] += hb[i] * (BW[a, c] - WB[a, c])
-    for a in range(n):
-        for c in range(n):
-            out[a, c] = W0[a, c] + acc[a, c]
+        _commutator_add(out, S, hb[i], skew, Wi, Bi, BW, WB)
 
 
 @_jit
