@@ -559,7 +559,9 @@ def _write_report(
     lines = [
         "# lieflow reproduction of the paper's numerical experiments",
         "",
-        f"lieflow {__version__}; {len(records)} runs in {total_time:.1f} s"
+        f"lieflow {__version__}; {len(records)} runs in {total_time:.1f} s "
+        f"({sum(r.wall_time for r in records):.1f} s in the timed stepping loops; the rest "
+        "is the untimed warm-up, numba's first compilation included, and the bookkeeping)"
         + (" (**--quick**: 10x fewer steps, generalized rigid body n = 10 only)" if quick else "")
         + ".",
         "",
