@@ -197,7 +197,7 @@ class SU(U):
     def project(self, X: ArrayLike) -> Array:
         Y = super().project(X)
         tr = np.trace(Y, axis1=-2, axis2=-1)[..., None, None]
-        return Y - (tr / self.n) * np.eye(self.n)
+        return Y - (tr / self.n) * np.eye(self.n, dtype=Y.real.dtype)
 
     @property
     def dimension(self) -> int:

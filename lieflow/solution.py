@@ -101,6 +101,21 @@ class Solution:
                 out[k, b] = np.max(cost[rows, cols]) / scale
         return out.reshape(lam.shape[:-1])
 
+    def phase_space_distance(self) -> Array:
+        """Relative distance ``||W - P(W)||_F / ||W||_F`` of each saved state from the
+        system's phase space (:meth:`IsospectralSystem.project`): symmetric matrices for the
+        periodic Toda lattice, traceless skew-Hermitian ones for su(N), the spheres
+        ``|m_i| = |Γ_i|`` for point vortices, the algebra otherwise.
+
+        Shape ``(n_saved, *batch)``.
+        """
+        return self.system.phase_space_distance(self.W)
+
     def algebra_distance(self) -> Array:
-        """Relative distance of each saved state from the system's algebra."""
-        return self.system.algebra.distance(self.W)
+        """Alias of :meth:`phase_space_distance` (kept for old code).
+
+        Before lieflow 0.2 this measured the distance from the algebra only, which is
+        identically 0 for gl(n) (the Toda lattice): the phase space is the stronger test.
+        Use ``system.algebra.distance(sol.W)`` for the old meaning.
+        """
+        return self.phase_space_distance()

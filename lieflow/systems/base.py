@@ -82,6 +82,43 @@ class IsospectralSystem(ABC):
             "implement it to use Newton's method, or use FixedPoint or FrozenB"
         )
 
+    def project(self, W: Array) -> Array:
+        """The nearest point of the system's *phase space* to ``W`` (Frobenius norm), O(n²).
+
+        The phase space is the set the exact flow keeps states in: the algebra itself
+        (default, :meth:`LieAlgebra.project <lieflow.LieAlgebra.project>`), or a subset of it
+        (symmetric matrices for the periodic Toda lattice, products of spheres for point
+        vortices). Integrators apply it to each new state, so that no defect (roundoff, or
+        the solver's tolerance) can accumulate along a transversally unstable direction.
+        It must not change a state that is already on the phase space by more than
+        roundoff, and it must keep the precision of ``W`` (float32 stays float32).
+        Broadcasts over leading axes.
+        """
+        return self.algebra.project(W)
+
+    def project_stage(self, W: Array) -> Array:
+        """Orthogonal projection onto the *linear span* of the phase space, O(n²).
+
+        Applied to stage values before ``B`` is evaluated: stage values of a Runge–Kutta
+        step lie in the span of the phase space at the fixed point, but not on the phase
+        space itself when that is curved (a stage value of a point-vortex step is not on
+        the spheres ``|m_i| = |Γ_i|``). Being linear, it commutes with the scheme's linear
+        combinations and leaves the fixed point unchanged. The default is
+        :meth:`project` when that is linear, i.e. the algebra's projection; systems whose
+        phase space is curved override both.
+        """
+        return self.algebra.project(W)
+
+    def phase_space_distance(self, W: Array) -> Array:
+        """``||W - project(W)||_F / ||W||_F``: relative distance from the phase space.
+
+        Shape ``W.shape[:-2]`` (batched over leading axes); 0 for the zero matrix.
+        """
+        W = np.asarray(W)
+        scale = np.maximum(frobenius_norm(W), np.finfo(float).tiny)
+        dist: Array = frobenius_norm(W - self.project(W)) / scale
+        return dist
+
     def casimirs(self, W: Array) -> Array:
         """Casimirs ``Re tr W^k`` for ``k`` in :attr:`casimir_powers`, last axis indexes k."""
         powers = [k for k in self.casimir_powers if k <= self.algebra.n]

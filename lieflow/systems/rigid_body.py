@@ -25,6 +25,11 @@ def _moments(values: Sequence[float] | np.ndarray) -> np.ndarray:
     return _positive_vector(values, "moments of inertia")
 
 
+def _like(table: np.ndarray, W: Array) -> np.ndarray:
+    """``table`` in the real precision of ``W`` (a float32 state stays float32)."""
+    return table.astype(np.result_type(np.asarray(W).real.dtype, np.float32), copy=False)
+
+
 def _principal_moments(values: Sequence[float] | np.ndarray) -> np.ndarray:
     arr = _moments(values)
     if arr.size != 3:
@@ -58,7 +63,7 @@ class GeneralizedRigidBody(IsospectralSystem):
         return SO(self.J.size)
 
     def B(self, W: Array) -> Array:
-        return -W * self.weights
+        return -W * _like(self.weights, W)
 
     @property
     def hadamard_factor(self) -> Array:
@@ -66,7 +71,7 @@ class GeneralizedRigidBody(IsospectralSystem):
         return -self.weights
 
     def hamiltonian(self, W: Array) -> Array:
-        return 0.5 * np.einsum("...ij,...ij,ij->...", W, W, self.weights)
+        return 0.5 * np.einsum("...ij,...ij,ij->...", W, W, _like(self.weights, W))
 
     @classmethod
     def random_inertia(cls, n: int, seed: int | None = None) -> GeneralizedRigidBody:
@@ -102,7 +107,7 @@ class RigidBody(IsospectralSystem):
         return SO(3)
 
     def B(self, W: Array) -> Array:
-        return -W * self.weights
+        return -W * _like(self.weights, W)
 
     @property
     def hadamard_factor(self) -> Array:
@@ -110,7 +115,7 @@ class RigidBody(IsospectralSystem):
         return -self.weights
 
     def hamiltonian(self, W: Array) -> Array:
-        return 0.5 * np.einsum("...ij,...ij,ij->...", W, W, self.weights)
+        return 0.5 * np.einsum("...ij,...ij,ij->...", W, W, _like(self.weights, W))
 
     def casimirs(self, W: Array) -> Array:
         """``tr W^2 = sum_ij W_ij W_ji`` (``-2 |m|^2``), without a matrix product."""

@@ -1,4 +1,4 @@
-"""The periodic Toda lattice in Lax form, extended to a Lie–Poisson system on gl(n)."""
+"""The periodic Toda lattice in Flaschka's Lax form: symmetric states in gl(n)."""
 
 from __future__ import annotations
 
@@ -23,18 +23,56 @@ def _at_least_three(n: int) -> int:
 
 @attrs.frozen(eq=False)
 class PeriodicToda(IsospectralSystem):
-    r"""Periodic Toda lattice on gl(n) with the paper's B map (SPEC §3, 1-based indices):
+    r"""Periodic Toda lattice in Flaschka's Lax form (SPEC §3), states symmetric ``n×n``.
+
+    The paper's map (1-based indices; ``gl_gradient=False``, the default):
 
     .. math::
         B_{i,i+1} = W_{i,i+1},\ B_{i+1,i} = -W_{i+1,i},\ B_{1,n} = -W_{1,n},\ B_{n,1} = W_{n,1},
 
-    all other entries zero, and :math:`\eta(W) = 2\,\mathrm{tr}(W^2) - \tfrac12
-    \mathrm{tr}(W^T B(W))`. ``B`` is fed exactly as written (SPEC §3 explains why).
-    For symmetric ``W`` the energy ``2 tr W^2`` is a spectral invariant, so isospectral
-    schemes conserve it to roundoff.
+    all other entries zero, i.e. ``B(W) = S ⊙ W`` with the skew sign pattern ``S``, and
+    :math:`\eta(W) = 2\,\mathrm{tr}(W^2) - \tfrac12 \mathrm{tr}(W^T B(W))` (fed exactly as
+    written; SPEC §3 explains why).
+
+    **Phase space.** The symmetric matrices: for symmetric ``W``, ``B(W)`` is skew, the
+    flow is isospectral by orthogonal conjugation and stays symmetric. :meth:`project`
+    is the symmetric part ``(W + W^T)/2``. The symmetric subspace is *transversally
+    unstable* under the paper's ``B`` (an asymmetry of 1e-12 grows about 0.1 per unit
+    time in the exact flow), so integrators project every new state back onto it.
+
+    **Where it is Lie–Poisson.** The paper's ``B`` is *not* a gradient on gl(n): the map
+    ``W ↦ B(W)^T`` is anti-self-adjoint for the Frobenius pairing, so no ``η`` on gl(n)
+    has ``(∇η)^T = B``, and the isospectral scheme with this ``B`` is not a Poisson map of
+    gl(n)*. On symmetric ``W`` however ``B(W) = (∇\tilde\eta(W))^T`` with
+
+    .. math:: \tilde\eta(W) = -\tfrac12 \mathrm{tr}(W^T B(W)) = -\tfrac12\sum_{ij} S_{ij}W_{ij}^2,
+
+    the gradient taken in all of gl(n). ``η̃`` is the gl(n) Hamiltonian of the *gradient
+    extension* ``B̃(W) = (∇η̃)^T = S ⊙ W^T`` (``gl_gradient=True``), which agrees with the
+    paper's ``B`` on symmetric matrices. With ``B̃`` the scheme is a Lie–Poisson map of
+    gl(n)* (tested by finite differences of the Poisson tensor), it maps symmetric
+    matrices to symmetric matrices, and there it is the paper's map (the stage values are
+    symmetric at the fixed point, where ``B̃ = B``). So on the symmetric phase space the
+    paper's scheme is the restriction of a gl(n) Lie–Poisson integrator with Hamiltonian
+    ``η̃``. The paper's ``η = η̃ + 2 tr W²`` differs from ``η̃`` by a Casimir of gl(n):
+    the same continuous flow, but a different discrete map (``B + 4W``; its fixed point
+    diverges at ``h = 0.1``). ``η̃`` vanishes on symmetric matrices; the paper's ``η``
+    equals ``2 tr W²`` there, a spectral invariant, so every isospectral scheme conserves
+    it to roundoff and the Toda energy plot measures roundoff, not order.
+
+    Parameters
+    ----------
+    n : int
+        Number of sites, ``>= 3``.
+    gl_gradient : bool
+        Use the gradient extension ``B̃(W) = S ⊙ W^T = (∇η̃)^T`` instead of the paper's
+        ``B``; the phase space is then all of gl(n) (a Lie–Poisson
+        system there), and :meth:`project` is the identity. Same trajectories from
+        symmetric initial data. Not supported by the compiled engine.
     """
 
     n: int = attrs.field(default=4, converter=_at_least_three)
+    gl_gradient: bool = attrs.field(default=False, validator=attrs.validators.instance_of(bool))
     sign: np.ndarray = attrs.field(init=False)
     linear_B = True
     casimir_powers = (1, 2, 3, 4)
@@ -51,8 +89,26 @@ class PeriodicToda(IsospectralSystem):
         return s
 
     @property
+    def name(self) -> str:
+        return "PeriodicToda(gl_gradient=True)" if self.gl_gradient else "PeriodicToda"
+
+    @property
     def algebra(self) -> GL:
         return GL(self.n)
+
+    def _sign_like(self, W: Array) -> np.ndarray:
+        return self.sign.astype(np.result_type(np.asarray(W).real.dtype, np.float32), copy=False)
+
+    def project(self, W: Array) -> Array:
+        """The symmetric part ``(W + W^T)/2`` (the identity with ``gl_gradient=True``)."""
+        W = np.asarray(W)
+        if self.gl_gradient:
+            return W
+        return 0.5 * (W + np.swapaxes(W, -1, -2))
+
+    def project_stage(self, W: Array) -> Array:
+        """Same as :meth:`project`: the symmetric matrices are a linear space."""
+        return self.project(W)
 
     def random_state(self, seed: int | np.random.Generator | None = None) -> Array:
         """A random symmetric matrix of unit norm (the Flaschka phase space)."""
@@ -61,13 +117,31 @@ class PeriodicToda(IsospectralSystem):
         return S / np.linalg.norm(S)
 
     def B(self, W: Array) -> Array:
-        return W * self.sign
+        if self.gl_gradient:
+            return np.swapaxes(W, -1, -2) * self._sign_like(W)
+        return W * self._sign_like(W)
 
     @property
-    def hadamard_factor(self) -> Array:
-        """``S = sign``: :math:`B(W) = S \\odot W` (SPEC §3); a copy."""
-        return self.sign.copy()
+    def hadamard_factor(self) -> Array | None:
+        """``S = sign``: :math:`B(W) = S \\odot W` (SPEC §3); a copy. ``None`` for the
+        gradient extension (``B̃(W) = S ⊙ W^T`` is not of that form)."""
+        return None if self.gl_gradient else self.sign.copy()
 
     def hamiltonian(self, W: Array) -> Array:
+        """The paper's ``η(W) = 2 tr W² - ½ tr(W^T B(W))`` (``= 2 tr W²`` on symmetric W),
+        for both variants: ``η = η̃ + 2 tr W²`` (:meth:`gradient_hamiltonian` plus a
+        Casimir), so its relative error is a meaningful diagnostic where ``η̃ = 0``."""
+        W = np.asarray(W)
         tr_W2 = np.einsum("...ij,...ji->...", W, W)
-        return 2.0 * tr_W2 - 0.5 * np.sum(W * self.B(W), axis=(-2, -1))
+        return 2.0 * tr_W2 + self.gradient_hamiltonian(W)
+
+    def gradient_hamiltonian(self, W: Array) -> Array:
+        r"""``η̃(W) = -½ Σ S_ij W_ij²``: the gl(n) function whose gradient gives ``B``.
+
+        ``(∇η̃(W))^T = S ⊙ W^T``, which is the paper's ``B(W)`` for symmetric ``W`` (and
+        the extension's ``B̃`` everywhere). Zero on symmetric matrices; it differs from the
+        paper's ``η`` by the gl(n) Casimir ``2 tr W²``.
+        """
+        W = np.asarray(W)
+        out: Array = -0.5 * np.sum(W * W * self._sign_like(W), axis=(-2, -1))
+        return out
