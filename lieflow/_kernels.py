@@ -122,8 +122,8 @@ def _verdict(res: Any, k: int, met: bool, growth: float, rule: Any, irule: Any) 
                 return _FAIL
             if rate > 0.0 and k + math.log(max(rtol, floor) / best) / math.log(rate) > max_iter:
                 return _FAIL
-    if k >= max_iter:
-        return _FAIL
+    if k >= max_iter:  # at the cap, an update at roundoff is accepted (as StoppingRule)
+        return _ACCEPT if r <= floor else _FAIL
     return _GO
 
 

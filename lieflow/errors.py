@@ -88,7 +88,8 @@ class ConvergenceError(LieflowError):
         advice = {
             "max_iterations": "raise max_iter, loosen rtol, or reduce the step size h",
             "stalled": (
-                "the iteration stopped contracting: reduce h, or use a solver that converges "
+                "the iteration stopped contracting, or contracts too slowly to reach rtol "
+                "within max_iter: reduce h, raise max_iter, or use a solver that converges "
                 "for stiff steps (lieflow.solvers.Newton or 'auto')"
             ),
             "diverged": (

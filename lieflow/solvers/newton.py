@@ -42,7 +42,9 @@ class Newton:
 
     Globalised by backtracking: a step that does not decrease ``||R||`` is halved (at most
     ``max_halvings`` times), which makes Newton converge from the cold guess at step sizes
-    where the plain iteration wanders. Stops when ``||R(x)|| <= atol + rtol ||x||``,
+    where the plain iteration wanders; if no halving decreases ``||R||`` (the guess is
+    outside Newton's basin), one frozen-B step (``problem.frozen_map``) is taken instead
+    and Newton resumes from there. Stops when ``||R(x)|| <= atol + rtol ||x||``,
     returning ``F(x)``; ``iterations`` counts linear solves. Stagnation and divergence
     are detected as in :class:`StoppingRule`.
     """
@@ -97,14 +99,22 @@ class Newton:
                 if dense
                 else self._gmres_step(problem, x, rhs, core, rel)
             )
-            x, Fx = self._line_search(problem, x, d, float(batch_norm(rhs, rhs.ndim)))
+            x, Fx, descent = self._line_search(problem, x, d, float(batch_norm(rhs, rhs.ndim)))
+            if not descent:
+                # Newton's direction does not decrease ||F(x) - x|| at all: x is outside
+                # its basin (Toda, paper W0, sydirk7 at h = 0.8: the sub-step of 1.05 from
+                # the cold guess). One frozen-B step (a contraction where the plain map is
+                # not) moves x on; Newton resumes from there.
+                x = problem.frozen_map(x)
+                Fx = problem.map(x)
 
     def _line_search(
         self, problem: ImplicitProblem, x: Array, d: Array, merit: float
-    ) -> tuple[Array, Array]:
+    ) -> tuple[Array, Array, bool]:
         """Backtracking on ``||F(x) - x||``: the full step if it decreases the residual
         (always, near the solution: quadratic convergence is kept), else halve it up to
-        ``max_halvings`` times. Returns the new iterate and its map value."""
+        ``max_halvings`` times. Returns the new iterate, its map value and whether the
+        residual decreased."""
         lam = 1.0
         for _ in range(self.max_halvings):
             xn = x + lam * d
@@ -112,9 +122,9 @@ class Newton:
             with np.errstate(invalid="ignore", over="ignore"):
                 trial = float(batch_norm(Fn - xn, Fn.ndim))
             if trial <= (1.0 - 1e-4 * lam) * merit:
-                return xn, Fn
+                return xn, Fn, True
             lam *= 0.5
-        return xn, Fn
+        return xn, Fn, False
 
     @staticmethod
     def _dense_step(problem: ImplicitProblem, x: Array, rhs: Array, core: int) -> Array:
