@@ -12,20 +12,24 @@ Subcommands::
 
 :func:`main` returns the exit code: 0 on success, 2 for any lieflow error (the message, one
 paragraph naming the problem and the fix, goes to stderr; no traceback), 130 when a run was
-interrupted with Ctrl-C (its file can be continued with ``--resume``).
+interrupted with Ctrl-C and 143 when it was stopped with SIGTERM (either way its file is
+marked "interrupted" and can be continued with ``--resume``). ``python -m lieflow`` is the
+same command.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from types import FrameType
 from typing import TextIO
 
 from . import __version__
-from .errors import LieflowError
-from .integrate import Step
+from .errors import InputError, LieflowError
 from .progress import ProgressBar
 
 __all__ = ["main"]
@@ -33,6 +37,42 @@ __all__ = ["main"]
 EXIT_OK = 0
 EXIT_ERROR = 2
 EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 143  # 128 + SIGTERM, what a shell reports for a process SIGTERM stopped
+
+
+class _Terminated:
+    """Whether SIGTERM arrived while :func:`_sigterm_as_interrupt` was active."""
+
+    received = False
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """Treat SIGTERM like Ctrl-C while the block runs: the SIGINT handler in force when the
+    signal arrives (Python's, which raises KeyboardInterrupt, or one a run installed to
+    stop at a safe point) is called, so the file is checkpointed and marked "interrupted"
+    instead of the process dying with its file marked "running"."""
+    if not hasattr(signal, "SIGTERM"):  # pragma: no cover
+        yield
+        return
+
+    def on_term(signum: int, frame: FrameType | None) -> None:
+        _Terminated.received = True
+        handler = signal.getsignal(signal.SIGINT)
+        if callable(handler):
+            handler(signal.SIGINT, frame)
+        else:
+            raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, on_term)
+    except ValueError:  # not the main thread: leave SIGTERM alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _cmd_list(args: argparse.Namespace) -> int:
@@ -56,24 +96,6 @@ def _cmd_list(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-class _ProgressMonitor:
-    """The :class:`lieflow.io.Monitor` of ``lieflow run``: a :class:`ProgressBar`."""
-
-    def __init__(self) -> None:
-        self._bar: ProgressBar | None = None
-
-    def start(self, done: int, total: int) -> None:
-        self._bar = ProgressBar(total, done)
-
-    def advance(self, step: Step, energy_error: float) -> None:
-        assert self._bar is not None
-        self._bar.advance(1, step.result.iterations, energy_error)
-
-    def stop(self) -> None:
-        if self._bar is not None:
-            self._bar.close()
-
-
 def _show_progress(args: argparse.Namespace) -> bool:
     return not args.no_progress and sys.stderr.isatty()
 
@@ -83,7 +105,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from .io import run
 
     config = load_config(args.config)
-    setup = build(config, output=args.out)
+    setup = build(config, output=args.out, replace=args.force)
     if setup.output.exists() and not (args.resume or args.force):
         key = "--out" if args.out is not None else "[run] output"
         raise ConfigError(
@@ -91,9 +113,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
             "--resume to continue it, --force to replace it, or choose another output.",
             key,
         )
-    summary = run(
-        setup, resume=args.resume, monitor=_ProgressMonitor() if _show_progress(args) else None
-    )
+    _Terminated.received = False
+    with _sigterm_as_interrupt():
+        summary = run(
+            setup,
+            resume=args.resume,
+            monitor=ProgressBar() if _show_progress(args) else None,
+        )
     rate = summary.new_steps / summary.wall_time if summary.wall_time > 0 else 0.0
     print(
         f"{summary.status}: {summary.completed_steps}/{summary.requested_steps} steps "
@@ -101,12 +127,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
         f"max energy error {summary.max_energy_error:.3e} -> {summary.path}"
     )
     if summary.status == "interrupted":
+        how = "terminated (SIGTERM)" if _Terminated.received else "interrupted"
         print(
-            f"lieflow: interrupted; continue with: lieflow run {args.config} --resume"
+            f"lieflow: {how}; continue with: lieflow run {args.config} --resume"
             + (f" --out {args.out}" if args.out is not None else ""),
             file=sys.stderr,
         )
-        return EXIT_INTERRUPTED
+        return EXIT_TERMINATED if _Terminated.received else EXIT_INTERRUPTED
     return EXIT_OK
 
 
@@ -123,9 +150,24 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _check_out_dir(out: Path | None, what: str) -> None:
+    """Refuse an ``--out`` directory that is an existing file (or under one)."""
+    if out is None:
+        return
+    for parent in (out, *out.parents):
+        if parent.exists():
+            if not parent.is_dir():
+                raise InputError(
+                    f"{what} --out {str(out)!r}: {str(parent)!r} is a file, not a directory. "
+                    "To fix: give a directory (it is created if missing)."
+                )
+            return
+
+
 def _cmd_plot(args: argparse.Namespace) -> int:
     from .plotting import plot_trajectory
 
+    _check_out_dir(args.out, "lieflow plot")
     for path in plot_trajectory(args.file, args.out):
         print(path)
     return EXIT_OK
@@ -198,7 +240,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     Returns
     -------
     int
-        0 on success, 2 on a lieflow error or bad usage, 130 after Ctrl-C.
+        0 on success, 2 on a lieflow error or bad usage, 130 after Ctrl-C, 143 after
+        SIGTERM.
     """
     parser = _parser()
     try:
@@ -213,7 +256,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_ERROR
     except KeyboardInterrupt:
         print("lieflow: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return EXIT_TERMINATED if _Terminated.received else EXIT_INTERRUPTED
+    except OSError as exc:  # a file system error no check foresaw (disk full, I/O error)
+        print(
+            f"lieflow: error: {exc}. To fix: check the disk and the paths given, then run "
+            "again (an interrupted run continues with --resume).",
+            file=sys.stderr,
+        )
+        return EXIT_ERROR
 
 
 if __name__ == "__main__":  # pragma: no cover

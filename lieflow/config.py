@@ -8,9 +8,9 @@ settings::
     params = { inertia = [1.0, 2.0, 3.0] }
 
     [initial]            # exactly one of: random = true (with seed), matrix, file
-    random = true
+    random = true        # the system's own random_state(seed), checked by system.validate
     seed = 0
-    scale = 1.0
+    scale = 1.0          # optional factor on it
 
     [scheme]
     name = "gauss3"
@@ -21,7 +21,7 @@ settings::
 
     [run]
     h = 0.1
-    steps = 2000
+    steps = 2000         # or t_final = 200.0 (a whole number of steps h): exactly one
     save_every = 10      # keep every 10th state and checkpoint there
     output = "rigid_body.h5"
 
@@ -48,7 +48,7 @@ import attrs
 import numpy as np
 
 from .algebras import Array
-from .errors import LieflowError
+from .errors import LieflowError, PluginError
 from .plugins import Kind, Registry, default_registry
 from .schemes.base import Scheme
 from .solvers.base import Solver
@@ -68,6 +68,7 @@ __all__ = [
     "RunSetup",
     "build",
     "check_output_path",
+    "identity_changes",
     "load_config",
     "parse_config",
 ]
@@ -121,9 +122,12 @@ class InitialCondition:
     kind : {"random", "matrix", "file"}
         Which of the three forms was given.
     seed : int or None
-        Seed of the random element (``kind == "random"``).
+        Seed of the system's :meth:`~lieflow.IsospectralSystem.random_state`
+        (``kind == "random"``).
     scale : float
-        Factor applied to the random element.
+        Factor applied to the random state (the default ``random_state`` has unit
+        Frobenius norm; a system may restrict the scale, e.g. point vortices, whose state
+        norms are their strengths, accept only 1).
     matrix : tuple of tuple of float, or None
         Rows of the explicit matrix; ``imag`` holds its imaginary part, if any.
     file : Path or None
@@ -151,12 +155,32 @@ class InitialCondition:
 
 @attrs.frozen
 class RunSettings:
-    """The ``[run]`` section: step size, number of steps, save cadence and output file."""
+    """The ``[run]`` section: step size, number of steps, save cadence and output file.
+
+    Attributes
+    ----------
+    h : float
+        Step size.
+    steps : int
+        Number of steps (given, or ``t_final / h``).
+    save_every : int
+        Keep every ``save_every``-th state (and checkpoint there).
+    output : Path
+        The trajectory file.
+    t_final : float or None
+        The final time, when the section gave ``t_final`` instead of ``steps``.
+    engine : {"auto", "numpy", "compiled"}
+        How the scheme's steps are computed (:func:`lieflow.integrate`'s ``engine``). Not
+        part of the run's identity: a file may be resumed with another engine (the steps
+        then agree to roundoff, not bit for bit).
+    """
 
     h: float
     steps: int
     save_every: int
     output: Path
+    t_final: float | None = None
+    engine: str = "auto"
 
 
 @attrs.frozen
@@ -206,7 +230,22 @@ class Config:
 
 @attrs.frozen(eq=False)
 class RunSetup:
-    """Everything a run needs, built and validated; nothing has been written yet."""
+    """Everything a run needs, built and validated; nothing has been written yet.
+
+    Attributes
+    ----------
+    config : Config
+        The configuration.
+    system, scheme, solver
+        Built from the registry.
+    W0 : ndarray
+        The validated initial condition.
+    output : Path
+        The trajectory file (absolute).
+    replace : bool
+        Whether a new run may replace an existing ``output`` (``lieflow run --force``);
+        if false, an existing file is refused, even one created after the check.
+    """
 
     config: Config
     system: IsospectralSystem
@@ -214,6 +253,48 @@ class RunSetup:
     solver: Solver
     W0: Array = attrs.field(repr=False)
     output: Path
+    replace: bool = True
+
+
+def _flatten(value: Any, prefix: str, out: dict[str, Any]) -> dict[str, Any]:
+    if isinstance(value, dict) and value:
+        for key, item in value.items():
+            _flatten(item, f"{prefix}.{key}" if prefix else str(key), out)
+    else:
+        out[prefix] = value
+    return out
+
+
+def _toml_key(path: str) -> str:
+    """``"scheme.params.form"`` -> ``"[scheme] params.form"``; ``"h"`` -> ``"[run] h"``."""
+    head, _, rest = path.partition(".")
+    if head in ("system", "scheme", "solver") and rest:
+        return f"[{head}] {rest}"
+    return f"[run] {path}"
+
+
+def identity_changes(old: str, new: str) -> list[str]:
+    """The keys in which two :meth:`Config.identity` strings differ, as readable lines.
+
+    Examples
+    --------
+    >>> a = '{"h": 0.1, "scheme": {"name": "gauss2", "params": {}}}'
+    >>> b = '{"h": 0.05, "scheme": {"name": "gauss3", "params": {}}}'
+    >>> identity_changes(a, b)
+    ['[run] h: 0.1 -> 0.05', "[scheme] name: 'gauss2' -> 'gauss3'"]
+    """
+    try:
+        before, after = _flatten(json.loads(old), "", {}), _flatten(json.loads(new), "", {})
+    except (ValueError, TypeError):
+        return []
+    missing = object()
+    lines = []
+    for path in sorted(set(before) | set(after)):
+        a, b = before.get(path, missing), after.get(path, missing)
+        if a != b:
+            shown = ["(not set)" if v is missing else repr(v) for v in (a, b)]
+            lines.append(f"{_toml_key(path)}: {shown[0]} -> {shown[1]}")
+    return lines
 
 
 class _Section:
@@ -376,16 +457,62 @@ def _initial(raw: Mapping[str, Any], source: str, base: Path) -> InitialConditio
     return InitialCondition("file", file=path)
 
 
+#: ``t_final / h`` must be this close to a whole number (relative): ``t_final = 1.0`` with
+#: ``h = 0.1`` is 10 steps although ``1.0 / 0.1`` is not exactly 10 in floating point.
+_WHOLE_STEPS_RTOL = 1e-9
+
+
+def _steps(sec: _Section, h: float) -> tuple[int, float | None]:
+    """``[run] steps``, or ``t_final`` as a whole number of steps ``h`` (exactly one)."""
+    given = [k for k in ("steps", "t_final") if sec.has(k)]
+    if len(given) != 1:
+        raise _fail(
+            sec.source,
+            "[run] steps",
+            "neither steps nor t_final is given" if not given else "both steps and t_final "
+            "are given",
+            "give exactly one: steps = <number of steps> or t_final = <final time>",
+        )
+    if given[0] == "steps":
+        steps = sec.integer("steps")
+        assert steps is not None
+        return steps, None
+    t_final = sec.number("t_final")
+    assert t_final is not None
+    ratio = t_final / h
+    steps = round(ratio)
+    if steps < 1 or abs(ratio - steps) > _WHOLE_STEPS_RTOL * max(ratio, 1.0):
+        lower = max(math.floor(ratio), 1) * h
+        raise sec.error(
+            "t_final",
+            f"t_final / h = {t_final!r} / {h!r} = {ratio:.12g} is not a whole number of steps",
+            f"use a multiple of h (e.g. t_final = {lower:.12g} or "
+            f"{(max(math.floor(ratio), 1) + 1) * h:.12g}), or give steps instead",
+        )
+    return steps, t_final
+
+
 def _run(raw: Mapping[str, Any], source: str, base: Path, default_output: str) -> RunSettings:
     sec = _Section(raw, "run", source)
     h = sec.number("h")
-    steps = sec.integer("steps")
+    assert h is not None
+    steps, t_final = _steps(sec, h)
     save_every = sec.integer("save_every", required=False)
     output = sec.string("output", required=False, hint='"trajectory.h5"')
+    engine = sec.string("engine", required=False, hint='"auto"') or "auto"
+    if engine not in _ENGINES:
+        raise sec.error(
+            "engine", f"must be one of {', '.join(map(repr, _ENGINES))}, got {engine!r}",
+            'engine = "auto" (compiled where supported and faster, else numpy)',
+        )  # fmt: skip
     sec.finish()
-    assert h is not None and steps is not None
     out = Path(output or default_output).expanduser()
-    return RunSettings(h, steps, save_every or 1, out if out.is_absolute() else base / out)
+    return RunSettings(
+        h, steps, save_every or 1, out if out.is_absolute() else base / out, t_final, engine
+    )
+
+
+_ENGINES = ("auto", "numpy", "compiled")
 
 
 def parse_config(
@@ -477,6 +604,15 @@ def check_output_path(path: Path, key: str, source: str = "") -> Path:
     """
     prefix = f"{source}: " if source else ""
     path = Path(path).expanduser().absolute()
+    real = os.path.realpath(path)
+    system_dirs = ("/proc", "/sys", "/dev")
+    if os.name == "posix" and any(real == d or real.startswith(d + "/") for d in system_dirs):
+        raise ConfigError(
+            f"{prefix}{key}: {str(path)!r} is under {', '.join(system_dirs)}, which hold "
+            "the system's devices and kernel interfaces, not files. To fix: choose an output "
+            "path in a directory of your own.",
+            key,
+        )
     if path.is_dir():
         raise ConfigError(
             f"{prefix}{key}: {str(path)!r} is a directory. To fix: give a file name such as "
@@ -506,7 +642,9 @@ def _create(registry: Registry, kind: Kind, comp: Component, source: str) -> Any
     params_key = f"[{kind}] params"
     try:
         return entry.create(**comp.params)
-    except (LieflowError, TypeError, ValueError) as exc:
+    except PluginError as exc:
+        raise ConfigError(f"{source}: {entry_key}: {exc}.", entry_key) from None
+    except Exception as exc:
         raise ConfigError(
             f"{source}: {params_key}: {kind} {comp.name!r} rejected its parameters "
             f"{dict(comp.params)!r}: {exc}. To fix: correct {params_key}.",
@@ -517,13 +655,21 @@ def _create(registry: Registry, kind: Kind, comp: Component, source: str) -> Any
 def _initial_state(config: Config, system: IsospectralSystem) -> Array:
     init, source = config.initial, config.source
     key = f"[initial] {init.kind}"
+    W: Any
     if init.kind == "random":
         try:
-            return system.algebra.random(seed=init.seed, scale=init.scale)
-        except (LieflowError, ValueError) as exc:  # pragma: no cover - defensive
-            raise ConfigError(f"{source}: {key}: {exc}.", key) from None
-    if init.kind == "matrix":
-        W: Any = np.array(init.matrix)
+            W = np.asarray(system.random_state(init.seed))
+        except Exception as exc:
+            raise ConfigError(
+                f"{source}: {key}: {system.name}.random_state(seed={init.seed}) failed "
+                f"({type(exc).__name__}: {exc}). To fix: give the initial condition as "
+                "matrix or file instead, or report it to the system's author.",
+                key,
+            ) from None
+        if init.scale != 1.0:
+            W = init.scale * W
+    elif init.kind == "matrix":
+        W = np.array(init.matrix)
         if init.imag is not None:
             W = W + 1j * np.array(init.imag)
     else:
@@ -539,15 +685,20 @@ def _initial_state(config: Config, system: IsospectralSystem) -> Array:
     try:
         return system.validate(W)
     except LieflowError as exc:
-        raise ConfigError(
-            f"{source}: {key}: {exc}. To fix: give an initial condition for {system.name} "
-            f"on {system.algebra}.",
-            key,
-        ) from None
+        fix = (
+            "keep scale = 1.0 (this system accepts only states of its own size)"
+            if init.kind == "random" and init.scale != 1.0
+            else f"give an initial condition for {system.name} on {system.algebra}"
+        )
+        raise ConfigError(f"{source}: {key}: {exc}. To fix: {fix}.", key) from None
 
 
 def build(
-    config: Config, *, output: Path | str | None = None, registry: Registry | None = None
+    config: Config,
+    *,
+    output: Path | str | None = None,
+    registry: Registry | None = None,
+    replace: bool = True,
 ) -> RunSetup:
     """Build and validate every object of a run; write nothing.
 
@@ -559,6 +710,9 @@ def build(
         Output file overriding ``[run] output`` (the command line's ``--out``).
     registry : Registry, optional
         Where names are looked up (default: :func:`lieflow.default_registry`).
+    replace : bool
+        Whether the run may replace an existing output file (:attr:`RunSetup.replace`;
+        ``lieflow run`` passes its ``--force``).
 
     Raises
     ------
@@ -575,4 +729,4 @@ def build(
         out = check_output_path(config.run.output, "[run] output", source)
     else:
         out = check_output_path(Path(output), "--out")
-    return RunSetup(config, system, scheme, solver, W0, out)
+    return RunSetup(config, system, scheme, solver, W0, out, replace)

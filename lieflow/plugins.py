@@ -88,9 +88,18 @@ class Entry:
     source: str
 
     def create(self, **params: Any) -> Any:
-        """Call the factory with ``params``; a bad parameter becomes a clear error."""
+        """Call the factory with ``params`` and check what it made.
+
+        Raises
+        ------
+        RegistryError
+            The factory does not accept ``params``.
+        PluginError
+            The factory returned something that is not a :attr:`kind` (a plugin bug; a
+            factory that needs parameters cannot be checked when the plugin loads).
+        """
         try:
-            return self.factory(**params)
+            obj = self.factory(**params)
         except LieflowError:
             raise
         except TypeError as exc:
@@ -99,6 +108,13 @@ class Entry:
                 f"{self.kind} {self.name!r} does not accept {sorted(params)}: {exc}. "
                 f"Its parameters are {sig}"
             ) from exc
+        problem = _check_kind(self.kind, obj)
+        if problem:
+            raise PluginError(
+                f"{self.kind} {self.name!r} (registered by {self.source}) is broken: {problem}. "
+                "To fix: correct that plugin's factory, or uninstall its distribution"
+            )
+        return obj
 
 
 def _signature(factory: Callable[..., Any]) -> str:
