@@ -6,6 +6,7 @@ decimal arithmetic and rounded once to float64 (GeometricIntegrators.jl does the
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from decimal import Decimal, localcontext
 from fractions import Fraction
@@ -16,6 +17,78 @@ import numpy as np
 from .errors import TableauError
 
 _DIGITS = 50
+#: Orders up to this are checked tree by tree (1205 rooted trees); above it, a tableau must
+#: satisfy the simplifying assumptions B(p), C(q), D(r) that prove its order, else only the
+#: tree conditions up to this order are checked.
+MAX_TREE_ORDER = 10
+
+
+#: A rooted tree: the sorted tuple of its children (``()`` is the single vertex).
+_Tree = tuple
+
+
+@functools.cache
+def _trees(order: int) -> tuple[_Tree, ...]:
+    """The rooted trees with ``order`` vertices, each once (children sorted)."""
+    if order == 1:
+        return ((),)
+    return tuple(sorted(_forests(order - 1)))
+
+
+@functools.cache
+def _forests(total: int) -> frozenset[_Tree]:
+    """Multisets of rooted trees (sorted tuples) with ``total`` vertices in all."""
+    if total == 0:
+        return frozenset({()})
+    return frozenset(
+        tuple(sorted((tree, *rest)))
+        for k in range(1, total + 1)
+        for tree in _trees(k)
+        for rest in _forests(total - k)
+    )
+
+
+def _order_defects(A: np.ndarray, b: np.ndarray, order: int) -> list[tuple[int, float]]:
+    """``(order of tree, defect)`` for every rooted tree up to ``order`` whose condition
+    ``b · Phi(t) = 1 / gamma(t)`` fails (relative to the magnitude of its terms)."""
+    s = b.shape[0]
+    phi: dict[_Tree, tuple[np.ndarray, np.ndarray, float]] = {}
+    absA, absb = np.abs(A), np.abs(b)
+    failures = []
+    for n in range(1, order + 1):
+        for tree in _trees(n):
+            vec, mag, gamma = np.ones(s), np.ones(s), float(n)
+            for child in tree:
+                cv, cm, cg = phi[child]
+                vec, mag, gamma = vec * (A @ cv), mag * (absA @ cm), gamma * cg
+            phi[tree] = (vec, mag, gamma)
+            defect = abs(float(b @ vec) - 1.0 / gamma)
+            if defect > 1e-12 * max(1.0, float(absb @ mag)):
+                failures.append((n, defect))
+    return failures
+
+
+def _simplifying_order(A: np.ndarray, b: np.ndarray, c: np.ndarray, tol: float = 1e-12) -> int:
+    """The order proved by Butcher's simplifying assumptions: the largest ``p`` with B(p),
+    C(q), D(r), ``p <= q + r + 1`` and ``p <= 2q + 2`` (0 if B(1) fails)."""
+
+    def largest(check: object, limit: int = 4 * b.shape[0] + 2) -> int:
+        k = 0
+        while k < limit and check(k + 1):  # type: ignore[operator]
+            k += 1
+        return k
+
+    def B(k: int) -> bool:
+        return abs(float(b @ c ** (k - 1)) - 1.0 / k) <= tol
+
+    def C(k: int) -> bool:
+        return bool(np.max(np.abs(A @ c ** (k - 1) - c**k / k)) <= tol)
+
+    def D(k: int) -> bool:
+        return bool(np.max(np.abs((b * c ** (k - 1)) @ A - b * (1 - c**k) / k)) <= tol)
+
+    p, q, r = largest(B), largest(C), largest(D)
+    return min(p, q + r + 1, 2 * q + 2)
 
 
 def _frozen_array(value: object) -> np.ndarray:
@@ -54,6 +127,34 @@ class ButcherTableau:
         if abs(b.sum() - 1.0) > 1e-12:
             raise TableauError(
                 f"tableau {self.name!r} is not consistent: sum(b) = {b.sum():.16g} != 1"
+            )
+        if isinstance(self.order, bool) or not isinstance(self.order, (int, np.integer)):
+            raise TableauError(
+                f"tableau {self.name!r}: order must be a positive integer, got {self.order!r}"
+            )
+        if self.order < 1:
+            raise TableauError(f"tableau {self.name!r}: order must be at least 1, got {self.order}")
+        self._check_order()
+
+    def _check_order(self) -> None:
+        """Refuse a claimed :attr:`order` the coefficients do not have.
+
+        Up to :data:`MAX_TREE_ORDER`, every rooted-tree order condition up to the claimed
+        order is checked, unless the simplifying assumptions B(p), C(q), D(r) already prove
+        it (Gauss–Legendre of any order is proved that way). Above it, a tableau the
+        simplifying assumptions do not cover is checked up to :data:`MAX_TREE_ORDER` only.
+        """
+        p = int(self.order)
+        if _simplifying_order(self.A, self.b, self.c) >= p:
+            return
+        failures = _order_defects(self.A, self.b, min(p, MAX_TREE_ORDER))
+        if failures:
+            first, defect = failures[0]
+            raise TableauError(
+                f"tableau {self.name!r} claims order {p} but does not have it: it fails "
+                f"{len(failures)} order condition(s), the first for a tree of order {first} "
+                f"(defect {defect:.2e}), so its order is at most {first - 1}. To fix: pass "
+                f"order={first - 1} (or check the coefficients)"
             )
 
     @property
