@@ -7,14 +7,15 @@ decimal arithmetic and rounded once to float64 (GeometricIntegrators.jl does the
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from decimal import Decimal, localcontext
 from fractions import Fraction
+from typing import Any
 
 import attrs
 import numpy as np
 
-from .errors import TableauError
+from .errors import InputError, TableauError
 
 _DIGITS = 50
 #: Orders up to this are checked tree by tree (1205 rooted trees); above it, a tableau must
@@ -89,6 +90,20 @@ def _simplifying_order(A: np.ndarray, b: np.ndarray, c: np.ndarray, tol: float =
 
     p, q, r = largest(B), largest(C), largest(D)
     return min(p, q + r + 1, 2 * q + 2)
+
+
+def one_of(*options: str) -> Callable[[Any, Any, Any], None]:
+    """An attrs validator: the value must be one of ``options``, else :class:`InputError`
+    naming the field, the value and the options (attrs' own ``in_`` prints a raw tuple)."""
+
+    def check(instance: Any, attribute: Any, value: Any) -> None:
+        if value not in options:
+            raise InputError(
+                f"{type(instance).__name__}: {attribute.name} must be one of "
+                f"{', '.join(map(repr, options))}, got {value!r}. To fix: pass one of those"
+            )
+
+    return check
 
 
 def _frozen_array(value: object) -> np.ndarray:

@@ -12,7 +12,7 @@ import numpy as np
 from ..algebras import Array, dagger
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
-from ..tableaus import ButcherTableau, gauss
+from ..tableaus import ButcherTableau, gauss, one_of
 from .base import (
     Scheme,
     StepResult,
@@ -231,7 +231,7 @@ class BlockGauss(Scheme):
 
     tableau: ButcherTableau = attrs.field(factory=_gauss2, converter=symplectic)
     form: Literal["reduced", "block"] = attrs.field(
-        default="reduced", validator=attrs.validators.in_(("reduced", "block"))
+        default="reduced", validator=one_of("reduced", "block")
     )
 
     @property
