@@ -130,7 +130,20 @@ class LieAlgebra(ABC):
         return np.dtype(np.float32 if single else np.float64)
 
     def random(self, seed: int | np.random.Generator | None = None, scale: float = 1.0) -> Array:
-        """A random element with i.i.d. normal entries before projection (seeded)."""
+        """A random element with i.i.d. normal entries before projection (seeded).
+
+        ``seed`` is ``None``, a non-negative integer or a :class:`numpy.random.Generator`;
+        anything else raises :class:`InputError`.
+        """
+        if not (
+            seed is None
+            or isinstance(seed, np.random.Generator)
+            or (isinstance(seed, (int, np.integer)) and not isinstance(seed, bool) and seed >= 0)
+        ):
+            raise InputError(
+                f"seed must be None, a non-negative integer or a numpy Generator, got {seed!r}. "
+                "To fix: pass e.g. seed=0"
+            )
         rng = np.random.default_rng(seed)
         X = rng.standard_normal(self.shape)
         if self.dtype.kind == "c":

@@ -306,6 +306,31 @@ class ReproduceResult:
     total_time: float
 
 
+def _output_dir(out_dir: Path | str) -> Path:
+    """Create the output directory, or raise :class:`InputError` saying why it cannot be."""
+    out = Path(out_dir).expanduser()
+    for parent in (out, *out.parents):
+        if parent.exists():
+            if not parent.is_dir():
+                raise InputError(
+                    f"reproduce: output directory {str(out)!r}: {str(parent)!r} is a file, not "
+                    "a directory. To fix: give a directory with --out (it is created if "
+                    "missing)"
+                )
+            break
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / f".lieflow-write-test-{os.getpid()}"
+        probe.touch()
+        probe.unlink()
+    except OSError as exc:
+        raise InputError(
+            f"reproduce: cannot write to {str(out)!r}: {exc.strerror or exc}. To fix: give a "
+            "directory you can write to with --out"
+        ) from None
+    return out
+
+
 def reproduce(
     out_dir: Path | str = "lieflow-out",
     *,
@@ -329,9 +354,20 @@ def reproduce(
     Returns
     -------
     ReproduceResult
+
+    Raises
+    ------
+    InputError
+        ``seed`` is not a non-negative integer, or ``out_dir`` cannot be a directory (an
+        existing file, or a place that cannot be written); checked before any run.
     """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise InputError(
+            f"reproduce: seed must be a non-negative integer, got {seed!r}. To fix: pass "
+            "--seed 0 (or another integer >= 0)"
+        )
+    seed = int(seed)
+    out = _output_dir(out_dir)
     cases = paper_cases(quick)
     total = len(cases) * len(SCHEMES)
     start = time.perf_counter()
