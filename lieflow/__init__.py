@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from importlib.metadata import PackageNotFoundError, version
 
-from . import algebras, schemes, solvers, systems, tableaus
+from . import algebras, driver, flows, schemes, solvers, systems, tableaus
 from .algebras import GL, SO, SU, LieAlgebra, U
 from .errors import (
     AlgebraError,
@@ -28,7 +28,8 @@ from .errors import (
     RegistryError,
     TableauError,
 )
-from .integrate import Step, WarmStart, integrate, iterate
+from .flows import Flow, Projected, SchemeFlow, Splitting, StepStats, WarmStart
+from .integrate import Step, integrate, iterate
 from .plugins import Registry, RegistryBuilder, default_registry, hookimpl, load_registry
 from .schemes import Scheme, StepResult
 from .solution import Solution, Status
@@ -48,28 +49,35 @@ __all__ = [
     "AlgebraError",
     "ButcherTableau",
     "ConvergenceError",
+    "Flow",
     "ImplicitProblem",
     "InputError",
     "IsospectralSystem",
     "LieAlgebra",
     "LieflowError",
     "PluginError",
+    "Projected",
     "Registry",
     "RegistryBuilder",
     "RegistryError",
     "Scheme",
+    "SchemeFlow",
     "Solution",
     "SolveResult",
     "Solver",
+    "Splitting",
     "Status",
     "Step",
     "StepResult",
+    "StepStats",
     "TableauError",
     "U",
     "WarmStart",
     "__version__",
     "algebras",
     "default_registry",
+    "driver",
+    "flows",
     "hookimpl",
     "integrate",
     "iterate",

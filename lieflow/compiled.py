@@ -17,7 +17,7 @@ of steps per call, for the case where that is simple and exact:
 * the data are real ``float64``.
 
 Same maps, same stopping rule (``rtol``, ``atol``, ``max_iter``, stagnation, divergence),
-same warm starts (:class:`~lieflow.integrate.WarmStart`) as the numpy path. A step the
+same warm starts (:class:`~lieflow.flows.WarmStart`) as the numpy path. A step the
 compiled solve does not accept is handed to the numpy path from the last good state and warm
 state, so failures (:class:`~lieflow.errors.ConvergenceError` with its step index) and
 ``Auto``'s Newton fallback behave exactly as with ``engine="numpy"``.
@@ -37,7 +37,9 @@ from typing import Literal
 import attrs
 import numpy as np
 
+from . import driver
 from .algebras import Array
+from .flows import SchemeFlow, WarmStart
 from .schemes.base import Scheme
 from .schemes.block import BlockGauss
 from .schemes.sydirk import SyDIRK
@@ -182,6 +184,41 @@ class CompiledPlan:
             prevk.reshape(shape) if flags[1] else None,
             bool(flags[2]),
             done == steps,
+        )
+
+
+@attrs.frozen(eq=False)
+class CompiledSchemeFlow(SchemeFlow):
+    """A :class:`~lieflow.flows.SchemeFlow` whose steps the compiled loops take, a chunk per
+    call (:meth:`step_many`, used by :func:`lieflow.driver.advance`); :meth:`step` (the
+    numpy path) takes any step they do not accept. Build it with
+    :func:`lieflow.integrate.scheme_flow`.
+
+    The states of a chunk are mapped onto the phase space afterwards
+    (:meth:`~lieflow.IsospectralSystem.project`) and the next chunk starts from the last
+    projected state; iterations and warm starts are the numpy path's. The per-step
+    residual is not recorded by the compiled loops (``nan``).
+    """
+
+    plan: CompiledPlan = attrs.field(kw_only=True)
+
+    def step_many(
+        self, W: Array, start: int, h: float, steps: int, state: WarmStart | None
+    ) -> driver.Chunk:
+        """Up to ``steps`` steps after step ``start`` (fewer if one is not accepted)."""
+        warm = WarmStart() if state is None else state
+        c = self.plan.advance(
+            W, h, steps, warm.last, warm.previous, warm.trusted, warm_start=self.warm_start
+        )
+        new = WarmStart(c.last, c.previous, c.trusted) if state is not None else None
+        return driver.Chunk(
+            start,
+            h,
+            self.system.project(c.states) if c.done else c.states,
+            c.iterations,
+            np.full(c.done, np.nan),
+            (self.plan.solver_name,) * c.done,
+            new,
         )
 
 

@@ -1,84 +1,51 @@
-"""The one entry point that runs many steps: :func:`integrate`, and the step stream
-:func:`iterate` it is built on (the command line's HDF5 runner consumes the same stream)."""
+"""The one entry point that runs many steps, :func:`integrate`, and the step stream
+:func:`iterate`: both over the one stepping loop, :func:`lieflow.driver.advance` (which the
+command line's HDF5 runner, :func:`lieflow.io.run`, drives too)."""
 
 from __future__ import annotations
 
 import math
+import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any, Literal
 
 import attrs
 import numpy as np
 from numpy.typing import ArrayLike
 
+from . import driver
 from .algebras import Array
+from .driver import Diagnostics, Monitor
 from .errors import ConvergenceError, InputError
-from .progress import ProgressBar
-from .schemes.base import Scheme, StepResult
+from .flows import Flow, SchemeFlow, StepStats, WarmStart
+from .schemes.base import Scheme
 from .solution import Solution, Status
-from .solvers.base import Solver, batch_norm
+from .solvers.base import Solver
 from .solvers.fixed_point import FixedPoint
 from .systems.base import IsospectralSystem
-
-
-@attrs.frozen
-class WarmStart:
-    """Initial guesses from the previous steps' solutions (SPEC §5), as explicit state.
-
-    The unknowns of consecutive steps, as offsets ``delta_k`` from their ``h = 0`` values,
-    vary smoothly in time, so the next is predicted by linear extrapolation
-    ``2 delta_k - delta_{k-1}`` (error ``O(h^3)`` against ``O(h)`` for the cold guess
-    ``delta = 0``). The prediction is used only while it is *trusted*: after each step the
-    prediction that was (or would have been) made is compared with the solution found, and
-    it is trusted for the next step if it was closer than the cold guess. At large ``h``
-    (where a step changes ``W`` a lot) this falls back to cold starts by itself.
-    """
-
-    last: Array | None = attrs.field(default=None, repr=False)
-    previous: Array | None = attrs.field(default=None, repr=False)
-    trusted: bool = True
-
-    def prediction(self) -> Array | None:
-        """The extrapolated offsets (``None`` before the first step)."""
-        if self.last is None:
-            return None
-        return self.last if self.previous is None else 2.0 * self.last - self.previous
-
-    def guess(self) -> Array | None:
-        """The initial guess to use: the prediction if trusted, else ``None`` (cold)."""
-        return self.prediction() if self.trusted else None
-
-    def advance(self, solved: Array) -> WarmStart:
-        """The state after a step whose solved offsets are ``solved``."""
-        predicted = self.prediction()
-        trusted = predicted is None or bool(
-            batch_norm(solved - predicted, solved.ndim) < batch_norm(solved, solved.ndim)
-        )
-        return WarmStart(solved, self.last, trusted)
 
 
 @attrs.frozen
 class Step:
     """One completed step of :func:`iterate`: step ``index`` took ``t - h`` to ``t``.
 
-    ``warm`` is the warm-start state after the step; with ``W``, ``index`` it is all a
-    checkpoint needs to resume bit-for-bit (:func:`iterate` with ``start`` and ``warm``).
+    ``warm`` is the flow's state after the step (the scheme's :class:`WarmStart`); with
+    ``W`` and ``index`` it is all a checkpoint needs to resume bit-for-bit (:func:`iterate`
+    with ``start`` and ``warm``). ``result`` is what the step cost.
     """
 
     index: int
     t: float
-    result: StepResult
-    warm: WarmStart
-
-    @property
-    def W(self) -> Array:
-        """The new state."""
-        return self.result.W
+    W: Array = attrs.field(repr=False)
+    result: StepStats
+    warm: Any = attrs.field(repr=False)
 
 
 def check_step_size(h: float) -> float:
     """Return ``h`` as a float, or raise :class:`InputError` unless it is positive and finite."""
+    if isinstance(h, (str, bytes, bool)):
+        raise InputError(f"step size h must be a real number, got {h!r}")
     try:
         hf = float(h)
     except (TypeError, ValueError):
@@ -94,9 +61,12 @@ def _check_types(system: object, scheme: object, solver: object) -> None:
             f"system must be an IsospectralSystem, got {type(system).__name__}; "
             "use lieflow.systems.get(name, ...) or subclass IsospectralSystem"
         )
+    if isinstance(scheme, Flow) and not isinstance(scheme, Scheme):
+        return  # a flow carries its own solvers
     if not isinstance(scheme, Scheme):
         raise InputError(
-            f"scheme must be a Scheme, got {type(scheme).__name__}; use lieflow.schemes.get(name)"
+            f"scheme must be a Scheme or a Flow, got {type(scheme).__name__}; "
+            "use lieflow.schemes.get(name)"
         )
     if not isinstance(solver, Solver):
         raise InputError(
@@ -115,32 +85,24 @@ def iterate(
     warm: WarmStart | None = None,
     warm_start: bool = True,
 ) -> Iterator[Step]:
-    """Yield steps ``start + 1, start + 2, ...`` from the (already validated) state ``W0``.
+    """Yield steps ``start + 1, start + 2, ...`` from the (already validated) state ``W0``:
+    an endless stream over :func:`lieflow.driver.advance` of a :class:`SchemeFlow`.
 
     ``t`` is computed as ``index * h`` (never accumulated). ``warm`` seeds the first step's
     initial guess (pass the last :attr:`Step.warm` to resume a run bit-for-bit). A failed
     step raises :class:`ConvergenceError` carrying its index and time; a step whose result is
     not finite raises it too (reason ``"non_finite"``).
     """
-    W, k = W0, start
-    warm = WarmStart() if warm is None else warm
-    while True:
-        try:
-            res = scheme.step(system, W, h, solver, warm.guess() if warm_start else None)
-        except ConvergenceError as exc:
-            raise exc.at(k + 1, k * h) from exc
-        if not np.all(np.isfinite(res.W)):
-            raise ConvergenceError(
-                "non_finite",
-                solver=res.solver,
-                iterations=res.iterations,
-                residuals=(res.residual,),
-                step=k + 1,
-                t=k * h,
-            )
-        k += 1
-        W, warm = res.W, warm.advance(res.warm)
-        yield Step(k, k * h, res, warm)
+    flow = SchemeFlow(system, scheme, solver, warm_start)
+    state = warm if warm is not None or not warm_start else None
+    for chunk in driver.advance(flow, W0, h, sys.maxsize, start=start, state=state):
+        yield Step(
+            chunk.stop,
+            chunk.stop * h,
+            chunk.W[-1],
+            StepStats(int(chunk.iterations[-1]), chunk.solvers[-1], float(chunk.residuals[-1])),
+            chunk.state,
+        )
 
 
 def _resolve_steps(h: float, steps: int | None, t_final: float | None) -> int:
@@ -164,95 +126,41 @@ def _resolve_steps(h: float, steps: int | None, t_final: float | None) -> int:
 
 Engine = Literal["auto", "numpy", "compiled"]
 
-#: At most this many steps per call of the compiled engine (a progress-bar tick each).
-_CHUNK_STEPS = 1024
-#: ... and at most this many float64 entries of saved states per call (8 MiB).
-_CHUNK_ENTRIES = 1 << 20
 
-
-@attrs.frozen
-class _Chunk:
-    """Consecutive completed steps ``start + 1 .. start + len(W)`` for :func:`integrate`."""
-
-    start: int
-    W: Array = attrs.field(repr=False)  # (m, *batch, n, n)
-    iterations: Array = attrs.field(repr=False)  # (m,)
-    solvers: tuple[str, ...]
-
-    @classmethod
-    def of(cls, step: Step) -> _Chunk:
-        res = step.result
-        return cls(step.index - 1, res.W[None], np.array([res.iterations]), (res.solver,))
-
-
-def _numpy_chunks(
-    system: IsospectralSystem, scheme: Scheme, W0: Array, h: float, solver: Solver,
-    warm_start: bool, n_steps: int,
-) -> Iterator[_Chunk]:  # fmt: skip
-    for step in iterate(system, scheme, W0, h, solver, warm_start=warm_start):
-        yield _Chunk.of(step)
-        if step.index == n_steps:
-            return
-
-
-def _compiled_chunks(
-    compiled: Any, system: IsospectralSystem, scheme: Scheme, W0: Array, h: float,
-    solver: Solver, warm_start: bool, n_steps: int,
-) -> Iterator[_Chunk]:  # fmt: skip
-    """Chunks from the compiled engine (:mod:`lieflow.compiled`); a step it does not accept
-    is taken by :func:`iterate` from the last good state and warm state (so errors and
-    ``Auto``'s fallbacks are exactly the numpy path's), and the compiled engine resumes."""
-    per_step = max(1, W0.size)
-    size = max(1, min(_CHUNK_STEPS, _CHUNK_ENTRIES // per_step))
-    W, k, warm = W0, 0, WarmStart()
-    while k < n_steps:
-        m = min(size, n_steps - k)
-        chunk = compiled.advance(
-            W, h, m, warm.last, warm.previous, warm.trusted, warm_start=warm_start
-        )
-        if chunk.done:
-            yield _Chunk(k, chunk.states, chunk.iterations, (compiled.solver_name,) * chunk.done)
-            W, k = chunk.states[-1], k + chunk.done
-            warm = WarmStart(chunk.last, chunk.previous, chunk.trusted)
-        if not chunk.complete:
-            step = next(iterate(system, scheme, W, h, solver, start=k, warm=warm,
-                                warm_start=warm_start))  # fmt: skip
-            yield _Chunk.of(step)
-            W, k, warm = step.W, step.index, step.warm
-
-
-def _per_state(f: Callable[[Array], Array], W: Array) -> Array:
-    """``f`` of each state in ``W`` (``(m, *batch, n, n)``), stacked: one vectorised call,
-    or for a single state a call on that state (as before chunks existed)."""
-    if W.shape[0] == 1:
-        return np.asarray(f(W[0]))[None]
-    return np.asarray(f(W))
-
-
-def _select_engine(
-    engine: str,
+def scheme_flow(
     system: IsospectralSystem,
     scheme: Scheme,
     solver: Solver,
     W0: Array,
-    n_steps: int,
-) -> Any:
-    """The :class:`lieflow.compiled.CompiledPlan` to run, or ``None`` for numpy."""
+    steps: int,
+    *,
+    engine: Engine = "auto",
+    warm_start: bool = True,
+) -> SchemeFlow:
+    """The :class:`SchemeFlow` that runs ``scheme`` on ``system`` with ``engine``.
+
+    ``"numpy"``: a plain :class:`SchemeFlow`. ``"compiled"``: the compiled engine
+    (:class:`lieflow.compiled.CompiledSchemeFlow`, many steps per call), or
+    :class:`InputError` if numba is missing or the case is not supported. ``"auto"``: the
+    compiled engine where it is supported, installed and faster
+    (:func:`lieflow.compiled.wins`, judged for ``steps`` steps of ``W0``), else numpy.
+    """
+    flow = SchemeFlow(system, scheme, solver, warm_start)
     if engine == "numpy":
-        return None
+        return flow
     if engine not in ("auto", "compiled"):
         raise InputError(f"engine must be 'auto', 'numpy' or 'compiled', got {engine!r}")
     from . import compiled
 
     if engine == "auto" and not compiled.available():
-        return None
+        return flow
     plan = compiled.plan(system, scheme, solver, W0)
     if isinstance(plan, str):
         if engine == "compiled":
             raise InputError(f"engine='compiled' cannot run this case: {plan}; use engine='auto'")
-        return None
-    if engine == "auto" and not compiled.wins(plan, n_steps, W0.size // plan.n**2):
-        return None
+        return flow
+    if engine == "auto" and not compiled.wins(plan, steps, W0.size // plan.n**2):
+        return flow
     try:
         compiled.kernels()
     except ImportError as exc:
@@ -261,13 +169,23 @@ def _select_engine(
                 "engine='compiled' needs numba: pip install 'lieflow[fast]' "
                 f"(importing it failed: {exc})"
             ) from exc
+        return flow
+    return compiled.CompiledSchemeFlow(system, scheme, solver, warm_start, plan=plan)
+
+
+def _progress_monitor(progress: bool | Monitor) -> Monitor | None:
+    if progress is False:
         return None
-    return plan
+    if progress is True:
+        from .progress import ProgressBar
+
+        return ProgressBar()
+    return progress
 
 
 def integrate(
     system: IsospectralSystem,
-    scheme: Scheme,
+    scheme: Scheme | Flow,
     W0: ArrayLike,
     h: float,
     *,
@@ -278,15 +196,22 @@ def integrate(
     diagnostics: bool = True,
     warm_start: bool = True,
     on_failure: Literal["raise", "truncate"] = "raise",
-    progress: bool = False,
+    progress: bool | Monitor = False,
     engine: Engine = "auto",
 ) -> Solution:
     """Integrate ``dW/dt = [B(W), W]`` from ``W0`` with a fixed step ``h``.
 
     Parameters
     ----------
-    system, scheme : IsospectralSystem, Scheme
-        What to integrate and how (``lieflow.systems.get``, ``lieflow.schemes.get``).
+    system : IsospectralSystem
+        What to integrate (``lieflow.systems.get``): it validates ``W0`` and defines the
+        diagnostics.
+    scheme : Scheme or Flow
+        How: a scheme (``lieflow.schemes.get``), run as a :class:`SchemeFlow` with
+        ``solver``, ``warm_start`` and ``engine``; or any :class:`~lieflow.flows.Flow`,
+        e.g. a :class:`~lieflow.flows.Splitting` of a scheme with dissipation (then
+        ``solver``, ``warm_start`` and ``engine`` belong to its sub-flows and must be left
+        at their defaults).
     W0 : array_like
         Initial condition in the system's algebra, shape ``(n, n)``; a stack of shape
         ``(..., n, n)`` is an ensemble advanced together.
@@ -297,7 +222,8 @@ def integrate(
     solver : Solver, optional
         Nonlinear solver; ``FixedPoint()`` (rtol 1e-14) by default.
     save_every : int
-        Keep every ``save_every``-th state (the first and last are always kept).
+        Keep every ``save_every``-th state (the first and last are always kept). Memory:
+        the saved states only, allocated once.
     diagnostics : bool
         Record the relative energy error and Casimir drift at every step.
     warm_start : bool
@@ -305,11 +231,12 @@ def integrate(
     on_failure : {"raise", "truncate"}
         On a failed step raise :class:`ConvergenceError` (default) or return the steps done,
         with ``status = FAILED`` and the error in ``failure``.
-    progress : bool
-        Show a progress bar (needs ``rich``).
+    progress : bool or Monitor
+        ``True`` shows a progress bar (needs ``rich``); a
+        :class:`~lieflow.driver.Monitor` receives the progress instead.
     engine : {"auto", "numpy", "compiled"}
-        How the steps are computed. ``"numpy"``: one vectorised numpy step at a time (any
-        system, scheme, solver, dtype). ``"compiled"``: loops compiled with numba
+        How a scheme's steps are computed. ``"numpy"``: one vectorised numpy step at a time
+        (any system, scheme, solver, dtype). ``"compiled"``: loops compiled with numba
         (``pip install 'lieflow[fast]'``) that advance many steps per call, for systems
         with ``B(W) = S ⊙ W`` (rigid bodies, periodic Toda), SyDIRK or reduced-form
         BlockGauss schemes, real data, and ``FixedPoint`` (or ``Auto``) solvers; same
@@ -319,9 +246,31 @@ def integrate(
         (default): compiled where supported, numba is installed, and it is faster
         (``n <= 128`` and at least 1000 trajectory-steps, see
         :func:`lieflow.compiled.wins`), else numpy.
+
+    Returns
+    -------
+    Solution
+        Saved times and states, per-step iterations and solvers, the energy error and
+        Casimir drift of every step, the status and the wall time.
+
+    Raises
+    ------
+    InputError
+        A bad argument (non-positive or non-numeric ``h``, ``W0`` outside the system's
+        phase space, both or neither of ``steps`` and ``t_final``, ...).
+    ConvergenceError
+        A step failed to converge (with ``on_failure="raise"``); it names the step, the time,
+        the solver's residual history and what to try.
+
+    Examples
+    --------
+    >>> import lieflow as lf
+    >>> body = lf.systems.get("rigid_body", inertia=(1.0, 2.0, 3.0))
+    >>> sol = lf.integrate(body, lf.schemes.get("midpoint"), body.random_state(0),
+    ...                    h=0.1, steps=100, save_every=50)
+    >>> sol.t.tolist(), bool(sol.casimir_drift.max() < 1e-13)
+    ([0.0, 5.0, 10.0], True)
     """
-    solver = FixedPoint() if solver is None else solver
-    _check_types(system, scheme, solver)
     h = check_step_size(h)
     n_steps = _resolve_steps(h, steps, t_final)
     if (
@@ -332,67 +281,82 @@ def integrate(
         raise InputError(f"save_every must be a positive integer, got {save_every!r}")
     if on_failure not in ("raise", "truncate"):
         raise InputError(f"on_failure must be 'raise' or 'truncate', got {on_failure!r}")
-    W0a = system.validate(W0)
-    compiled = _select_engine(engine, system, scheme, solver, W0a, n_steps)
+    if isinstance(scheme, Flow) and not isinstance(scheme, Scheme):
+        if solver is not None or not warm_start or engine != "auto":
+            raise InputError(
+                "solver, warm_start and engine configure a Scheme; a Flow carries its own "
+                "(set them on its SchemeFlow parts)"
+            )
+        _check_types(system, scheme, None)
+        W0a = system.validate(W0)
+        flow: Flow = scheme
+    else:
+        solver = FixedPoint() if solver is None else solver
+        _check_types(system, scheme, solver)
+        W0a = system.validate(W0)
+        flow = scheme_flow(system, scheme, solver, W0a, n_steps, engine=engine,
+                           warm_start=warm_start)  # fmt: skip
 
-    saved_t, saved_W, saved_k = [np.zeros(1)], [W0a[None]], [np.zeros(1, dtype=np.int64)]
+    n_saved = 1 + n_steps // save_every + (1 if n_steps % save_every else 0)
+    saved_W = np.empty((n_saved, *W0a.shape), dtype=W0a.dtype)
+    saved_k = np.zeros(n_saved, dtype=np.int64)
+    saved_W[0] = W0a
+    n_kept = 1
     iterations = np.zeros(n_steps, dtype=np.int64)
     solvers: list[str] = []
-    H, C = [], []
-    if diagnostics:
-        H.append(_per_state(system.hamiltonian, W0a[None]))
-        C.append(_per_state(system.casimirs, W0a[None]))
+    diag = Diagnostics.of(system, W0a) if diagnostics else None
+    H = np.empty((n_steps + 1, *np.shape(diag.H0))) if diag is not None else None
+    C = np.empty((n_steps + 1, *np.shape(diag.C0))) if diag is not None else None
+    if diag is not None and H is not None and C is not None:
+        H[0], C[0] = diag.H0, diag.C0
     failure: ConvergenceError | None = None
-    bar = ProgressBar(n_steps) if progress else None
-    done, last_W = 0, W0a
-    if compiled is None:
-        chunks = _numpy_chunks(system, scheme, W0a, h, solver, warm_start, n_steps)
-    else:
-        chunks = _compiled_chunks(compiled, system, scheme, W0a, h, solver, warm_start, n_steps)
+    monitor = _progress_monitor(progress)
+    done = 0
     start = time.perf_counter()
+    if monitor is not None:
+        monitor.start(0, n_steps)
     try:
-        for chunk in chunks:
-            m = chunk.iterations.shape[0]
-            index = np.arange(chunk.start + 1, chunk.start + m + 1)
-            iterations[chunk.start : chunk.start + m] = chunk.iterations
+        for chunk in driver.advance(flow, W0a, h, n_steps):
+            a, b = chunk.start, chunk.stop
+            iterations[a:b] = chunk.iterations
             solvers.extend(chunk.solvers)
-            if diagnostics:
-                H.append(_per_state(system.hamiltonian, chunk.W))
-                C.append(_per_state(system.casimirs, chunk.W))
-            keep = (index % save_every == 0) | (index == n_steps)
-            if keep.any():
-                saved_t.append(index[keep] * h)
-                saved_W.append(chunk.W[keep])
-                saved_k.append(index[keep])
-            done, last_W = chunk.start + m, chunk.W[-1]
-            if bar is not None:
-                bar.advance(m, int(chunk.iterations.sum()))
+            err = None
+            if diag is not None and H is not None and C is not None:
+                H[a + 1 : b + 1] = diag.energy(chunk.W)
+                C[a + 1 : b + 1] = diag.casimirs(chunk.W)
+                err = float(np.max(diag.energy_error(H[a + 1 : b + 1])))
+            index = chunk.index
+            keep = np.flatnonzero((index % save_every == 0) | (index == n_steps))
+            saved_W[n_kept : n_kept + keep.size] = chunk.W[keep]
+            saved_k[n_kept : n_kept + keep.size] = index[keep]
+            n_kept += keep.size
+            if saved_k[n_kept - 1] != b:  # the last state computed so far is always at hand
+                saved_W[n_kept], saved_k[n_kept] = chunk.W[-1], b
+            done = b
+            if monitor is not None:
+                monitor.advance(chunk.size, int(chunk.iterations.sum()), err)
     except ConvergenceError as exc:
         if on_failure == "raise":
             raise
         failure = exc
-        if done and saved_k[-1][-1] != done:
-            saved_t.append(np.array([done * h]))
-            saved_W.append(last_W[None])
-            saved_k.append(np.array([done]))
+        if done and saved_k[n_kept - 1] != done:
+            n_kept += 1  # keep the last good state (written above)
     finally:
-        if bar is not None:
-            bar.close()
+        if monitor is not None:
+            monitor.stop()
     wall = time.perf_counter() - start
 
     energy_error = casimir_drift = None
-    if diagnostics:
-        Ha = np.concatenate(H).astype(float, copy=False)
-        energy_error = np.abs(Ha - Ha[0]) / np.maximum(np.abs(Ha[0]), np.finfo(float).tiny)
-        Ca = np.concatenate(C)
-        casimir_drift = np.abs(Ca - Ca[0]) / system.casimir_scale(W0a)
+    if diag is not None and H is not None and C is not None:
+        energy_error = diag.energy_error(H[: done + 1])
+        casimir_drift = diag.casimir_drift(C[: done + 1])
     return Solution(
         system=system,
-        scheme=scheme.name,
+        scheme=flow.name,
         h=h,
-        t=np.concatenate(saved_t),
-        W=np.concatenate(saved_W),
-        saved_steps=np.concatenate(saved_k),
+        t=saved_k[:n_kept] * h,
+        W=saved_W[:n_kept],
+        saved_steps=saved_k[:n_kept].copy(),
         iterations=iterations[:done],
         solvers=tuple(solvers),
         energy_error=energy_error,

@@ -27,22 +27,33 @@ checkpoint and continues bit-for-bit as if never stopped (same states, same diag
 from __future__ import annotations
 
 import datetime as _dt
+import errno
+import hashlib
 import os
 import platform
+import socket
 import sys
 import time
 from collections.abc import Mapping
 from pathlib import Path
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, cast
 
 import attrs
 import numpy as np
 
+from . import _signals, driver, tree
 from .algebras import Array
-from .config import ConfigError, RunSetup
+from .config import ConfigError, RunSetup, identity_changes
+from .driver import Chunk, Diagnostics, Monitor
 from .errors import ConvergenceError, LieflowError
-from .integrate import Step, WarmStart, iterate
+from .flows import WarmStart
+from .integrate import Engine, scheme_flow
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not POSIX: no advisory locks (see _OutputLock)
+    fcntl = None  # type: ignore[assignment]
 
 if TYPE_CHECKING:  # pragma: no cover
     import h5py
@@ -52,9 +63,11 @@ __all__ = [
     "FORMAT_VERSION",
     "Checkpoint",
     "Monitor",
+    "OutputBusyError",
     "RunSummary",
     "Trajectory",
     "TrajectoryWriter",
+    "checkpoint_digest",
     "environment",
     "read_checkpoint",
     "read_trajectory",
@@ -66,6 +79,17 @@ FORMAT_VERSION = 1
 _TINY = float(np.finfo(float).tiny)
 _PER_STEP = ("energy", "energy_error", "casimirs", "casimir_drift")
 _PER_UPDATE = ("iterations", "residual")
+#: Checkpoint slots store the flow's state leaf by leaf under ``warm/<path>`` (a scheme's
+#: :class:`~lieflow.flows.WarmStart`: ``warm/last``, ``warm/previous``, ``warm/trusted``).
+_STATE = "warm"
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+_DIGEST = "sha256"
+#: Errors h5py raises on a file whose bytes are damaged (a bad checksum, a broken B-tree).
+_DAMAGE = (OSError, KeyError, RuntimeError, ValueError, TypeError, IndexError, AttributeError)
+
+
+class OutputBusyError(LieflowError):
+    """Another process is writing the output file (or holds its lock)."""
 
 
 def _h5py() -> Any:
@@ -104,13 +128,23 @@ def environment() -> dict[str, str]:
 
 @attrs.frozen(eq=False)
 class Checkpoint:
-    """A resumable state: ``W`` after step ``step`` and the warm-start state of
-    :func:`lieflow.iterate` (its default before the first step)."""
+    """A resumable state: ``W`` after step ``step`` and the flow's state then, stored leaf
+    by leaf (:mod:`lieflow.tree`: ``leaves`` maps each leaf's path to its value)."""
 
     step: int
     t: float
     W: Array = attrs.field(repr=False)
-    warm: WarmStart = attrs.field(repr=False)
+    leaves: Mapping[str, Any] = attrs.field(repr=False)
+
+    def state(self, template: Any) -> Any:
+        """The flow's state, shaped like ``template`` (the flow's ``init(W0)``)."""
+        return tree.rebuild(template, dict(self.leaves))
+
+    @property
+    def warm(self) -> WarmStart:
+        """The state of a run of one scheme: its :class:`~lieflow.flows.WarmStart`."""
+        state = self.state(WarmStart())
+        return state if isinstance(state, WarmStart) else WarmStart()
 
 
 @attrs.frozen(eq=False)
@@ -167,72 +201,252 @@ class Trajectory:
         return np.arange(self.completed_steps + 1) * self.h
 
 
-def _open(path: Path, mode: str) -> h5py.File:
+def _where(path: Path) -> str:
+    return repr(str(path))
+
+
+def _check_signature(path: Path, fix: str) -> None:
+    """Refuse a path that is missing, a directory, empty or not HDF5, reading 8 bytes only
+    (nothing is opened for writing, so a refused file is left exactly as it was)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(len(_HDF5_SIGNATURE))
+    except FileNotFoundError:
+        raise LieflowError(
+            f"{_where(path)} does not exist. To fix: check the path, or run the configuration "
+            "first."
+        ) from None
+    except IsADirectoryError:
+        raise LieflowError(
+            f"{_where(path)} is a directory, not a trajectory file. To fix: give the path of "
+            "the .h5 file written by `lieflow run`."
+        ) from None
+    except OSError as exc:
+        raise LieflowError(
+            f"cannot read {_where(path)}: {exc.strerror or exc}. To fix: check the path and "
+            "its permissions."
+        ) from None
+    if not head:
+        raise LieflowError(
+            f"{_where(path)} is empty (0 bytes), not a lieflow trajectory file (lieflow never "
+            f"leaves an empty file: it writes under a temporary name first). To fix: {fix}."
+        )
+    if head != _HDF5_SIGNATURE:
+        raise LieflowError(
+            f"{_where(path)} is not an HDF5 file (it does not start with the HDF5 signature), "
+            f"so it is not a lieflow trajectory file. To fix: {fix}."
+        )
+
+
+_READ_FIX = "check the path; give a file written by `lieflow run`"
+_RESUME_FIX = (
+    "check the path; to start a new run there instead, drop --resume and pass --force "
+    "(which replaces the file)"
+)
+
+
+def _open(path: Path, mode: str, fix: str = _READ_FIX) -> h5py.File:
     h5py = _h5py()
+    _check_signature(path, fix)
     try:
         return h5py.File(path, mode)
     except FileNotFoundError:
         raise LieflowError(
-            f"{str(path)!r} does not exist. To fix: check the path, or run the configuration first."
+            f"{_where(path)} does not exist. To fix: check the path, or run the configuration "
+            "first."
         ) from None
     except OSError as exc:
+        if "lock" in str(exc).lower():
+            raise OutputBusyError(
+                f"cannot open {_where(path)}: another process has it open for writing "
+                f"({exc}). To fix: wait until that run has finished, or stop it first."
+            ) from None
         raise LieflowError(
-            f"cannot open {str(path)!r} as HDF5 ({exc}). To fix: check that it is a lieflow "
-            "trajectory file and that no other process is writing it."
+            f"cannot open {_where(path)} as HDF5: the file is damaged or truncated ({exc}). "
+            f"To fix: {fix}."
         ) from None
+
+
+def _damaged(path: Path, exc: BaseException) -> LieflowError:
+    return LieflowError(
+        f"{_where(path)} is damaged: reading it failed ({type(exc).__name__}: {exc}). Its "
+        "bytes were changed on disk (a checksum did not match, or its structure is broken). "
+        "To fix: restore it from a backup, or run the configuration again (--force)."
+    )
+
+
+class _Reading:
+    """``with _Reading(path):`` turns h5py's errors on a damaged file into one LieflowError."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: Any
+    ) -> bool:
+        if exc is None or isinstance(exc, LieflowError) or not isinstance(exc, _DAMAGE):
+            return False
+        raise _damaged(self.path, exc) from None
 
 
 def _check_format(f: h5py.File, path: Path) -> None:
-    if f.attrs.get("format") != FORMAT:
+    if _plain(f.attrs.get("format")) != FORMAT:
         raise LieflowError(
-            f"{str(path)!r} is not a lieflow trajectory file (no format = {FORMAT!r} "
+            f"{_where(path)} is not a lieflow trajectory file (no format = {FORMAT!r} "
             "attribute). To fix: pass a file written by `lieflow run`."
         )
 
 
-def _read_checkpoint(f: h5py.File) -> Checkpoint:
-    slot = f["checkpoint"][f"slot{int(f['checkpoint'].attrs['current'])}"]
-    return Checkpoint(
-        int(slot.attrs["step"]), float(slot.attrs["t"]), slot["W"][()], _read_warm(slot)
-    )
+# -- checkpoint integrity -----------------------------------------------------------------
 
 
-def _read_warm(slot: h5py.Group) -> WarmStart:
-    """Rebuild the :class:`WarmStart` a checkpoint stored field by field: arrays as datasets
-    ``warm/<field>``, other values as attributes (``"none"`` for ``None``); a field not
-    stored (step 0) keeps its default."""
-    values: dict[str, Any] = {}
-    for field in attrs.fields(WarmStart):
-        key = f"warm/{field.name}"
-        if key in slot:
-            values[field.name] = slot[key][()]
-        elif key in slot.attrs:
-            value = _plain(slot.attrs[key])
-            values[field.name] = None if value == "none" else value
-    return WarmStart(**values)
+def _canonical(value: Any) -> bytes:
+    """Bytes that identify a checkpoint item (an array, a scalar, a string or ``None``)."""
+    if value is None:
+        return b"none"
+    if isinstance(value, np.ndarray):
+        a = np.ascontiguousarray(value)
+        return f"array:{a.dtype.str}:{a.shape}:".encode() + a.tobytes()
+    value = _plain(value)
+    return f"{type(value).__name__}:{value!r}".encode()
+
+
+def checkpoint_digest(step: int, t: float, items: Mapping[str, Any]) -> str:
+    """SHA-256 of a checkpoint: its step index, time and every item it stores.
+
+    ``items`` maps the names stored in the checkpoint slot (``"W"``, ``"warm/last"``, ...)
+    to their values; arrays are hashed with their dtype and shape, other values by type and
+    ``repr`` (``None`` is stored as ``"none"``). The writer stores the digest in the slot's
+    ``sha256`` attribute and every reader recomputes it from what it reads back.
+    """
+    h = hashlib.sha256(f"lieflow-checkpoint;step={int(step)};t={float(t).hex()};".encode())
+    for key in sorted(items):
+        data = _canonical(items[key])
+        h.update(key.encode() + b"=" + len(data).to_bytes(8, "little"))
+        h.update(data)
+    return h.hexdigest()
+
+
+_SLOT_ATTRS = ("step", "t", _DIGEST)
+
+
+def _slot_items(slot: h5py.Group) -> dict[str, Any]:
+    """Everything a checkpoint slot stores except step, t and the digest: datasets by path
+    (arrays) and attributes (``"none"`` read back as ``None``)."""
+    h5py = _h5py()
+    items: dict[str, Any] = {}
+
+    def visit(name: str, obj: Any) -> None:
+        if isinstance(obj, h5py.Dataset):
+            items[name] = np.asarray(obj[()])
+
+    slot.visititems(visit)
+    for key, raw in slot.attrs.items():
+        if key not in _SLOT_ATTRS:
+            value = _plain(raw)
+            items[key] = None if isinstance(value, str) and value == "none" else value
+    return items
+
+
+def _read_checkpoint(f: h5py.File, path: Path | None = None) -> Checkpoint:
+    """The current checkpoint, its SHA-256 verified (files written before lieflow stored
+    digests have none and are read as they are)."""
+    where = _where(Path(f.filename) if path is None else path)
+    group = f["checkpoint"]
+    slot_id = int(group.attrs["current"])
+    if slot_id not in (0, 1):
+        raise LieflowError(
+            f"{where} is damaged: its checkpoint pointer is {slot_id}, not 0 or 1. To fix: "
+            "run the configuration again (--force)."
+        )
+    slot = group[f"slot{slot_id}"]
+    step, t = int(slot.attrs["step"]), float(slot.attrs["t"])
+    items = _slot_items(slot)
+    stored = slot.attrs.get(_DIGEST)
+    if stored is not None and _plain(stored) != checkpoint_digest(step, t, items):
+        raise LieflowError(
+            f"{where} is damaged: the checkpoint at step {step} does not match its SHA-256 "
+            "checksum (its bytes changed on disk after lieflow wrote them), so continuing "
+            "from it would silently continue a wrong state. To fix: restore the file from a "
+            "backup, or run the configuration again from the start (--force)."
+        )
+    if "W" not in items:
+        raise LieflowError(f"{where} is damaged: its checkpoint has no state W.")
+    leaves = {
+        key[len(_STATE) + 1 :]: value
+        for key, value in items.items()
+        if key == _STATE or key.startswith(f"{_STATE}/")
+    }
+    return Checkpoint(step, t, items["W"], MappingProxyType(leaves))
+
+
+def _check_lengths(f: h5py.File, k: int, path: Path) -> None:
+    """The diagnostics reach the checkpoint at step ``k`` (rows after it are dropped later)."""
+    d = f["diagnostics"]
+    if min(d[n].shape[0] for n in _PER_STEP) < k + 1 or d["iterations"].shape[0] < k:
+        raise LieflowError(
+            f"{_where(path)} is damaged: its diagnostics end before its checkpoint at step "
+            f"{k}. To fix: start the run again without --resume (use --force)."
+        )
+
+
+def _check_invariants(f: h5py.File, ck: Checkpoint, setup: RunSetup, path: Path) -> None:
+    """The checkpointed state reproduces the energy and Casimirs recorded for its step."""
+    system, k = setup.system, ck.step
+    d = f["diagnostics"]
+    H, C = system.hamiltonian(ck.W), system.casimirs(ck.W)
+    H_rec, C_rec, H0 = d["energy"][k], d["casimirs"][k], d["energy"][0]
+    scale_H = np.maximum(np.maximum(np.abs(H_rec), np.abs(H0)), _TINY)
+    scale_C = system.casimir_scale(f["initial/W0"][()])
+    bad = []
+    if np.shape(H) != np.shape(H_rec) or not np.all(np.abs(H - H_rec) <= 1e-10 * scale_H):
+        bad.append(f"energy {np.max(H)!r} (recorded {np.max(H_rec)!r})")
+    if np.shape(C) != np.shape(C_rec) or not np.all(np.abs(C - C_rec) <= 1e-10 * scale_C):
+        bad.append("Casimirs")
+    if bad:
+        raise LieflowError(
+            f"{_where(path)} is damaged: the state checkpointed at step {k} does not reproduce "
+            f"the invariants recorded for that step ({', '.join(bad)}), so continuing from it "
+            "would continue a wrong state. To fix: restore the file from a backup, or run the "
+            "configuration again from the start (--force)."
+        )
 
 
 def read_checkpoint(path: Path | str) -> Checkpoint:
-    """The last checkpoint of a trajectory file."""
+    """The last checkpoint of a trajectory file (its SHA-256 checksum verified).
+
+    Raises
+    ------
+    LieflowError
+        The file is missing, not HDF5, not a lieflow trajectory, or damaged.
+    """
     p = Path(path)
-    with _open(p, "r") as f:
+    with _open(p, "r") as f, _Reading(p):
         _check_format(f, p)
-        return _read_checkpoint(f)
+        return _read_checkpoint(f, p)
 
 
 def read_trajectory(path: Path | str) -> Trajectory:
     """Read a trajectory file, up to its last checkpoint (anything after it is ignored).
 
+    Every dataset lieflow writes carries HDF5's Fletcher-32 chunk checksums and the
+    checkpoint a SHA-256 digest, so a file whose bytes changed on disk is refused rather
+    than read as wrong numbers (files from lieflow versions before 0.2 have neither).
+
     Raises
     ------
     LieflowError
-        The file is missing, not HDF5, or not a lieflow trajectory.
+        The file is missing, not HDF5, not a lieflow trajectory, or damaged.
     """
     p = Path(path)
-    with _open(p, "r") as f:
+    with _open(p, "r") as f, _Reading(p):
         _check_format(f, p)
-        ck = _read_checkpoint(f)
+        ck = _read_checkpoint(f, p)
         k = ck.step
+        _check_lengths(f, k, p)
         saved = f["trajectory/step"][()]
         n_saved = int(np.searchsorted(saved, k, side="right"))
         d = f["diagnostics"]
@@ -272,26 +486,195 @@ def _growable(group: h5py.Group, name: str, row: Array, dtype: Any) -> None:
         maxshape=(None, *row.shape),
         dtype=dtype,
         chunks=(_chunk_rows(row.size * np.dtype(dtype).itemsize), *row.shape),
+        fletcher32=True,
     )
+
+
+# -- one writer per output file ------------------------------------------------------------
+
+
+def _cannot_create(path: Path, exc: OSError) -> LieflowError:
+    return LieflowError(
+        f"cannot create {_where(path)}: {exc.strerror or exc}. To fix: choose an output path "
+        "in a directory you can write to (not under /proc, /sys or /dev)."
+    )
+
+
+def _same_file(fd: int, path: Path) -> bool:
+    try:
+        a, b = os.fstat(fd), os.stat(path)
+    except OSError:
+        return False
+    return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
+
+
+class _OutputLock:
+    """An exclusive advisory lock on an output path, held for a whole run.
+
+    The lock is ``flock`` on a sidecar file ``.<name>.lock`` in the output's directory
+    (HDF5 takes its own locks on the data file itself, and those are released whenever the
+    library closes it), holding the owner's pid and host. :meth:`release` removes the
+    sidecar while still holding the lock; the kernel releases it when the process dies, however
+    it dies, so a leftover sidecar never blocks a later run. A process that locked a
+    sidecar its previous holder had just removed notices (the path no longer names the file
+    it locked) and tries again. Without ``fcntl`` (Windows) there is no lock.
+    """
+
+    def __init__(self, path: Path, fd: int | None) -> None:
+        self.path = path
+        self._fd = fd
+
+    @classmethod
+    def acquire(cls, output: Path) -> _OutputLock:
+        lock_path = output.with_name(f".{output.name}.lock")
+        if fcntl is None:  # pragma: no cover - not POSIX
+            return cls(lock_path, None)
+        for _ in range(100):
+            try:
+                fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+            except OSError as exc:
+                raise _cannot_create(output, exc) from None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as exc:
+                holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "unknown"
+                os.close(fd)
+                if isinstance(exc, BlockingIOError):
+                    raise OutputBusyError(
+                        f"{_where(output)} is being written by another lieflow run ({holder}); "
+                        "two runs writing one file would lose one of the results, so this "
+                        "one is refused (--force and --resume too). To fix: wait until that "
+                        "run has finished or stop it, or write to another output (--out)."
+                    ) from None
+                raise _cannot_create(output, exc) from None
+            if _same_file(fd, lock_path):
+                os.ftruncate(fd, 0)
+                os.write(fd, f"pid {os.getpid()} on {socket.gethostname()}\n".encode())
+                return cls(lock_path, fd)
+            os.close(fd)  # its previous holder removed it after we opened it: try again
+        raise OutputBusyError(  # pragma: no cover - needs 100 lost races in a row
+            f"could not lock {_where(output)}: other processes keep taking its lock. To fix: "
+            "make sure one run at a time writes this file."
+        )
+
+    def release(self) -> None:
+        """Remove the sidecar and release the lock (idempotent)."""
+        fd, self._fd = self._fd, None
+        if fd is None:
+            return
+        try:
+            if _same_file(fd, self.path):
+                os.unlink(self.path)
+        except OSError:  # pragma: no cover - the directory became read-only
+            pass
+        finally:
+            os.close(fd)
+
+
+def _file_id(f: h5py.File) -> tuple[int, int]:
+    """(device, inode) of the file HDF5 is writing."""
+    try:
+        st = os.fstat(int(f.id.get_vfd_handle()))
+    except (OSError, TypeError, ValueError, AttributeError):  # pragma: no cover - other drivers
+        st = os.stat(f.filename)
+    return st.st_dev, st.st_ino
+
+
+def _exists_error(out: Path) -> ConfigError:
+    return ConfigError(
+        f"{_where(out)} already exists (another run may have created it since this one "
+        "started). To fix: pass --resume to continue it, --force to replace it, or choose "
+        "another output.",
+        "[run] output",
+    )
+
+
+def _publish(tmp: Path, out: Path, replace: bool) -> None:
+    """Give the finished file ``tmp`` the name ``out``: atomically replacing an existing file
+    if ``replace``, else only if ``out`` does not exist (a hard link is an atomic exclusive
+    create; where links are not supported, an O_EXCL placeholder is replaced)."""
+    if replace:
+        os.replace(tmp, out)
+        return
+    try:
+        os.link(tmp, out)
+    except FileExistsError:
+        raise _exists_error(out) from None
+    except OSError as exc:
+        if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK):
+            raise
+        try:
+            os.close(os.open(out, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644))
+        except FileExistsError:
+            raise _exists_error(out) from None
+        os.replace(tmp, out)
+    else:
+        tmp.unlink()
+
+
+def _verify_for_resume(setup: RunSetup) -> Checkpoint:
+    """Every check of a resume, on the file opened read-only: a refused file is not touched."""
+    path = setup.output
+    cfg = setup.config
+    with _open(path, "r", _RESUME_FIX) as f, _Reading(path):
+        _check_format(f, path)
+        stored, now = str(_plain(f.attrs["identity"])), cfg.identity()
+        if stored != now:
+            changed = "; ".join(identity_changes(stored, now)) or f"{stored} -> {now}"
+            raise ConfigError(
+                f"--resume: {_where(path)} was written by a different configuration; changed: "
+                f"{changed}. To fix: restore the configuration it was started with (only "
+                "[run] steps or t_final and output may change), or write to a new output file.",
+                "--resume",
+            )
+        if not np.array_equal(f["initial/W0"][()], setup.W0):
+            raise ConfigError(
+                f"--resume: {_where(path)} starts from a different initial condition than "
+                f"[initial] in {cfg.source}. To fix: restore the [initial] section it was "
+                "started with, or write to a new output file.",
+                "--resume",
+            )
+        ck = _read_checkpoint(f, path)
+        _check_lengths(f, ck.step, path)
+        _check_invariants(f, ck, setup, path)
+        if ck.step > cfg.run.steps:
+            raise ConfigError(
+                f"--resume: {_where(path)} already holds {ck.step} steps, more than the "
+                f"{cfg.run.steps} asked for ([run] steps / t_final); resuming never shortens a "
+                f"file. To fix: ask for at least {ck.step} steps to continue it, or read its "
+                f"first {cfg.run.steps} steps from the file as it is.",
+                "[run] steps",
+            )
+    return ck
 
 
 class TrajectoryWriter:
     """Appends a run to an open trajectory file.
 
-    Create one with :meth:`create` (a new file) or :meth:`reopen` (resume). Feed every step
-    to :meth:`add`; call :meth:`save` at save points (it appends the buffered diagnostics,
-    optionally the state, writes a checkpoint and flushes) and :meth:`close` at the end.
-    Writes go to explicit positions, so a :meth:`save` interrupted half-way can simply be
-    repeated.
+    Create one with :meth:`create` (a new file) or :meth:`reopen` (resume). Feed every
+    :class:`~lieflow.driver.Chunk` of steps to :meth:`record`; call :meth:`commit` at save
+    points (it appends the buffered diagnostics and saved states, writes a checkpoint and
+    flushes) and :meth:`close` at the end. A commit runs with interrupts deferred and writes
+    to explicit positions, so an interrupt cannot leave it half-done.
+
+    A writer holds an exclusive lock on its output path from :meth:`create` or
+    :meth:`reopen` to :meth:`close` (one writer per file: a second is refused with
+    :class:`OutputBusyError`), and :meth:`close` raises if the path no longer names the file
+    it wrote (deleted or replaced by another program meanwhile).
     """
 
-    def __init__(self, f: h5py.File, setup: RunSetup) -> None:
+    def __init__(self, f: h5py.File, setup: RunSetup, lock: _OutputLock | None = None) -> None:
         self._f = f
-        self._system = setup.system
+        self._lock = lock
+        self._path = Path(f.filename)
+        self._file_id = _file_id(f)
         diag = f["diagnostics"]
-        self._H0 = diag["energy"][0]
-        self._C0 = diag["casimirs"][0]
-        self._cscale = setup.system.casimir_scale(f["initial/W0"][()])
+        self._diagnostics = Diagnostics(
+            setup.system,
+            diag["energy"][0],
+            diag["casimirs"][0],
+            setup.system.casimir_scale(f["initial/W0"][()]),
+        )
         # h5py path lookups cost tens of microseconds each: keep the handles
         self._diag = {name: diag[name] for name in (*_PER_STEP, *_PER_UPDATE)}
         self._traj = {name: f["trajectory"][name] for name in ("step", "t", "W")}
@@ -300,7 +683,7 @@ class TrajectoryWriter:
         self._slot_data: list[dict[str, Any]] = [{}, {}]
         self._n_diag = self._diag["iterations"].shape[0] + 1  # rows committed (steps 0..K)
         self._n_saved = self._traj["step"].shape[0]
-        self._buffer: list[tuple[Array, Array, int, float]] = []
+        self._buffer: list[tuple[Chunk, Array, Array, Array]] = []
         self._slot = int(self._ck.attrs["current"])
         self._step = int(self._slots[self._slot].attrs["step"])  # the checkpoint's step
         self._max_error = float(np.max(self._diag["energy_error"][: self._n_diag]))
@@ -308,7 +691,7 @@ class TrajectoryWriter:
     @property
     def path(self) -> Path:
         """The file being written."""
-        return Path(self._f.filename)
+        return self._path
 
     @property
     def max_energy_error(self) -> float:
@@ -319,133 +702,172 @@ class TrajectoryWriter:
 
     @classmethod
     def create(cls, setup: RunSetup) -> TrajectoryWriter:
-        """Create ``setup.output`` holding the header and step 0.
+        """Create ``setup.output`` holding the header and step 0, and lock it.
 
-        The file is written under a temporary name in the same directory and renamed when
-        complete, so a failure leaves no partial file; an existing file is replaced.
+        The file is written under a temporary name in the same directory and then given its
+        name, so a failure leaves no partial file. An existing file is replaced only if
+        ``setup.replace`` (atomically); otherwise the name is taken with an exclusive create,
+        so of two runs started on one new path, one is refused.
+
+        Raises
+        ------
+        OutputBusyError
+            Another process is writing ``setup.output``.
+        ConfigError
+            The file exists and ``setup.replace`` is false.
+        LieflowError
+            The file cannot be created there.
         """
         h5py = _h5py()
         out = setup.output
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
         try:
-            with h5py.File(tmp, "w") as f:
-                _initialise(f, setup)
-            os.replace(tmp, out)
+            out.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise _cannot_create(out, exc) from None
+        lock = _OutputLock.acquire(out)
+        try:
+            if not setup.replace and os.path.lexists(out):
+                raise _exists_error(out)
+            tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+            try:
+                with h5py.File(tmp, "w") as f:
+                    _initialise(f, setup)
+                _publish(tmp, out, setup.replace)
+            except OSError as exc:
+                raise _cannot_create(out, exc) from None
+            finally:
+                tmp.unlink(missing_ok=True)
+            return cls(_open(out, "r+"), setup, lock)
         except BaseException:
-            tmp.unlink(missing_ok=True)
+            lock.release()
             raise
-        return cls(_open(out, "r+"), setup)
 
     @classmethod
     def reopen(cls, setup: RunSetup) -> tuple[TrajectoryWriter, Checkpoint]:
-        """Open ``setup.output`` to resume: check it belongs to this configuration, truncate
-        everything written after its last checkpoint and return that checkpoint."""
+        """Open ``setup.output`` to resume, lock it, and return the writer and the last
+        checkpoint; everything written after that checkpoint is dropped.
+
+        Every check runs before the file is opened for writing, so a refused file is left
+        byte for byte as it was: it must be a lieflow trajectory of the same configuration
+        (the error names the changed keys) and initial condition, its checkpoint must match
+        its SHA-256 checksum and reproduce the energy and Casimirs recorded for its step,
+        and it must not hold more steps than asked for.
+
+        Raises
+        ------
+        OutputBusyError
+            Another process is writing ``setup.output``.
+        ConfigError
+            Another configuration or initial condition, or fewer steps than the file holds.
+        LieflowError
+            The file is empty, not HDF5, not a trajectory, or damaged.
+        """
         path = setup.output
-        f = _open(path, "r+")
+        lock = _OutputLock.acquire(path)
         try:
-            _check_format(f, path)
-            if f.attrs["identity"] != setup.config.identity():
-                raise ConfigError(
-                    f"--resume: {str(path)!r} was written by a different configuration "
-                    f"(stored: {f.attrs['identity']}; now: {setup.config.identity()}). To fix: "
-                    "restore the configuration it was started with (only [run] steps may "
-                    "change), or write to a new output file.",
-                    "--resume",
-                )
-            if not np.array_equal(f["initial/W0"][()], setup.W0):
-                raise ConfigError(
-                    f"--resume: {str(path)!r} starts from a different initial condition than "
-                    f"[initial] in {setup.config.source}. To fix: restore the [initial] section "
-                    "it was started with, or write to a new output file.",
-                    "--resume",
-                )
-            ck = _read_checkpoint(f)
-            _truncate(f, ck.step)
-            f.attrs["resumes"] = int(f.attrs.get("resumes", 0)) + 1
-            f.attrs["requested_steps"] = setup.config.run.steps
-            f.flush()
+            ck = _verify_for_resume(setup)
+            f = _open(path, "r+", _RESUME_FIX)
+            try:
+                with _Reading(path):
+                    _truncate(f, ck.step)
+                    f.attrs["resumes"] = int(f.attrs.get("resumes", 0)) + 1
+                    f.attrs["requested_steps"] = setup.config.run.steps
+                    f.attrs["status"] = "running"
+                    f.flush()
+                writer = cls(f, setup, lock)
+            except BaseException:
+                f.close()
+                raise
         except BaseException:
-            f.close()
+            lock.release()
             raise
-        return cls(f, setup), ck
+        return writer, ck
 
     # -- writing ---------------------------------------------------------------------------
 
-    def _energy_error(self, H: Array) -> Array:
-        """``|H - H0| / |H0|`` (as :attr:`lieflow.Solution.energy_error`)."""
-        return np.abs(H - self._H0) / np.maximum(np.abs(self._H0), _TINY)
-
-    def add(self, step: Step) -> float:
-        """Buffer the diagnostics of ``step``; return its relative energy error."""
-        W = step.W
-        H = self._system.hamiltonian(W)
-        C = self._system.casimirs(W)
-        err = float(np.max(self._energy_error(H)))
+    def record(self, chunk: Chunk, keep: Array) -> float:
+        """Buffer ``chunk``: its diagnostics, its states where ``keep`` is true, and its last
+        state and flow state for the next checkpoint. Returns the largest relative energy
+        error among its steps. Nothing is written until :meth:`commit`."""
+        H = self._diagnostics.energy(chunk.W)
+        C = self._diagnostics.casimirs(chunk.W)
+        err = float(np.max(self._diagnostics.energy_error(H)))
+        self._buffer.append((chunk, keep, H, C))  # one append: recorded entirely or not at all
         self._max_error = max(self._max_error, err)
-        self._buffer.append((H, C, step.result.iterations, step.result.residual))
         return err
 
-    def save(self, step: Step, *, state: bool) -> None:
-        """Append the buffered diagnostics (up to ``step``), the state if ``state``, write a
-        checkpoint at ``step`` and flush."""
-        f, buf = self._f, self._buffer
-        n0, n1 = self._n_diag, self._n_diag + len(buf)
-        if n1 - 1 != step.index:
-            raise LieflowError(  # pragma: no cover - internal consistency
-                f"internal error: {len(buf)} buffered steps do not end at step {step.index}"
-            )
-        if buf:
-            H = np.asarray([b[0] for b in buf])
-            C = np.asarray([b[1] for b in buf])
+    @property
+    def completed_steps(self) -> int:
+        """Steps in the file after the last :meth:`commit` (its checkpoint's step)."""
+        return self._step
+
+    def commit(self, *, keep_last: bool = False) -> None:
+        """Append the buffered diagnostics and saved states (and the last state, with
+        ``keep_last``), checkpoint at the last buffered step and flush.
+
+        Runs with interrupts deferred (:func:`lieflow._signals.deferred`): an interrupt
+        cannot leave the writer's counters and the file disagreeing.
+        """
+        with _signals.deferred():
+            buf = self._buffer
+            if not buf:
+                return
+            n0, n_saved = self._n_diag, self._n_saved
+            last: Chunk = buf[-1][0]
+            H = np.concatenate([b[2] for b in buf])
+            C = np.concatenate([b[3] for b in buf])
             columns = {
                 "energy": H,
-                "energy_error": self._energy_error(H),
+                "energy_error": self._diagnostics.energy_error(H),
                 "casimirs": C,
-                "casimir_drift": np.abs(C - self._C0) / self._cscale,
-                "iterations": np.asarray([b[2] for b in buf], dtype=np.int64),
-                "residual": np.asarray([b[3] for b in buf], dtype=float),
+                "casimir_drift": self._diagnostics.casimir_drift(C),
+                "iterations": np.concatenate([b[0].iterations for b in buf]).astype(np.int64),
+                "residual": np.concatenate([b[0].residuals for b in buf]).astype(float),
             }
             for name, values in columns.items():
                 start = n0 if name in _PER_STEP else n0 - 1
                 ds = self._diag[name]
                 ds.resize(start + len(values), axis=0)
                 ds[start:] = values
-        n_saved = self._n_saved
-        if state:
-            for name, value in (("step", step.index), ("t", step.t), ("W", step.W)):
-                ds = self._traj[name]
-                ds.resize(n_saved + 1, axis=0)
-                ds[n_saved] = value
-            n_saved += 1
-        self._checkpoint(step.index, step.t, step.W, step.warm)
-        f.flush()
-        self._n_diag, self._n_saved = n1, n_saved
-        buf.clear()
+            keep = [b[1].copy() for b in buf]
+            if keep_last:
+                keep[-1][-1] = True
+            steps = np.concatenate([b[0].index[k] for b, k in zip(buf, keep, strict=True)])
+            if steps.size:
+                states = np.concatenate([b[0].W[k] for b, k in zip(buf, keep, strict=True)])
+                for name, value in (("step", steps), ("t", steps * last.h), ("W", states)):
+                    ds = self._traj[name]
+                    ds.resize(n_saved + steps.size, axis=0)
+                    ds[n_saved:] = value
+            self._checkpoint(last.stop, last.stop * last.h, last.W[-1], last.state)
+            self._f.flush()
+            self._n_diag, self._n_saved = n0 + H.shape[0], n_saved + steps.size
+            self._buffer = []
 
-    def _checkpoint(self, index: int, t: float, W: Array, warm: WarmStart) -> None:
+    def _checkpoint(self, index: int, t: float, W: Array, state: Any) -> None:
+        """Write ``W`` and the flow's ``state`` (leaf by leaf, under ``warm/<path>``) at step
+        ``index`` to the spare slot with its SHA-256 digest, flush, then point ``current``
+        at it (the commit point)."""
+        items: dict[str, Any] = {"W": W}
+        for path, leaf in tree.paths(state):
+            items[f"{_STATE}/{path}" if path else _STATE] = leaf
         slot_id = 1 - self._slot
-        slot, cache = self._slots[slot_id], self._slot_data[slot_id]
-        _put(slot, "W", W, cache)
-        for field in attrs.fields(WarmStart):
-            value = getattr(warm, field.name)
-            key = f"warm/{field.name}"
-            if isinstance(value, np.ndarray):
-                _put(slot, key, value, cache)
-                continue
-            if key in slot:
-                cache.pop(key, None)
-                del slot[key]
-            slot.attrs[key] = "none" if value is None else value
-        slot.attrs["step"] = index
-        slot.attrs["t"] = t
+        _write_slot(self._slots[slot_id], index, t, items, self._slot_data[slot_id])
         self._f.flush()
         self._ck.attrs["current"] = slot_id  # the commit point
         self._slot, self._step = slot_id, index
 
     def close(self, status: str, wall_time: float, failure: str = "") -> None:
-        """Record the final status and the time spent, and close the file."""
+        """Record the final status and the time spent, close the file and release its lock.
+
+        Raises
+        ------
+        LieflowError
+            The output path no longer names the file this writer wrote (another program
+            deleted or replaced it during the run): the run must not report success.
+        """
         f = self._f
+        lost = False
         try:
             f.attrs["completed_steps"] = self._step
             f.attrs["status"] = status
@@ -453,7 +875,42 @@ class TrajectoryWriter:
             f.attrs["failure"] = failure
             f.flush()
         finally:
-            f.close()
+            try:
+                try:
+                    now = os.stat(self._path)
+                    lost = (now.st_dev, now.st_ino) != self._file_id
+                except OSError:
+                    lost = True
+                f.close()
+            finally:
+                if self._lock is not None:
+                    self._lock.release()
+        if lost:
+            raise LieflowError(
+                f"{_where(self._path)} was deleted or replaced by another program while this "
+                f"run was writing it: the {self._step} steps it recorded are not in the file "
+                "at that path, so the run did not succeed. To fix: let nothing else write, "
+                "move or delete the output during a run (`lieflow run --force` on a running "
+                "output is refused; `rm` or `mv` are not), and run again."
+            )
+
+
+def _write_slot(
+    slot: h5py.Group, index: int, t: float, items: Mapping[str, Any], cache: dict[str, Any]
+) -> None:
+    """Store ``items`` in a checkpoint slot (arrays as datasets, other values as attributes,
+    ``None`` as ``"none"``), then its step, time and :func:`checkpoint_digest`."""
+    for key, value in items.items():
+        if isinstance(value, np.ndarray):
+            _put(slot, key, value, cache)
+            continue
+        if key in slot:
+            cache.pop(key, None)
+            del slot[key]
+        slot.attrs[key] = "none" if value is None else value
+    slot.attrs["step"] = index
+    slot.attrs["t"] = t
+    slot.attrs[_DIGEST] = checkpoint_digest(index, t, items)
 
 
 def _put(group: h5py.Group, name: str, value: Array, cache: dict[str, Any]) -> None:
@@ -466,7 +923,8 @@ def _put(group: h5py.Group, name: str, value: Array, cache: dict[str, Any]) -> N
         del group[name]
         ds = None
     if ds is None:
-        cache[name] = group.create_dataset(name, data=value)
+        checked = {"chunks": value.shape, "fletcher32": True} if value.size and value.ndim else {}
+        cache[name] = group.create_dataset(name, data=value, **checked)
     else:
         ds[...] = value
 
@@ -523,10 +981,7 @@ def _initialise(f: h5py.File, setup: RunSetup) -> None:
         tr[name][0] = value
     ck = f.create_group("checkpoint")
     for i in (0, 1):
-        slot = ck.create_group(f"slot{i}")
-        slot.create_dataset("W", data=W0)
-        slot.attrs["step"] = 0
-        slot.attrs["t"] = 0.0
+        _write_slot(ck.create_group(f"slot{i}"), 0, 0.0, {"W": W0}, {})
     ck.attrs["current"] = 0
 
 
@@ -549,22 +1004,6 @@ def _truncate(f: h5py.File, k: int) -> None:
     for name in ("step", "t", "W"):
         tr[name].resize(n, axis=0)
     f.attrs["completed_steps"] = k
-
-
-class Monitor(Protocol):
-    """Receives progress while :func:`run` proceeds (a progress bar, or a test hook)."""
-
-    def start(self, done: int, total: int) -> None:
-        """Called once before stepping; ``done`` steps exist already (resume)."""
-        ...
-
-    def advance(self, step: Step, energy_error: float) -> None:
-        """Called after each step is recorded (and saved, at save points)."""
-        ...
-
-    def stop(self) -> None:
-        """Called once when stepping ends, however it ends."""
-        ...
 
 
 @attrs.frozen
@@ -631,55 +1070,51 @@ def run(
         A step failed to converge (the file holds the steps before it, status "failed").
     """
     cfg = setup.config.run
+    target = cfg.steps
+    flow = scheme_flow(setup.system, setup.scheme, setup.solver, setup.W0, target,
+                       engine=cast(Engine, cfg.engine))  # fmt: skip
     if resume and setup.output.exists():
         writer, ck = TrajectoryWriter.reopen(setup)
-        W, warm, done = ck.W, ck.warm, ck.step
+        W, done = ck.W, ck.step
+        state = ck.state(flow.init(W))
     else:
         writer = TrajectoryWriter.create(setup)
-        W, warm, done = setup.W0, None, 0
-    target = cfg.steps
+        W, state, done = setup.W0, None, 0
     if done >= target:
         writer.close("complete", 0.0)
         return RunSummary(setup.output, "complete", done, target, 0, 0.0, writer.max_energy_error)
 
-    def save_point(index: int) -> bool:
-        return index % cfg.save_every == 0 or index == target
-
-    status, failure, last = "running", "", None
-    last_saved = done
+    status, failure = "running", ""
     start = time.perf_counter()
     if monitor is not None:
         monitor.start(done, target)
     try:
-        stream = iterate(setup.system, setup.scheme, W, cfg.h, setup.solver, start=done, warm=warm)
-        for step in stream:
-            last = step
-            err = writer.add(step)
-            if save_point(step.index):
-                writer.save(step, state=True)
-                last_saved = step.index
+        for chunk in driver.advance(flow, W, cfg.h, target, start=done, state=state):
+            keep = (chunk.index % cfg.save_every == 0) | (chunk.index == target)
+            err = writer.record(chunk, keep)
+            if keep.any():
+                writer.commit()
             if monitor is not None:
-                monitor.advance(step, err)
-            if step.index == target:
-                status = "complete"
-                break
+                monitor.advance(chunk.size, int(chunk.iterations.sum()), err)
+        status = "complete"
     except KeyboardInterrupt:
         status = "interrupted"
     except ConvergenceError as exc:
         status, failure = "failed", str(exc)
     finally:
         wall = time.perf_counter() - start
-        if monitor is not None:
-            monitor.stop()
         try:
-            if last is not None and last.index != last_saved:
-                # Checkpoint what was computed (this also completes a save that was itself
-                # interrupted: writes go to fixed positions). A failed run keeps its last state.
-                state = save_point(last.index) or status == "failed"
-                writer.save(last, state=state)
+            if monitor is not None:
+                monitor.stop()
         finally:
-            writer.close(status if status != "running" else "interrupted", wall, failure)
-    completed = done if last is None else last.index
+            # Checkpoint what was computed (a failed run keeps its last state); then record
+            # the status. Both with interrupts deferred, so a second Ctrl-C cannot split them.
+            with _signals.deferred():
+                try:
+                    writer.commit(keep_last=status == "failed")
+                finally:
+                    writer.close(status if status != "running" else "interrupted", wall, failure)
+    completed = writer.completed_steps
     summary = RunSummary(
         setup.output,
         status,

@@ -1,4 +1,5 @@
-"""The progress bar of long runs (``integrate(..., progress=True)`` and ``lieflow run``)."""
+"""The progress bar of long runs (``integrate(..., progress=True)`` and ``lieflow run``): a
+:class:`~lieflow.driver.Monitor`."""
 
 from __future__ import annotations
 
@@ -9,18 +10,12 @@ from .errors import InputError
 
 
 class ProgressBar:
-    """A rich progress bar on stderr: steps done of ``total``, steps per second, mean
+    """A rich progress bar on stderr: steps done of the total, steps per second, mean
     iterations per step and, when reported, the largest relative energy error so far.
 
-    The numbers are refreshed at most every 0.1 s (the bar itself on every call), so a
-    fast run does not spend its time drawing.
-
-    Parameters
-    ----------
-    total : int
-        Steps the run will have when complete.
-    done : int
-        Steps already done (a resumed run).
+    A :class:`~lieflow.driver.Monitor`: the bar appears at :meth:`start` and stays on the
+    terminal after :meth:`stop`. The numbers are refreshed at most every 0.1 s (the bar
+    itself on every call), so a fast run does not spend its time drawing.
 
     Raises
     ------
@@ -28,7 +23,7 @@ class ProgressBar:
         If ``rich`` is not installed.
     """
 
-    def __init__(self, total: int, done: int = 0) -> None:
+    def __init__(self) -> None:
         try:
             from rich.console import Console
             from rich.progress import (
@@ -49,13 +44,17 @@ class ProgressBar:
             TimeRemainingColumn(),
             console=Console(stderr=True),
         )
+        self._task: Any = None
+        self._completed = self._steps = self._iterations = 0
+        self._max_err: float | None = None
+        self._start = self._last_refresh = time.perf_counter()
+
+    def start(self, done: int, total: int) -> None:
+        """Show the bar: ``done`` of ``total`` steps (``done > 0`` for a resumed run)."""
         self._task = self._progress.add_task(
             "run", total=total, completed=done, rate="-", its="-", err=""
         )
         self._completed = done
-        self._steps = 0
-        self._iterations = 0
-        self._max_err: float | None = None
         self._start = self._last_refresh = time.perf_counter()
         self._progress.start()
 
@@ -80,6 +79,6 @@ class ProgressBar:
             err="" if self._max_err is None else f", dE/E {self._max_err:.2e}",
         )
 
-    def close(self) -> None:
+    def stop(self) -> None:
         """Stop drawing (the bar stays on the terminal)."""
         self._progress.stop()

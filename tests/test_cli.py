@@ -101,19 +101,19 @@ def test_ctrl_c_then_resume_from_the_command_line(
     config = write(cfg, toml(run='h = 0.1\nsteps = 50\nsave_every = 10\noutput = "../out/a.h5"'))
     assert main(["run", str(config), "--no-progress", "--out", str(out / "ref.h5")]) == 0
 
-    real_iterate = io.iterate
+    real_advance = io.driver.advance
 
-    def interrupted(*args: Any, **kwargs: Any) -> Iterator[lf.Step]:
-        for step in real_iterate(*args, **kwargs):
-            yield step
-            if step.index == 23:
+    def interrupted(*args: Any, **kwargs: Any) -> Iterator[lf.driver.Chunk]:
+        for chunk in real_advance(*args, **kwargs):
+            yield chunk
+            if chunk.stop == 23:
                 raise KeyboardInterrupt  # as Ctrl-C would, between two steps
 
-    monkeypatch.setattr(io, "iterate", interrupted)
+    monkeypatch.setattr(io.driver, "advance", interrupted)
     assert main(["run", str(config), "--no-progress"]) == 130
     assert "--resume" in capsys.readouterr().err
     assert io.read_checkpoint(out / "a.h5").step == 23
-    monkeypatch.setattr(io, "iterate", real_iterate)
+    monkeypatch.setattr(io.driver, "advance", real_advance)
 
     assert main(["run", str(config), "--no-progress", "--resume"]) == 0
     a, ref = io.read_trajectory(out / "a.h5"), io.read_trajectory(out / "ref.h5")

@@ -56,12 +56,14 @@ class StopAt:
 
     def __init__(self, k: int, exc: BaseException) -> None:
         self.k, self.exc = k, exc
+        self.done = 0
 
     def start(self, done: int, total: int) -> None:
-        pass
+        self.done = done
 
-    def advance(self, step: lf.Step, energy_error: float) -> None:
-        if step.index == self.k:
+    def advance(self, steps: int, iterations: int, energy_error: float | None) -> None:
+        self.done += steps
+        if self.done >= self.k:
             raise self.exc
 
     def stop(self) -> None:
@@ -149,9 +151,10 @@ def test_hard_kill_then_resume_is_bitwise_identical(tmp_path: Path, reference: P
         from lieflow.config import build, load_config
 
         class Kill:
-            def start(self, done, total): pass
-            def advance(self, step, err):
-                if step.index == 37:
+            def start(self, done, total): self.done = done
+            def advance(self, steps, iterations, err):
+                self.done += steps
+                if self.done == 37:
                     os._exit(9)
             def stop(self): pass
 
@@ -227,7 +230,7 @@ def test_reading_a_file_that_is_not_a_trajectory(tmp_path: Path) -> None:
     with pytest.raises(lf.LieflowError, match="not a lieflow trajectory"):
         io.read_trajectory(tmp_path / "other.h5")
     (tmp_path / "junk.h5").write_bytes(b"not hdf5")
-    with pytest.raises(lf.LieflowError, match="cannot open"):
+    with pytest.raises(lf.LieflowError, match="not an HDF5 file"):
         io.read_trajectory(tmp_path / "junk.h5")
     with pytest.raises(lf.LieflowError, match="does not exist"):
         io.read_trajectory(tmp_path / "missing.h5")

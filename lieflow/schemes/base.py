@@ -100,7 +100,49 @@ def solve(
     return problem, res
 
 
-class TableauProblem:
+class StageProblem:
+    """What every stage problem holds — the system and ``W0`` — and the one place where
+    stage values meet the system.
+
+    Every evaluation of ``B`` by a scheme goes through :meth:`B` (and its linearization
+    through :meth:`B_derivative`), and every step ends with :meth:`commutator_update`:
+    stage values are first mapped by the system's linear
+    :meth:`~lieflow.IsospectralSystem.project_stage` onto the span of its phase space (a
+    no-op at the fixed point, so the scheme is unchanged; away from it, ``B`` is never
+    evaluated off the phase space's span — e.g. on a non-symmetric matrix for the Toda
+    lattice, whose ``B`` is a gradient only on symmetric ones).
+    """
+
+    def __init__(self, system: IsospectralSystem, W0: Array) -> None:
+        self.system = system
+        self.W0 = W0
+        self.skew = system.algebra.skew
+
+    def B(self, stages: Array) -> Array:
+        """``B(P(W_i))`` for stage values ``W_i`` (any leading axes)."""
+        return self.system.B(self.system.project_stage(stages))
+
+    def B_derivative(self, stages: Array, dstages: Array) -> Array:
+        """The derivative of :meth:`B` at ``stages`` in the direction ``dstages``
+        (``P`` is linear: ``DB(P W)[P dW]``)."""
+        P = self.system.project_stage
+        return self.system.B_derivative(P(stages), P(dstages))
+
+    def commutator_update(self, stages: Array, hb: Array) -> Array:
+        """``W1 = W0 + sum_i (h b_i) [B(W_i), W_i]`` with ``W_i = P(stages[..., i, :, :])``.
+
+        One batched call of ``B``; for skew algebras ``W_i B_i = (B_i W_i)^†`` saves a
+        product. The weights are cast to ``W0``'s real precision (single stays single).
+        """
+        W = self.system.project_stage(stages)
+        B = self.system.B(W)
+        BW = B @ W
+        WB = dagger(BW) if self.skew else W @ B
+        weights = np.asarray(hb, dtype=self.W0.real.dtype)
+        return self.W0 + np.einsum("i,...iab->...ab", weights, BW - WB)
+
+
+class TableauProblem(StageProblem):
     """What the stage equations of every tableau-based scheme hold: the system, ``W0``,
     ``h`` and the coefficients ``A``, ``b``.
 
@@ -112,24 +154,10 @@ class TableauProblem:
     def __init__(
         self, system: IsospectralSystem, W0: Array, h: float, tableau: ButcherTableau
     ) -> None:
-        self.system = system
-        self.W0 = W0
+        super().__init__(system, W0)
         self.h = float(h)
         self.A = tableau.A.astype(W0.real.dtype)
         self.b = tableau.b.astype(W0.real.dtype)
-
-
-def commutator_update(system: IsospectralSystem, W0: Array, stages: Array, hb: Array) -> Array:
-    """``W1 = W0 + sum_i (h b_i) [B(W_i), W_i]`` for stage values ``stages[..., i, :, :]``.
-
-    One batched call of ``B``; for skew algebras ``W_i B_i = (B_i W_i)^†`` saves a product.
-    The weights are cast to ``W0``'s real precision (single precision stays single).
-    """
-    B = system.B(stages)
-    BW = B @ stages
-    WB = dagger(BW) if system.algebra.skew else stages @ B
-    weights = np.asarray(hb, dtype=W0.real.dtype)
-    return W0 + np.einsum("i,...iab->...ab", weights, BW - WB)
 
 
 def symplectic(tableau: ButcherTableau) -> ButcherTableau:

@@ -17,7 +17,6 @@ from .base import (
     Scheme,
     StepResult,
     TableauProblem,
-    commutator_update,
     solve,
     solve_right,
     symplectic,
@@ -92,7 +91,7 @@ class BlockProblem(TableauProblem):
         return h * (ABM - MBAt) + (h * h) * ABMBAt
 
     def map(self, M: Array) -> Array:
-        B = self.system.B(self.stages(M))
+        B = self.B(self.stages(M))
         Bk = B[..., :, None, :, :]  # B_k acting on block row k
         Bl = B[..., None, :, :, :]  # B_l acting on block column l
         BM = Bk @ M
@@ -100,8 +99,8 @@ class BlockProblem(TableauProblem):
 
     def map_derivative(self, M: Array, dM: Array) -> Array:
         D = self.stages(M)
-        B = self.system.B(D)
-        dB = self.system.B_derivative(D, self.stages(dM))
+        B = self.B(D)
+        dB = self.B_derivative(D, self.stages(dM))
         Bk, Bl = B[..., :, None, :, :], B[..., None, :, :, :]
         dBk, dBl = dB[..., :, None, :, :], dB[..., None, :, :, :]
         BM = Bk @ M
@@ -109,7 +108,7 @@ class BlockProblem(TableauProblem):
         return self._combine(dBM, dM @ Bl + M @ dBl, dBM @ Bl + BM @ dBl)
 
     def frozen_map(self, M: Array) -> Array:
-        B = self.system.B(self.stages(M))
+        B = self.B(self.stages(M))
         s, n = self.A.shape[0], B.shape[-1]
         eye = np.eye(s * n, dtype=B.dtype)
         AB = _block_coefficient_matrix(self.A, B[..., None, :, :, :])  # blocks a_ik B_k
@@ -120,7 +119,7 @@ class BlockProblem(TableauProblem):
 
     def update(self, M: Array) -> Array:
         """``W1 = W0 + h sum_i b_i [B(M_ii), M_ii]``."""
-        return commutator_update(self.system, self.W0, self.stages(M), self.h * self.b)
+        return self.commutator_update(self.stages(M), self.h * self.b)
 
     def offsets(self, M: Array) -> Array:
         """``M`` minus its ``h = 0`` value, for warm starts."""
@@ -149,7 +148,6 @@ class ReducedProblem(TableauProblem):
         warm: Array | None = None,
     ) -> None:
         super().__init__(system, W0, h, tableau)
-        self.skew = system.algebra.skew
         s, n = tableau.stages, W0.shape[-1]
         trivial = np.empty((*W0.shape[:-2], 2, s, n, n), dtype=W0.dtype)
         trivial[..., 0, :, :, :] = np.eye(n)
@@ -171,15 +169,15 @@ class ReducedProblem(TableauProblem):
 
     def map(self, x: Array) -> Array:
         G, P = x[..., 0, :, :, :], x[..., 1, :, :, :]
-        B = self.system.B(dagger(G) @ P)
+        B = self.B(dagger(G) @ P)
         return self._assemble(G @ self._Bdag(B), P @ B, self.trivial)
 
     def map_derivative(self, x: Array, dx: Array) -> Array:
         G, P = x[..., 0, :, :, :], x[..., 1, :, :, :]
         dG, dP = dx[..., 0, :, :, :], dx[..., 1, :, :, :]
         W = dagger(G) @ P
-        B = self.system.B(W)
-        dB = self.system.B_derivative(W, dagger(dG) @ P + dagger(G) @ dP)
+        B = self.B(W)
+        dB = self.B_derivative(W, dagger(dG) @ P + dagger(G) @ dP)
         dGB = dG @ self._Bdag(B) + G @ self._Bdag(dB)
         dPB = dP @ B + P @ dB
         return self._assemble(dGB, dPB, 0.0)
@@ -187,7 +185,7 @@ class ReducedProblem(TableauProblem):
     def frozen_map(self, x: Array) -> Array:
         r"""With ``B`` frozen both stage equations are linear (row-block form):
         ``G (I - h B^†A^T) = [I ... I]`` and ``P (I + h B A^T) = [W0 ... W0]``."""
-        B = self.system.B(self.stages(x))
+        B = self.B(self.stages(x))
         s, n = self.A.shape[0], B.shape[-1]
         eye = np.eye(s * n, dtype=B.dtype)
         # blocks (j, i) = a_ij B_j: the matrix B A^T acting on a block row from the right
@@ -203,7 +201,7 @@ class ReducedProblem(TableauProblem):
 
     def update(self, x: Array) -> Array:
         """``W1 = W0 + h sum_i b_i [B(W_i), W_i]`` with ``W_i = G_i^† P_i``."""
-        return commutator_update(self.system, self.W0, self.stages(x), self.h * self.b)
+        return self.commutator_update(self.stages(x), self.h * self.b)
 
     def offsets(self, x: Array) -> Array:
         """``x`` minus its ``h = 0`` value ``(I, W0)``, for warm starts."""

@@ -13,7 +13,6 @@ from .base import (
     Scheme,
     StepResult,
     TableauProblem,
-    commutator_update,
     solve,
     solve_right,
     symplectic,
@@ -103,14 +102,14 @@ class ModinVivianiProblem(TableauProblem):
 
     def map(self, x: Array) -> Array:
         X, Y, K = self._split(x)
-        return self._rhs(X, Y, K, self.system.B(self._stages(X, Y, K, self.W0)))
+        return self._rhs(X, Y, K, self.B(self._stages(X, Y, K, self.W0)))
 
     def map_derivative(self, x: Array, dx: Array) -> Array:
         X, Y, K = self._split(x)
         dX, dY, dK = self._split(dx)
         W = self._stages(X, Y, K, self.W0)
-        B = self.system.B(W)
-        dB = self.system.B_derivative(W, self._stages(dX, dY, dK, 0.0))
+        B = self.B(W)
+        dB = self.B_derivative(W, self._stages(dX, dY, dK, 0.0))
         return self._rhs(X, Y, K, B, dB, dX, dY, dK)
 
     def frozen_map(self, x: Array) -> Array:
@@ -120,7 +119,7 @@ class ModinVivianiProblem(TableauProblem):
         ``(I - h B A) [K_i1; ...; K_is] = h [B_1 Z_i; ...; B_s Z_i]``, ``Z_i = sum_l a_il X_l``.
         """
         W0, A, h, s = self.W0, self.A, self.h, self.s
-        B = self.system.B(self.stages(x))
+        B = self.B(self.stages(x))
         n = B.shape[-1]
         eye = np.eye(s * n, dtype=B.dtype)
         batch = W0.shape[:-2]
@@ -143,7 +142,7 @@ class ModinVivianiProblem(TableauProblem):
 
     def update(self, x: Array) -> Array:
         """``W1 = W0 + h sum_i b_i [B(W~_i), W~_i]``."""
-        return commutator_update(self.system, self.W0, self.stages(x), self.h * self.b)
+        return self.commutator_update(self.stages(x), self.h * self.b)
 
 
 @attrs.frozen

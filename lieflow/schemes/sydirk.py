@@ -10,10 +10,10 @@ from ..errors import TableauError
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau, midpoint
-from .base import Scheme, StepResult, commutator_update, right_product, solve, solve_right
+from .base import Scheme, StageProblem, StepResult, right_product, solve, solve_right
 
 
-class MidpointProblem:
+class MidpointProblem(StageProblem):
     r"""The midpoint equation in minimal-variable form (SPEC §4.1).
 
     Solve :math:`W_0 = (I - \tfrac h2 B(M))\, M\, (I + \tfrac h2 B(M))` for ``M`` by
@@ -29,38 +29,34 @@ class MidpointProblem:
     def __init__(
         self, system: IsospectralSystem, W0: Array, h: float, warm: Array | None = None
     ) -> None:
-        self.system = system
-        self.W0 = W0
+        super().__init__(system, W0)
         self.half = 0.5 * float(h)
-        self.skew = system.algebra.skew
         self.x0 = W0 + warm if warm is not None else W0.copy()
 
     def map(self, M: Array) -> Array:
-        B = self.system.B(M)
+        B = self.B(M)
         BM = B @ M
         MB = right_product(BM, M, B, self.skew)
         q = self.half
         return self.W0 + q * (BM - MB) + (q * q) * (BM @ B)
 
     def map_derivative(self, M: Array, dM: Array) -> Array:
-        B = self.system.B(M)
-        dB = self.system.B_derivative(M, dM)
+        B = self.B(M)
+        dB = self.B_derivative(M, dM)
         q = self.half
         first = dB @ M + B @ dM - dM @ B - M @ dB
         second = dB @ M @ B + B @ dM @ B + B @ M @ dB
         return q * first + (q * q) * second
 
     def frozen_map(self, M: Array) -> Array:
-        B = self.system.B(M)
+        B = self.B(M)
         eye = np.eye(B.shape[-1], dtype=B.dtype)
         left = np.linalg.solve(eye - self.half * B, self.W0)
         return solve_right(left, eye + self.half * B)
 
     def update(self, M: Array) -> Array:
         """``W1 = W0 + h [B(M), M]``."""
-        return commutator_update(
-            self.system, self.W0, M[..., None, :, :], np.array([2 * self.half])
-        )
+        return self.commutator_update(M[..., None, :, :], np.array([2 * self.half]))
 
 
 def _composition_tableau(tableau: ButcherTableau) -> ButcherTableau:

@@ -1,0 +1,365 @@
+r"""Flows: one step ``W(t) -> W(t + h)`` with explicit state, and their compositions.
+
+A :class:`Flow` is what the driver (:mod:`lieflow.driver`) advances::
+
+    state = flow.init(W0)
+    W, state, stats = flow.step(W, t, h, state)
+
+``state`` is a tree of arrays (:mod:`lieflow.tree`) that the flow alone reads and writes —
+the warm start of an implicit scheme, nothing for an exact sub-flow — and that a
+checkpoint stores leaf by leaf, so a run resumes bit-for-bit. ``stats`` is a
+:class:`StepStats`. Three flows come with lieflow (compare GeometricIntegrators.jl's
+integrators, ``Composition`` and ``ProjectedMethod``):
+
+* :class:`SchemeFlow` — an ISOSyRK :class:`~lieflow.schemes.Scheme` on a system, solved by a
+  :class:`~lieflow.solvers.Solver`, with warm starts (SPEC §5);
+* :class:`Splitting` — a composition of flows (Lie–Trotter, Strang, symmetric compositions
+  of Strang steps of higher order), e.g. a conservative isospectral step with dissipation
+  and forcing;
+* :class:`Projected` — a flow followed by the system's phase-space projection.
+
+A flow written outside lieflow (an exact dissipative sub-step, a stochastic forcing) needs
+only ``name``, ``init`` and ``step``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any, Protocol, runtime_checkable
+
+import attrs
+import numpy as np
+
+from . import tree
+from .algebras import Array
+from .errors import InputError
+from .schemes.base import Scheme
+from .solvers.base import Solver
+from .solvers.fixed_point import FixedPoint
+from .systems.base import IsospectralSystem
+
+__all__ = ["Flow", "Projected", "SchemeFlow", "Splitting", "StepStats", "WarmStart"]
+
+
+@attrs.frozen
+class StepStats:
+    """What one step of a flow cost.
+
+    Attributes
+    ----------
+    iterations : int
+        Nonlinear-solver updates (summed over the sub-steps of a composition; 0 for an
+        explicit or exact flow).
+    solver : str
+        Name of the solver that finished the (last implicit sub-)step; ``""`` if none.
+    residual : float
+        The largest last relative update of the step's solves (0 if none).
+    """
+
+    iterations: int = 0
+    solver: str = ""
+    residual: float = 0.0
+
+
+@runtime_checkable
+class Flow(Protocol):
+    """One step of an evolution ``W(t) -> W(t + h)``, with state carried between steps."""
+
+    @property
+    def name(self) -> str:
+        """A short name (used in files and reports)."""
+        ...
+
+    def init(self, W0: Array) -> Any:
+        """The state before the first step from ``W0`` (a tree of arrays, or ``None``)."""
+        ...
+
+    def step(self, W: Array, t: float, h: float, state: Any) -> tuple[Array, Any, StepStats]:
+        """Advance ``W`` from time ``t`` by ``h``; return the new ``W``, state and stats."""
+        ...
+
+
+@attrs.frozen
+class WarmStart:
+    r"""Initial guesses from the previous steps' solutions (SPEC §5), as explicit state.
+
+    The unknowns of consecutive steps, as offsets :math:`\delta_k` from their ``h = 0``
+    values, vary smoothly in time, so the next is predicted by linear extrapolation
+    :math:`2\delta_k - \delta_{k-1}` (error :math:`O(h^3)` against :math:`O(h)` for the cold
+    guess :math:`\delta = 0`). The prediction is used only while it is *trusted*: after each
+    step the prediction that was (or would have been) made is compared with the solution
+    found, and it is trusted for the next step if it was closer than the cold guess. At
+    large ``h`` (where a step changes ``W`` a lot) this falls back to cold starts by itself.
+
+    The offsets may be one array or any tree of arrays (:mod:`lieflow.tree`); extrapolation
+    is leaf by leaf and trust is decided on the norm of the whole tree.
+    """
+
+    last: Any = attrs.field(default=None, repr=False)
+    previous: Any = attrs.field(default=None, repr=False)
+    trusted: bool = True
+
+    def prediction(self) -> Any:
+        """The extrapolated offsets (``None`` before the first step)."""
+        if self.last is None:
+            return None
+        if self.previous is None:
+            return self.last
+        return tree.map_leaves(lambda a, b: 2.0 * a - b, self.last, self.previous)
+
+    def guess(self) -> Any:
+        """The initial guess to use: the prediction if trusted, else ``None`` (cold)."""
+        return self.prediction() if self.trusted else None
+
+    def advance(self, solved: Any) -> WarmStart:
+        """The state after a step whose solved offsets are ``solved``."""
+        predicted = self.prediction()
+        trusted = predicted is None or tree.sum_of_squares(
+            tree.map_leaves(np.subtract, solved, predicted)
+        ) < tree.sum_of_squares(solved)
+        return WarmStart(solved, self.last, trusted)
+
+
+@attrs.frozen(eq=False)
+class SchemeFlow:
+    """A :class:`~lieflow.schemes.Scheme` on a system as a :class:`Flow`.
+
+    Each step solves the scheme's implicit equation with ``solver`` (warm-started from the
+    previous steps when ``warm_start``, SPEC §5) and maps the new state onto the system's
+    phase space (:meth:`~lieflow.IsospectralSystem.project`: a change at roundoff level for
+    a converged step, which keeps defects from accumulating over long runs). The state is
+    a :class:`WarmStart` (``None`` without warm starts).
+    """
+
+    system: IsospectralSystem
+    scheme: Scheme
+    solver: Solver = attrs.field(factory=FixedPoint)
+    warm_start: bool = True
+
+    @property
+    def name(self) -> str:
+        """The scheme's name."""
+        return self.scheme.name
+
+    @property
+    def order(self) -> int:
+        """The scheme's order."""
+        return self.scheme.order
+
+    def init(self, W0: Array) -> WarmStart | None:
+        """An empty warm start (``None`` without warm starts)."""
+        return WarmStart() if self.warm_start else None
+
+    def step(
+        self, W: Array, t: float, h: float, state: WarmStart | None
+    ) -> tuple[Array, WarmStart | None, StepStats]:
+        """One step of the scheme (autonomous: ``t`` is not used)."""
+        guess = None if state is None else state.guess()
+        res = self.scheme.step(self.system, W, h, self.solver, guess)
+        new = None if state is None else state.advance(res.warm)
+        return (
+            self.system.project(res.W),
+            new,
+            StepStats(res.iterations, res.solver, res.residual),
+        )
+
+
+def _check_flow(flow: object, what: str) -> None:
+    if not isinstance(flow, Flow):
+        raise InputError(
+            f"{what} must be a Flow (name, init(W0), step(W, t, h, state)), got "
+            f"{type(flow).__name__}; wrap a scheme as lieflow.SchemeFlow(system, scheme)"
+        )
+
+
+def _merge(sequence: Sequence[tuple[int, float]]) -> tuple[tuple[int, float], ...]:
+    """Join consecutive sub-steps of the same flow (their sizes add up)."""
+    out: list[tuple[int, float]] = []
+    for i, c in sequence:
+        if out and out[-1][0] == i:
+            out[-1] = (i, out[-1][1] + c)
+        else:
+            out.append((i, c))
+    return tuple(out)
+
+
+#: Symmetric compositions of a second-order symmetric step (Strang): coefficients
+#: ``gamma_k`` of ``S(gamma_m h) ... S(gamma_1 h)`` and the order reached.
+#: ``triple_jump``: Yoshida (1990), Suzuki (1990), order 4;
+#: ``suzuki5``: Suzuki's five-stage fractal, order 4 (smaller error constant).
+_COMPOSITIONS: dict[str, tuple[tuple[float, ...], int]] = {
+    "triple_jump": (
+        (
+            1 / (2 - 2 ** (1 / 3)),
+            -(2 ** (1 / 3)) / (2 - 2 ** (1 / 3)),
+            1 / (2 - 2 ** (1 / 3)),
+        ),
+        4,
+    ),
+    "suzuki5": (
+        (
+            1 / (4 - 4 ** (1 / 3)),
+            1 / (4 - 4 ** (1 / 3)),
+            1 - 4 / (4 - 4 ** (1 / 3)),
+            1 / (4 - 4 ** (1 / 3)),
+            1 / (4 - 4 ** (1 / 3)),
+        ),
+        4,
+    ),
+}
+
+
+def _sequence(seq: Sequence[tuple[int, float]]) -> tuple[tuple[int, float], ...]:
+    return tuple((int(i), float(c)) for i, c in seq)
+
+
+def _flows(flows: Sequence[Flow]) -> tuple[Flow, ...]:
+    return tuple(flows)
+
+
+@attrs.frozen(eq=False)
+class Splitting:
+    r"""A composition of flows: ``Φ_h = φ^{(i_m)}_{c_m h} ∘ ... ∘ φ^{(i_1)}_{c_1 h}``.
+
+    Parameters
+    ----------
+    flows : sequence of Flow
+        The flows composed (e.g. an isospectral :class:`SchemeFlow` and a dissipative
+        sub-flow).
+    sequence : sequence of (int, float)
+        The sub-steps in the order they are taken: which flow (an index into ``flows``)
+        and its step as a fraction of ``h``. Each flow's fractions must add up to 1 (the
+        composition is then consistent, order >= 1). Build the usual ones with
+        :meth:`lie`, :meth:`strang` and :meth:`composition`.
+    order : int
+        The composition's order as a splitting method (1 for Lie–Trotter, 2 for Strang),
+        given the sub-flows are exact or at least that accurate.
+
+    Notes
+    -----
+    Every sub-flow sees its own clock: the ``j``-th sub-step of flow ``i`` starts at
+    ``t + h (c_1 + ... + c_{j-1})`` summed over flow ``i``'s earlier sub-steps, which is
+    the standard time-stepping of splittings of non-autonomous flows. Each sub-step has its
+    own state slot (a tuple entry), so a warm start of a Strang half step is predicted from
+    the same half step of the previous steps. Negative fractions (compositions of order
+    > 2) run a sub-flow backwards; for a dissipative flow that is ill-posed in the limit,
+    so prefer Strang there.
+    """
+
+    flows: tuple[Flow, ...] = attrs.field(converter=_flows)
+    sequence: tuple[tuple[int, float], ...] = attrs.field(converter=_sequence)
+    order: int = 1
+
+    def __attrs_post_init__(self) -> None:
+        if not self.flows:
+            raise InputError("a Splitting needs at least one flow")
+        for k, flow in enumerate(self.flows):
+            _check_flow(flow, f"flows[{k}]")
+        totals = [0.0] * len(self.flows)
+        for i, c in self.sequence:
+            if not 0 <= i < len(self.flows):
+                raise InputError(
+                    f"sub-step of flow {i}: there are only {len(self.flows)} flows "
+                    f"(indices 0..{len(self.flows) - 1})"
+                )
+            if not math.isfinite(c):
+                raise InputError(f"sub-step fractions must be finite, got {c!r}")
+            totals[i] += c
+        for i, total in enumerate(totals):
+            if abs(total - 1.0) > 1e-12:
+                raise InputError(
+                    f"the sub-steps of flow {i} ({self.flows[i].name}) add up to {total!r} h, "
+                    "not h: the composition would not be consistent"
+                )
+
+    @classmethod
+    def lie(cls, first: Flow, second: Flow) -> Splitting:
+        """Lie–Trotter splitting ``φ^B_h ∘ φ^A_h`` (``first`` = A runs first), order 1."""
+        return cls((first, second), ((0, 1.0), (1, 1.0)), order=1)
+
+    @classmethod
+    def strang(cls, outer: Flow, inner: Flow) -> Splitting:
+        """Strang splitting ``φ^A_{h/2} ∘ φ^B_h ∘ φ^A_{h/2}`` (A = ``outer``), order 2."""
+        return cls((outer, inner), ((0, 0.5), (1, 1.0), (0, 0.5)), order=2)
+
+    @classmethod
+    def composition(
+        cls, outer: Flow, inner: Flow, method: str | Sequence[float] = "triple_jump"
+    ) -> Splitting:
+        r"""A symmetric composition :math:`S_{\gamma_m h} \circ \dots \circ S_{\gamma_1 h}`
+        of Strang steps :math:`S = ` :meth:`strang` ``(outer, inner)``, adjacent half
+        steps of ``outer`` merged (Hairer, Lubich & Wanner, *Geometric Numerical
+        Integration*, §II.4 and §V.3).
+
+        ``method`` is ``"triple_jump"`` (Yoshida 1990, order 4), ``"suzuki5"`` (order 4),
+        or symmetric coefficients ``gamma`` summing to 1 (order 2 claimed; raise it with
+        ``attrs.evolve(split, order=...)`` when the coefficients are known to do better).
+        """
+        if isinstance(method, str):
+            if method not in _COMPOSITIONS:
+                raise InputError(
+                    f"unknown composition {method!r}; choose one of {sorted(_COMPOSITIONS)} "
+                    "or give the coefficients"
+                )
+            gammas, order = _COMPOSITIONS[method]
+        else:
+            gammas, order = tuple(float(g) for g in method), 2
+            if not np.allclose(gammas, gammas[::-1], rtol=0, atol=1e-14):
+                raise InputError(f"composition coefficients must be symmetric, got {gammas}")
+        seq: list[tuple[int, float]] = []
+        for g in gammas:
+            seq += [(0, g / 2), (1, g), (0, g / 2)]
+        return cls((outer, inner), _merge(seq), order=order)
+
+    @property
+    def name(self) -> str:
+        """``"splitting(<flows>)"``."""
+        return f"splitting({', '.join(f.name for f in self.flows)})"
+
+    def init(self, W0: Array) -> tuple[Any, ...]:
+        """One state per sub-step."""
+        return tuple(self.flows[i].init(W0) for i, _ in self.sequence)
+
+    def step(
+        self, W: Array, t: float, h: float, state: tuple[Any, ...]
+    ) -> tuple[Array, tuple[Any, ...], StepStats]:
+        """Take the sub-steps in order, each flow on its own clock."""
+        clock = [t] * len(self.flows)
+        states: list[Any] = []
+        iterations, solver, residual = 0, "", 0.0
+        for (i, c), sub in zip(self.sequence, state, strict=True):
+            W, sub, stats = self.flows[i].step(W, clock[i], c * h, sub)
+            clock[i] += c * h
+            states.append(sub)
+            iterations += stats.iterations
+            if stats.solver:
+                solver, residual = stats.solver, max(residual, stats.residual)
+        return W, tuple(states), StepStats(iterations, solver, residual)
+
+
+@attrs.frozen(eq=False)
+class Projected:
+    """``flow`` followed by ``system``'s phase-space projection
+    (:meth:`~lieflow.IsospectralSystem.project`), e.g. after a sub-flow that does not keep
+    the state on the phase space by construction."""
+
+    flow: Flow
+    system: IsospectralSystem
+
+    def __attrs_post_init__(self) -> None:
+        _check_flow(self.flow, "flow")
+
+    @property
+    def name(self) -> str:
+        """``"projected(<flow>)"``."""
+        return f"projected({self.flow.name})"
+
+    def init(self, W0: Array) -> Any:
+        """The wrapped flow's state."""
+        return self.flow.init(W0)
+
+    def step(self, W: Array, t: float, h: float, state: Any) -> tuple[Array, Any, StepStats]:
+        """A step of the wrapped flow, projected."""
+        W, state, stats = self.flow.step(W, t, h, state)
+        return self.system.project(W), state, stats
