@@ -178,15 +178,16 @@ def test_harmonic_of_degree_l_is_an_eigenmatrix(N: int) -> None:
     for k, (l, m) in enumerate(zip(l_all, m_all, strict=True)):
         np.testing.assert_allclose(L.apply(Q[k]), -l * (l + 1) * Q[k], rtol=0, atol=1e-12)
         T = L.harmonic(int(l), int(m))
-        np.testing.assert_allclose(-1j * lz.kappa(N) * T, Q[k], rtol=0, atol=1e-14)
+        np.testing.assert_allclose(1j * lz.kappa(N) * T, Q[k], rtol=0, atol=1e-14)
     gram = np.einsum("aij,bij->ab", Q.conj(), Q)
     np.testing.assert_allclose(gram, lz.kappa(N) ** 2 * np.eye(N * N), atol=1e-13)
 
 
 @pytest.mark.parametrize("N", [2, 5, 8])
 def test_coordinate_functions_quantize_to_spin_matrices(N: int) -> None:
-    r"""``Q(x_a) = -iħ S_a`` (fixes κ and the Condon–Shortley signs), and
-    ``(1/ħ)[Q(z), Q(g)] = Q({z, g}) = -Q(∂_φ g)`` exactly (fixes the bracket's orientation)."""
+    r"""``Q(x_a) = iħ S_a`` (fixes κ and the Condon–Shortley signs), and
+    ``(1/ħ)[Q(z), Q(g)] = -Q({z, g}) = Q(∂_φ g)`` exactly (fixes the bracket's orientation:
+    ``{z, g} = -∂_φ g`` for the outward normal)."""
     S = spin_matrices(N)
     hb = lz.hbar(N)
     a = math.sqrt(2 * math.pi / 3)
@@ -195,12 +196,12 @@ def test_coordinate_functions_quantize_to_spin_matrices(N: int) -> None:
     x[1, lz.lm_index(1, -1)], x[1, lz.lm_index(1, 1)] = 1j * a, 1j * a  # sin θ sin φ
     x[2, lz.lm_index(1, 0)] = math.sqrt(4 * math.pi / 3)  # cos θ
     for k in range(3):
-        np.testing.assert_allclose(lz.sh_to_matrix(x[k]), -1j * hb * S[k], atol=1e-14)
+        np.testing.assert_allclose(lz.sh_to_matrix(x[k]), 1j * hb * S[k], atol=1e-14)
     g = lz.random_sh(N, degree=N - 1, seed=6)
     _, m = lz.degrees_and_orders(N)
     Qz, Qg = lz.sh_to_matrix(x[2]), lz.sh_to_matrix(g)
     np.testing.assert_allclose(
-        (Qz @ Qg - Qg @ Qz) / hb, -lz.sh_to_matrix(1j * m * g), rtol=0, atol=1e-13
+        (Qz @ Qg - Qg @ Qz) / hb, lz.sh_to_matrix(1j * m * g), rtol=0, atol=1e-13
     )
 
 
@@ -239,7 +240,7 @@ def test_random_state_and_algebra_random_are_smooth() -> None:
 # --------------------------------------------------------------------------- the system
 def test_energy_and_casimirs() -> None:
     N = 9
-    system = lz.EulerZeitlin(N)
+    system = lz.EulerZeitlin(N, time="matrix")
     W = np.stack([lz.random_vorticity(N, 5, seed=s) for s in range(3)])
     P = system.B(W)
     H = system.hamiltonian(W)
@@ -263,8 +264,9 @@ def test_energy_and_casimirs() -> None:
     expected = np.stack([np.sum(lam**k, axis=-1) for k in system.casimir_powers], axis=-1)
     np.testing.assert_allclose(C, expected, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(system.enstrophy(W), C[..., 0], rtol=1e-13)
-    # ħ-scaled bracket: B and H scale by 1/ħ
-    scaled = lz.EulerZeitlin(N, hbar_scaled=True)
+    # fluid time (the default): B and H scale by 1/ħ
+    scaled = lz.EulerZeitlin(N)
+    assert scaled.time == "fluid" and lz.EulerZeitlin(N, hbar_scaled=True).time == "fluid"
     np.testing.assert_allclose(scaled.B(W), P / lz.hbar(N), rtol=1e-13)
     np.testing.assert_allclose(scaled.hamiltonian(W), H / lz.hbar(N), rtol=1e-13)
 
@@ -302,7 +304,7 @@ def _final(scheme: lf.Scheme, system: lf.IsospectralSystem, W0: np.ndarray, n: i
 def test_observed_order(name: str, order: int) -> None:
     """``log2(e(h)/e(h/2))`` on the finest step pair with errors in ``[1e-12, 1e-2]``,
     against Gauss-6 (order 12) at h = 1/64; fluid time (ħ-scaled) 1, N = 5."""
-    system = lz.EulerZeitlin(5, hbar_scaled=True)
+    system = lz.EulerZeitlin(5, time="fluid")
     W0 = lz.random_vorticity(5, degree=4, seed=11, rms=1.5)
     ref = _final(lf.schemes.get("gauss", stages=6), system, W0, 64)
     scheme = lf.schemes.get(name)
@@ -365,10 +367,11 @@ def test_complex64_stays_single_precision_through_a_step(name: str, solver: str)
 
 def test_midpoint_warm_started_iterations() -> None:
     """Iterations (updates) per step of the warm-started midpoint fixed point on a smooth
-    rms-1 state, N = 16 (ρ(W) ≈ 1.8), after the first 5 steps. These are the measured
-    counts: ≤ 3 needs a small step (h = 0.05) and rtol 1e-10; the default rtol 1e-14 takes
-    4 at h = 0.05 and 5 at h = 0.1 (the extrapolated warm start is off by ~1e-5 relative)."""
-    system = lz.EulerZeitlin(16)
+    rms-1 state, N = 16 (ρ(W) ≈ 1.8), after the first 5 steps, in matrix time (h = 0.05 is
+    fluid time 0.05 ħ = 0.006). These are the measured counts: ≤ 3 needs a small step
+    (h = 0.05) and rtol 1e-10; the default rtol 1e-14 takes 4 at h = 0.05 and 5 at h = 0.1
+    (the extrapolated warm start is off by ~1e-5 relative)."""
+    system = lz.EulerZeitlin(16, time="matrix")
     W0 = lz.random_vorticity(16, degree=8, seed=0)
     midpoint = lf.schemes.get("midpoint")
 

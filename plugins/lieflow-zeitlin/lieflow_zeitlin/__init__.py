@@ -8,7 +8,7 @@ the system ``"euler_zeitlin"`` through the ``lieflow`` entry-point group::
 
     system = lf.systems.get("euler_zeitlin", N=64)
     W0 = lz.random_vorticity(64, degree=8, seed=0)          # smooth, rms vorticity 1
-    sol = lf.integrate(system, lf.schemes.get("gauss2"), W0, h=0.5, steps=200)
+    sol = lf.integrate(system, lf.schemes.get("gauss2"), W0, h=0.01, steps=200)  # fluid time 2
     omega = lz.matrix_to_grid(sol.W_final, lz.SphereGrid.for_size(64))   # back to a field
 
 Modules: :mod:`~lieflow_zeitlin.laplacian` (Hoppe–Yau Laplacian, O(N²) solve, quantized

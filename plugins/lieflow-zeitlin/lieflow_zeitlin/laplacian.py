@@ -2,13 +2,18 @@ r"""The Hoppe–Yau Laplacian on su(N): application, O(N²) inverse, quantized h
 
 Spin matrices and index convention
 ----------------------------------
-Rows and columns are indexed by ``i = 0..N-1`` ↔ the spin-``s`` weight ``μ = s - i``,
-``s = (N-1)/2``. The Hermitian spin matrices are
+Rows and columns are indexed by ``i = 0..N-1`` ↔ the spin-``s`` weight ``μ = i - s``
+(ascending), ``s = (N-1)/2``. The Hermitian spin matrices are
 
-.. math:: S_3 = \operatorname{diag}(s - i),\qquad (S_+)_{i-1,i} = \sqrt{i(N-i)},\qquad
+.. math:: S_3 = \operatorname{diag}(i - s),\qquad (S_+)_{i,i-1} = \sqrt{i(N-i)},\qquad
           S_- = S_+^T,\quad S_1 = \tfrac12(S_+ + S_-),\quad S_2 = \tfrac1{2i}(S_+ - S_-),
 
 so ``[S_1, S_2] = i S_3`` (cyclically) and ``Σ_a S_a² = s(s+1) I`` (:func:`spin_matrices`).
+The raising matrix ``S_+`` is *lower* triangular. This is the index order of quflow
+(Modin & Viviani): with it the quantization of :mod:`lieflow_zeitlin.quantization` gives the
+same matrix as quflow for the same field (``Q(x_a) = iħ S_a``). Reversing the index order
+(``J S_a J``, ``J`` the exchange matrix) gives the descending convention ``S_3 = diag(s - i)``
+of many physics texts; ``Δ_N`` below is the same in both.
 
 The Laplacian
 -------------
@@ -24,12 +29,15 @@ every diagonal ``m = j - k`` of ``P`` to itself and is tridiagonal there: with `
     (\Delta_N P)_i = -\big[(N-1)(2i+1+m) - 2i(i+m)\big] P_i + e_i P_{i-1} + e_{i+1} P_{i+1},
     \qquad e_i = \sqrt{i (N-i) (i+m) (N-i-m)}.
 
-``Δ_N`` has real coefficients and commutes with transposition, so diagonal ``-m`` (entries
-``P_{i, i+m}``) carries the same tridiagonal matrix. Its spectrum is ``-l(l+1)``,
-``l = 0..N-1``, with multiplicity ``2l+1``: on diagonal ``±m`` the eigenvalues are
-``-l(l+1)`` for ``l = |m|..N-1`` (the eigenvector of degree ``l`` on diagonal ``m`` is the
-quantized spherical harmonic ``T_{l,∓m}``, see :meth:`HoppeYauLaplacian.harmonics`). The
-kernel is spanned by the identity (``l = 0``), so on su(N) ``Δ_N`` is invertible.
+``Δ_N`` has real coefficients and commutes with transposition and with ``P -> J P J``
+(the tridiagonal matrices are persymmetric), so diagonal ``-m`` (entries ``P_{i, i+m}``)
+carries the same tridiagonal matrix. Its spectrum is ``-l(l+1)``, ``l = 0..N-1``, with
+multiplicity ``2l+1``: on diagonal ``±m`` the eigenvalues are ``-l(l+1)`` for
+``l = |m|..N-1`` (the eigenvector of degree ``l`` on the lower diagonal ``m >= 0`` is the
+quantized spherical harmonic ``T_{l,m}``, on the upper one ``T_{l,-m}``, see
+:func:`harmonics`). The kernel is spanned by the identity (``l = 0``), so on su(N) ``Δ_N``
+is invertible; the shifted operator ``Δ_N - F`` (``F > 0``, the quasi-geostrophic model)
+is invertible on all matrices and keeps the same eigenvectors.
 
 Solving ``Δ_N P = W`` in O(N²): the packed layout
 -------------------------------------------------
@@ -46,7 +54,9 @@ solves all of them at once, for every matrix of a batch, without gathering diago
 diagonal entry (lieflow SPEC §3), which makes every system negative definite so that the
 ``LDL^T`` factorisation needs no pivoting; the trace is removed before and after the solve,
 which makes :meth:`HoppeYauLaplacian.solve` the pseudo-inverse ``Δ_N^+`` (exact inverse on
-su(N)).
+su(N)). With a shift ``F > 0`` every system, ``m = 0`` included, is negative definite
+as it stands and nothing is pinned (the identity is an eigenvector of ``Δ_N - F``, so the
+traceless part of the solution is still that of the traceless part of ``W``).
 
 To cut the Python overhead of ``2N`` row operations, the sweeps are *partitioned*: rows are
 split into ``≈ √N`` blocks of ``≈ √N`` rows; the recurrences run inside all blocks at once,
@@ -87,7 +97,7 @@ def matrix_size(N: int) -> int:
 def spin_matrices(N: int) -> tuple[Array, Array, Array]:
     r"""The Hermitian spin-``(N-1)/2`` matrices ``(S_1, S_2, S_3)`` of the module convention.
 
-    ``S_3 = diag(s - i)``, ``(S_+)_{i-1,i} = sqrt(i (N-i))``, ``S_± = S_1 ± i S_2``;
+    ``S_3 = diag(i - s)``, ``(S_+)_{i,i-1} = sqrt(i (N-i))`` (lower), ``S_± = S_1 ± i S_2``;
     ``[S_1, S_2] = i S_3`` and ``S_1² + S_2² + S_3² = s(s+1) I`` with ``s = (N-1)/2``.
     Dense ``N×N`` complex arrays (for checks and small examples; the Laplacian never forms
     them).
@@ -95,9 +105,9 @@ def spin_matrices(N: int) -> tuple[Array, Array, Array]:
     N = matrix_size(N)
     i = np.arange(1, N)
     Sp = np.zeros((N, N), dtype=complex)
-    Sp[i - 1, i] = np.sqrt(i * (N - i))
+    Sp[i, i - 1] = np.sqrt(i * (N - i))
     Sm = Sp.T.copy()
-    S3 = np.diag((N - 1) / 2 - np.arange(N)).astype(complex)
+    S3 = np.diag(np.arange(N) - (N - 1) / 2).astype(complex)
     return 0.5 * (Sp + Sm), (Sp - Sm) / 2j, S3
 
 
@@ -154,8 +164,9 @@ class _BlockedFactor:
     dinv: Array
 
     @classmethod
-    def build(cls, N: int, block: int, scale: float, dtype: type) -> _BlockedFactor:
+    def build(cls, N: int, block: int, scale: float, shift: float, dtype: type) -> _BlockedFactor:
         d_packed, e_packed, valid = _packed_coefficients(N)
+        d_packed = d_packed - shift
         C = N + 1
         nb = -(-N // block)
         R = nb * block
@@ -163,7 +174,8 @@ class _BlockedFactor:
         e = np.zeros((R, C))
         d[:N] = np.where(valid, d_packed, 1.0)  # pads solve as the identity
         e[:N] = e_packed
-        d[0, 0] += PIN
+        if shift == 0:
+            d[0, 0] += PIN  # the singular m = 0 system; Δ_N - F (F > 0) is regular
         D = np.empty((R, C))
         lower = np.zeros((R, C))
         D[0] = d[0]
@@ -203,15 +215,20 @@ def _default_block(N: int) -> int:
 
 @attrs.frozen(eq=False)
 class HoppeYauLaplacian:
-    r"""The Hoppe–Yau Laplacian ``Δ_N = -Σ_a ad_{S_a}²`` on ``N×N`` matrices (module docs).
+    r"""The Hoppe–Yau Laplacian ``Δ_N = -Σ_a ad_{S_a}²`` on ``N×N`` matrices (module docs),
+    optionally shifted: the operator is ``L = Δ_N - shift · I``.
 
     Parameters
     ----------
     N : int
         Matrix size (``>= 2``); spin ``s = (N-1)/2``.
     scale : float
-        :meth:`solve` returns ``scale · Δ_N^+ W`` (the Euler–Zeitlin system uses
-        ``scale = 1/ħ`` for the ħ-scaled bracket); :meth:`apply` is unaffected.
+        :meth:`solve` returns ``scale · L^+ W`` (the Euler–Zeitlin system uses
+        ``scale = 1/ħ`` in fluid time); :meth:`apply` is unaffected.
+    shift : float, keyword-only
+        ``F >= 0`` in ``L = Δ_N - F`` (default 0): the Lamb parameter of the
+        quasi-geostrophic model, or ``2/(νh)`` in a Crank–Nicolson viscous step. Eigenvalues
+        ``-l(l+1) - F``; same eigenvectors as ``Δ_N``.
     block : int, optional
         Rows per block of the partitioned Thomas sweeps (default ``round(√N)``).
 
@@ -224,6 +241,7 @@ class HoppeYauLaplacian:
 
     N: int = attrs.field(converter=matrix_size)
     scale: float = attrs.field(default=1.0, converter=float)
+    shift: float = attrs.field(default=0.0, converter=float, kw_only=True)
     block: int = attrs.field(kw_only=True)
     _double: _BlockedFactor = attrs.field(init=False, repr=False)
     _single: _BlockedFactor = attrs.field(init=False, repr=False)
@@ -243,15 +261,21 @@ class HoppeYauLaplacian:
     def _double_default(self) -> _BlockedFactor:
         if not (math.isfinite(self.scale) and self.scale != 0):
             raise lieflow.InputError(f"scale must be finite and non-zero, got {self.scale!r}")
-        return _BlockedFactor.build(self.N, self.block, self.scale, np.float64)
+        if not (math.isfinite(self.shift) and self.shift >= 0):
+            raise lieflow.InputError(
+                f"shift must be finite and >= 0 (Δ_N - shift is then negative definite), "
+                f"got {self.shift!r}"
+            )
+        return _BlockedFactor.build(self.N, self.block, self.scale, self.shift, np.float64)
 
     @_single.default
     def _single_default(self) -> _BlockedFactor:
-        return _BlockedFactor.build(self.N, self.block, self.scale, np.float32)
+        return _BlockedFactor.build(self.N, self.block, self.scale, self.shift, np.float32)
 
     @_d.default
     def _d_default(self) -> Array:
-        return _packed_coefficients(self.N)[0]
+        d, _, valid = _packed_coefficients(self.N)
+        return np.where(valid, d - self.shift, 0.0)
 
     @_e.default
     def _e_default(self) -> Array:
@@ -268,7 +292,8 @@ class HoppeYauLaplacian:
         return X
 
     def apply(self, P: ArrayLike) -> Array:
-        r"""``Δ_N P = -Σ_a [S_a, [S_a, P]]`` in O(N²), broadcasting over leading axes."""
+        r"""``(Δ_N - shift) P`` with ``Δ_N P = -Σ_a [S_a, [S_a, P]]``, in O(N²), broadcasting
+        over leading axes."""
         P = self._check(P, "P")
         N, C = self.N, self.N + 1
         batch = P.shape[:-2]
@@ -282,7 +307,8 @@ class HoppeYauLaplacian:
         return out.reshape(*batch, N * C)[..., : N * N].reshape(P.shape)
 
     def solve(self, W: ArrayLike) -> Array:
-        r"""``scale · Δ_N^+ W``: the traceless ``P`` with ``Δ_N P = scale · (W - (tr W/N) I)``.
+        r"""``scale · L^+ W``: the traceless ``P`` with ``L P = scale · (W - (tr W/N) I)``,
+        ``L = Δ_N - shift``.
 
         One partitioned Thomas sweep over the packed layout (module docs) solves the
         ``2N-1`` tridiagonal systems of all matrices of the batch at once: O(N²) work,
@@ -334,16 +360,17 @@ class HoppeYauLaplacian:
 
     # ------------------------------------------------------------------ spectrum
     def eigenvalues(self) -> Array:
-        """``-l(l+1)`` for every coefficient index ``l(l+1)+m`` (length ``N²``)."""
+        """``-l(l+1) - shift`` for every coefficient index ``l(l+1)+m`` (length ``N²``)."""
         l = np.repeat(np.arange(self.N), 2 * np.arange(self.N) + 1)
-        return -(l * (l + 1)).astype(float)
+        return -(l * (l + 1)).astype(float) - self.shift
 
     def harmonics(self) -> Iterator[tuple[int, Array]]:
         """The quantized spherical harmonics of size ``N``: see :func:`harmonics`."""
         return harmonics(self.N)
 
     def harmonic(self, l: int, m: int) -> Array:
-        r"""The dense matrix harmonic :math:`T_{l,m}` (unit Frobenius norm, real entries).
+        r"""The dense matrix harmonic :math:`T_{l,m}` (unit Frobenius norm, real entries;
+        lower diagonal ``m`` for ``m >= 0``, upper diagonal ``|m|`` for ``m < 0``).
 
         O(N³) time (it runs :meth:`harmonics` down to ``|m|``): for checks and examples.
         """
@@ -356,9 +383,9 @@ class HoppeYauLaplacian:
                 i = np.arange(N - mm)
                 v = V[:, l - mm]
                 if m >= 0:
-                    T[i, i + mm] = v
+                    T[i + mm, i] = v
                 else:
-                    T[i + mm, i] = (-1) ** mm * v
+                    T[i, i + mm] = (-1) ** mm * v
                 return T
         raise AssertionError("unreachable")  # pragma: no cover
 
@@ -369,10 +396,11 @@ def harmonics(N: int) -> Iterator[tuple[int, Array]]:
 
     ``V_m`` is the real orthogonal ``(N-m)×(N-m)`` eigenvector matrix of the tridiagonal
     ``Δ_N`` on diagonal ``m``; column ``l - m`` (``l = m..N-1``) has eigenvalue
-    ``-l(l+1)`` and, placed on the super-diagonal ``m`` (entries ``(i, i+m)``), is the
+    ``-l(l+1)`` and, placed on the *lower* diagonal ``m`` (entries ``(i+m, i)``), is the
     Frobenius-normalised matrix harmonic :math:`T_{l,m}`; :math:`T_{l,-m} = (-1)^m
-    T_{l,m}^T` lives on the sub-diagonal. Signs follow the Condon–Shortley convention of
-    :math:`Y_{lm}`, transported to matrices by ``L_a ↔ ad S_a``:
+    T_{l,m}^T` lives on the upper diagonal. Signs follow the Condon–Shortley convention of
+    :math:`Y_{lm}`, transported to matrices by ``L_a ↔ ad S_a`` (``L = -i x × ∇``, the
+    spin matrices of :func:`spin_matrices`):
 
     * :math:`T_{l,l}` is a positive multiple of :math:`(-1)^l S_+^l` (as
       :math:`Y_{ll} ∝ (-1)^l (x+iy)^l`);
@@ -405,12 +433,13 @@ def harmonics(N: int) -> Iterator[tuple[int, Array]]:
 
 
 def _lower_ladder(N: int, m: int, V: Array) -> Array:
-    r"""``[S_-, T]`` restricted to diagonal ``m-1`` for the columns ``T`` of ``V`` on
-    super-diagonal ``m``: ``u_i = sqrt(i(N-i)) v_{i-1} - sqrt((i+m)(N-i-m)) v_i``,
-    ``i = 0..N-m`` (with ``v_{-1} = v_{N-m} = 0``); O((N-m)²)."""
+    r"""``[S_-, T]`` restricted to the lower diagonal ``m-1`` for the columns ``T`` of ``V``
+    on the lower diagonal ``m``: with ``(S_-)_{j-1,j} = sqrt(j(N-j))``,
+    ``u_j = sqrt((j+m)(N-j-m)) v_j - sqrt(j(N-j)) v_{j-1}``, ``j = 0..N-m`` (with
+    ``v_{-1} = v_{N-m} = 0``); O((N-m)²)."""
     n = N - m
-    i = np.arange(n + 1, dtype=float)[:, None]
+    j = np.arange(n + 1, dtype=float)[:, None]
     u = np.zeros((n + 1, V.shape[1]))
-    u[1:] += np.sqrt(i[1:] * (N - i[1:])) * V
-    u[:-1] -= np.sqrt((i[:-1] + m) * (N - i[:-1] - m)) * V
+    u[:-1] += np.sqrt((j[:-1] + m) * (N - j[:-1] - m)) * V
+    u[1:] -= np.sqrt(j[1:] * (N - j[1:])) * V
     return u

@@ -1,38 +1,72 @@
 r"""Fields on the sphere ↔ su(N) matrices: the Zeitlin quantization and its inverse.
 
+This module fixes the *orientation* of the whole plugin; the derivation is in the docs page
+``euler-zeitlin.md`` ("Conventions") and is summarised here.
+
+Sphere, bracket and Euler's equations
+-------------------------------------
+Points of the unit sphere are ``x = (sin θ cos φ, sin θ sin φ, cos θ)`` (colatitude ``θ``,
+longitude ``φ`` increasing *eastward*), oriented by the outward normal ``n̂ = x``: the frame
+``(n̂, θ̂, φ̂)`` is right-handed, ``dA = sin θ dθ ∧ dφ = dφ ∧ dz`` (``z = cos θ``). The
+Poisson bracket of this area form is
+
+.. math:: \{f, g\} = \hat n \cdot (\nabla f \times \nabla g)
+          = \frac{f_\theta g_\phi - f_\phi g_\theta}{\sin\theta}
+          = \partial_\phi f\, \partial_z g - \partial_z f\, \partial_\phi g,
+
+so ``{x_a, x_b} = ε_abc x_c`` (``{x, y} = z``). The velocity of an incompressible flow with
+stream function ``ψ`` is ``u = n̂ × ∇ψ`` and its vorticity ``ω = n̂ · curl u = Δψ``; then
+``u · ∇ω = n̂ · (∇ψ × ∇ω) = {ψ, ω}`` and Euler's equation ``ω_t + u · ∇ω = 0`` reads
+
+.. math:: \omega_t = -\{\psi, \omega\} = \{\omega, \psi\},\qquad \Delta\psi = \omega.
+
+(Check: ``ω = a cos θ`` gives ``ψ = -(a/2) cos θ`` and ``u = (a/2) sin θ φ̂``: a solid-body
+rotation *eastward* at angular speed ``a/2``, vorticity twice the angular speed.)
+
 Conventions
 -----------
 *Spherical harmonics* are complex with the Condon–Shortley phase, as in
-:func:`scipy.special.sph_harm_y`: :math:`Y_{lm}(\theta, \phi)` with colatitude ``θ`` and
-longitude ``φ``, orthonormal on the unit sphere, :math:`Y_{l,-m} = (-1)^m \overline{Y_{lm}}`.
-A field ``f = Σ_{l<N, |m|<=l} ω_{lm} Y_{lm}`` is stored as the vector of its ``N²``
-coefficients at index :func:`lm_index` ``(l, m) = l(l+1) + m``; it is real exactly when
+:func:`scipy.special.sph_harm_y`: :math:`Y_{lm}(\theta, \phi)`, orthonormal on the unit
+sphere, :math:`Y_{l,-m} = (-1)^m \overline{Y_{lm}}`. A field
+``f = Σ_{l<N, |m|<=l} ω_{lm} Y_{lm}`` is stored as the vector of its ``N²`` coefficients at
+index :func:`lm_index` ``(l, m) = l(l+1) + m``; it is real exactly when
 :math:`ω_{l,-m} = (-1)^m \overline{ω_{lm}}`.
 
 *Matrix harmonics* :math:`T_{lm}` are the Frobenius-orthonormal eigenvectors of the
 Hoppe–Yau Laplacian with eigenvalue ``-l(l+1)``, with the signs of
 :func:`~lieflow_zeitlin.laplacian.harmonics` (Condon–Shortley transported by
-``L_a ↔ ad S_a``), so :math:`T_{l,-m} = (-1)^m T_{lm}^T` with real entries.
+``L_a ↔ ad S_a``), so :math:`T_{l,-m} = (-1)^m T_{lm}^T` with real entries; ``T_{lm}``,
+``m >= 0``, lives on the lower diagonal ``m``.
 
 *The quantization* is the linear bijection
 
-.. math:: Q(f) = -i\,\kappa \sum_{l<N} \sum_{|m| \le l} \omega_{lm}\, T_{lm},
+.. math:: Q(f) = i\,\kappa \sum_{l<N} \sum_{|m| \le l} \omega_{lm}\, T_{lm},
           \qquad \kappa = \sqrt{N / (4\pi)},
 
 which maps real fields onto skew-Hermitian matrices, zero-mean fields onto su(N), and
-:math:`\Delta` to :math:`\Delta_N` exactly (``Δ Y_lm = -l(l+1) Y_lm``). The factor ``κ``
-makes ``Q`` match the standard normalisation of Zeitlin's model (Hoppe 1982; Zeitlin 2004;
-Modin & Viviani 2020): the coordinate functions map to ``Q(x_a) = -i ħ S_a`` exactly, with
-``ħ = 2/sqrt(N²-1)``, so that
+:math:`\Delta` to :math:`\Delta_N` exactly (``Δ Y_lm = -l(l+1) Y_lm``). It maps the
+coordinate functions to ``Q(x_a) = i ħ S_a`` exactly, ``ħ = 2/sqrt(N²-1)``, and
+``Q(L_a f) = [S_a, Q(f)]`` exactly (``L = -i x × ∇``). Since
+``[Q(x_a), Q(x_b)] = (iħ)² i ε_abc S_c = -ħ ε_abc Q(x_c) = -ħ Q({x_a, x_b})``,
 
-.. math:: \tfrac1\hbar [Q(f), Q(g)] = Q(\{f, g\}) + O(1/N),\qquad
-          \{f, g\} = x \cdot (\nabla f \times \nabla g) = \partial_\phi f\, \partial_z g
-          - \partial_z f\, \partial_\phi g,
+.. math:: \tfrac1\hbar [Q(f), Q(g)] = -Q(\{f, g\}) + O(N^{-1}),
 
-and the eigenvalues of ``i Q(f)`` approximate the values of ``f`` (so ``ρ(W) ≈ max|ω|``),
-while ``||Q(f)||_F² ≈ N · mean(f²)``. Grid functions are sampled at colatitudes ``θ_j`` and
-longitudes ``φ_k = 2πk/n_lon`` (:class:`SphereGrid`) and transformed with quadrature that is
-exact for band-limited fields; the associated Legendre functions come from
+*exactly* when ``f`` has degree 1 (``(1/ħ)[Q(z), Q(g)] = Q(∂_φ g)``). Hence Euler's
+``ω_t = -{ψ, ω}`` is the matrix flow
+
+.. math:: \dot W = \tfrac1\hbar [P, W],\qquad \Delta_N P = W,\qquad W = Q(\omega),
+
+which is lieflow's ``dW/dt = [B(W), W]`` with ``B(W) = (1/ħ) Δ_N^{-1} W``, forward in time
+(:class:`~lieflow_zeitlin.EulerZeitlin` with ``time="fluid"``). This is also quflow's
+convention: ``quflow.shc2mat`` of the same field (quflow's coefficients are
+``ω_lm/√(4π)``) returns the same matrix, measured to 5e-16 (quflow commit b42eede).
+Before lieflow-zeitlin 0.2 the map was ``-J Q(f) J`` (``J`` the index reversal), which
+satisfies the bracket relation with the opposite sign and ran Euler backwards.
+
+The eigenvalues of ``-i Q(f)`` approximate the values of ``f`` (so ``ρ(W) ≈ max|ω|``),
+while ``||Q(f)||_F² = (N/4π) ∫ f² dΩ`` exactly. Grid functions are sampled at colatitudes
+``θ_j`` and longitudes ``φ_k = 2πk/n_lon`` (:class:`SphereGrid`) and transformed with
+quadrature that is exact for band-limited fields; the associated Legendre functions come from
 :func:`scipy.special.sph_legendre_p_all` (same normalisation and phase as ``sph_harm_y``).
 
 Every transform here costs O(N³) (one tridiagonal eigenproblem per diagonal) but holds only
@@ -61,7 +95,7 @@ _CHUNK_VALUES = 4_000_000
 
 
 def hbar(N: int) -> float:
-    """Zeitlin's ``ħ = 2/sqrt(N² - 1)`` (``Q(x_a) = -i ħ S_a``)."""
+    """Zeitlin's ``ħ = 2/sqrt(N² - 1)`` (``Q(x_a) = i ħ S_a``)."""
     N = matrix_size(N)
     return 2.0 / math.sqrt(N * N - 1)
 
@@ -109,24 +143,24 @@ def sh_to_matrix(coeffs: ArrayLike, *, dtype: DTypeLike = np.complex128) -> Arra
     Returns
     -------
     ndarray, shape (..., N, N)
-        ``-i κ Σ ω_lm T_lm``; skew-Hermitian if the field is real, traceless if ``ω_00 = 0``.
+        ``i κ Σ ω_lm T_lm``; skew-Hermitian if the field is real, traceless if ``ω_00 = 0``.
     """
     c = np.asarray(coeffs)
     N = _size_from_coefficients(c)
     out = np.zeros((*c.shape[:-1], N, N), dtype=dtype)
-    factor = -1j * kappa(N)
+    factor = 1j * kappa(N)
     for m, V in harmonics(N):
         l = np.arange(m, N)
         i = np.arange(N - m)
-        out[..., i, i + m] = factor * (c[..., lm_index(l, m)] @ V.T)
+        out[..., i + m, i] = factor * (c[..., lm_index(l, m)] @ V.T)
         if m:
-            out[..., i + m, i] = (factor * (-1) ** m) * (c[..., lm_index(l, -m)] @ V.T)
+            out[..., i, i + m] = (factor * (-1) ** m) * (c[..., lm_index(l, -m)] @ V.T)
     return out
 
 
 def matrix_to_sh(W: ArrayLike) -> Array:
     r"""Coefficients ``ω_lm`` of the field ``f = Q^{-1}(W)``: the exact inverse of
-    :func:`sh_to_matrix` (``ω_lm = (i/κ) <T_lm, W>_F``).
+    :func:`sh_to_matrix` (``ω_lm = -(i/κ) <T_lm, W>_F``).
 
     Parameters
     ----------
@@ -141,14 +175,14 @@ def matrix_to_sh(W: ArrayLike) -> Array:
         raise lieflow.InputError(f"W must have shape (..., N, N), got {W.shape}")
     N = matrix_size(W.shape[-1])
     out = np.zeros((*W.shape[:-2], N * N), dtype=np.complex128)
-    factor = 1j / kappa(N)
+    factor = -1j / kappa(N)
     for m, V in harmonics(N):
         l = np.arange(m, N)
-        upper = np.diagonal(W, offset=m, axis1=-2, axis2=-1)
-        out[..., lm_index(l, m)] = factor * (upper @ V)
+        lower = np.diagonal(W, offset=-m, axis1=-2, axis2=-1)
+        out[..., lm_index(l, m)] = factor * (lower @ V)
         if m:
-            lower = np.diagonal(W, offset=-m, axis1=-2, axis2=-1)
-            out[..., lm_index(l, -m)] = (factor * (-1) ** m) * (lower @ V)
+            upper = np.diagonal(W, offset=m, axis1=-2, axis2=-1)
+            out[..., lm_index(l, -m)] = (factor * (-1) ** m) * (upper @ V)
     return out
 
 

@@ -1,45 +1,63 @@
-r"""The Euler–Zeitlin equations on su(N): Euler's equations on the sphere, quantized.
+r"""The Euler–Zeitlin equations on su(N): Euler's equations on the (rotating) sphere and the
+global quasi-geostrophic model, quantized.
 
-.. math:: \dot W = [B(W), W],\qquad B(W) = \sigma\, \Delta_N^{-1} W,
-          \qquad \sigma = 1 \text{ (default) or } 1/\hbar,
+Continuous model
+----------------
+With the conventions of :mod:`lieflow_zeitlin.quantization` (outward normal, ``u = n̂ × ∇ψ``,
+``{f, g} = n̂ · (∇f × ∇g)``), the equivalent-barotropic quasi-geostrophic equation on a
+sphere rotating at rate ``Ω`` about ``z`` is
 
-with the Hoppe–Yau Laplacian ``Δ_N`` (:mod:`lieflow_zeitlin.laplacian`) and
-``ħ = 2/sqrt(N² - 1)`` (lieflow SPEC §3; Zeitlin 1991, 2004; Modin & Viviani 2020).
+.. math:: q_t = -\{\psi, q\},\qquad q = \Delta\psi - F\psi + f,\qquad f = 2\Omega\cos\theta,
 
-Bracket and time convention
----------------------------
-With the quantization ``W = Q(ω)`` of :mod:`lieflow_zeitlin.quantization` (``Q(x_a) = -iħS_a``)
-one has ``(1/ħ)[Q(ψ), Q(ω)] = Q({ψ, ω}) + O(1/N²)`` with
-``{f, g} = ∂_φ f ∂_z g - ∂_z f ∂_φ g``. Hence
+with the Lamb parameter ``F >= 0``. ``F = 0`` is Euler's equation on the rotating sphere for
+the absolute vorticity ``q = ω + f``; ``F = Ω = 0`` is Euler's equation ``ω_t = -{ψ, ω}``.
+Since ``{ψ, q} = u · ∇q``, ``q`` is transported: every ``∫ g(q) dΩ`` is conserved.
 
-* ``hbar_scaled=False`` (default, SPEC §3): ``dW/dt = [P, W]``, ``Δ_N P = W``. This is the
-  vorticity equation ``ω_t = {ψ, ω}``, ``Δψ = ω``, in the slow time ``τ = ħ t``: one unit of
-  matrix time is ``ħ ≈ 2/N`` units of fluid time.
-* ``hbar_scaled=True``: ``dW/dt = (1/ħ)[P, W]``: matrix time is fluid time (the convention of
-  codes that scale the bracket by ``1/ħ``).
+Matrix model
+------------
+With ``W = Q(q)`` (the isospectral variable), ``F_f = Q(f) = 2Ω · iħ S_3`` (exact: ``f`` has
+degree 1) and ``L = Δ_N - F`` (shifted Hoppe–Yau Laplacian),
+
+.. math:: \dot W = [B(W), W],\qquad B(W) = \sigma P,\qquad
+          P = L^{-1}(W - F_f) = Q(\psi),\qquad \sigma = 1/\hbar \text{ or } 1,
+
+because ``(1/ħ)[Q(f), Q(g)] = -Q({f, g}) + O(1/N)`` (:mod:`~lieflow_zeitlin.quantization`).
+``B`` is affine when ``Ω != 0``; its derivative (Newton) is ``σ L^{-1}``.
+
+Time unit (the one place it is stated)
+--------------------------------------
+* ``time="fluid"`` (default): ``σ = 1/ħ``, ``ħ = 2/sqrt(N² - 1)``. ``t`` is the fluid's time:
+  a vorticity ``ω`` turns fluid at angular speed ``ω/2``, a rotation rate ``Ω`` is in
+  radians per unit ``t``, viscosities and drags are per unit ``t``.
+* ``time="matrix"``: ``σ = 1``, ``dW/dt = [P, W]`` (lieflow SPEC §3). One unit of this matrix
+  time is ``ħ ≈ 2/N`` units of fluid time; all physical parameters (``Ω``, ``F``, and the
+  rates of :mod:`lieflow_zeitlin.dissipation`) keep their fluid-time meaning.
 
 Energy and Casimirs
 -------------------
-The Hamiltonian is the kinetic energy
+The Hamiltonian is the energy
 
-.. math:: \eta(W) = -\tfrac12 \operatorname{Re}\operatorname{tr}(W^\dagger B(W))
-          = -\tfrac{\sigma}{2} \langle W, \Delta_N^{-1} W\rangle_F \;\ge\; 0,
+.. math:: \eta(W) = -\tfrac12 \operatorname{Re}\operatorname{tr}\big((W - F_f)^\dagger B(W)\big)
+          = -\tfrac{\sigma}{2} \langle W - F_f, L^{-1}(W - F_f)\rangle_F \;\ge\; 0,
 
-positive because ``Δ_N`` is negative definite on su(N); then ``B = (grad η)^†`` as lieflow
-requires (SPEC §1). For ``W = Q(ω)`` it *equals* ``(σ N/4π) · ½∫|∇ψ|² dΩ``, ``Δψ = ω``
-(``Q`` maps ``Δ`` to ``Δ_N`` and is an isometry up to ``κ² = N/4π``).
-The Casimirs are the real traces
+so that ``grad η = -σ P`` and ``B = (grad η)^†`` as lieflow requires (SPEC §1). For
+``W = Q(q)`` it *equals* ``(σ N/4π) · ½∫(|∇ψ|² + Fψ²) dΩ`` (``Q`` maps ``Δ`` to ``Δ_N`` and is
+an isometry up to ``κ² = N/4π``). The Casimirs are the real traces
 
 .. math:: C_k(W) = \operatorname{tr}\big((iW)^k\big),\qquad k \in \texttt{casimir\_powers},
 
-(``iW`` is Hermitian, with eigenvalues ``≈`` the vorticity values); ``C_2 = ||W||_F²`` is the
-enstrophy (``= (N/4π) ∫ω² dΩ`` exactly). ``tr W^k`` itself is imaginary for odd ``k``, which is why
-:meth:`EulerZeitlin.casimirs` overrides lieflow's default ``Re tr W^k``.
+(``iW`` is Hermitian, with eigenvalues ``≈ -q`` values); ``C_2 = ||W||_F²`` is the
+enstrophy of ``q`` (``= (N/4π) ∫q² dΩ`` exactly). ``tr W^k`` itself is imaginary for odd
+``k``, which is why :meth:`EulerZeitlin.casimirs` overrides lieflow's default ``Re tr W^k``.
+
+Users think in relative vorticity ``ζ = Δψ``: :meth:`EulerZeitlin.from_relative` and
+:meth:`EulerZeitlin.relative` convert (``q = ζ - FΔ^{-1}ζ + f``).
 """
 
 from __future__ import annotations
 
-from typing import Any
+import math
+from typing import Any, Literal
 
 import attrs
 import numpy as np
@@ -92,9 +110,37 @@ class VorticityAlgebra(lieflow.SU):
         return random_vorticity(self.n, self.degree, seed, rms=scale, dtype=self.precision)
 
 
+def _rotation(value: float) -> float:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        out = math.nan
+    if not math.isfinite(out):
+        raise lieflow.InputError(f"rotation (Ω) must be a finite number, got {value!r}")
+    return out
+
+
+def _lamb(value: float) -> float:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        out = math.nan
+    if not (math.isfinite(out) and out >= 0):
+        raise lieflow.InputError(
+            f"lamb (the Lamb parameter F) must be finite and >= 0, got {value!r}"
+        )
+    return out
+
+
+def _time_default(self: Any) -> str:
+    return "fluid" if self.hbar_scaled is None or self.hbar_scaled else "matrix"
+
+
 @attrs.frozen(eq=False)
 class EulerZeitlin(lieflow.IsospectralSystem):
-    r"""Euler's equations on the sphere, Zeitlin's su(N) model (module docs for conventions).
+    r"""Euler's equations on the sphere, Zeitlin's su(N) model, optionally on a rotating
+    sphere (``rotation = Ω``) and in the quasi-geostrophic form (``lamb = F``); module docs
+    for the equations and conventions.
 
     Parameters
     ----------
@@ -104,52 +150,130 @@ class EulerZeitlin(lieflow.IsospectralSystem):
     dtype : {"complex128", "complex64"}
         Precision of the states this system makes (random initial conditions). ``B`` works
         in the precision of its argument (complex64 in single, anything else in double).
-    hbar_scaled : bool
-        Scale the bracket by ``1/ħ`` (matrix time = fluid time); default ``False``
-        (``dW/dt = [P, W]``, SPEC §3).
+    hbar_scaled : bool, optional
+        Deprecated spelling of ``time``: ``True`` is ``"fluid"``, ``False`` ``"matrix"``.
+    time : {"fluid", "matrix"}
+        The time unit (module docs): ``"fluid"`` (default) integrates in the fluid's time,
+        ``dW/dt = (1/ħ)[P, W]``; ``"matrix"`` is ``dW/dt = [P, W]`` (time scaled by ``1/ħ``).
     random_degree : int
         Band limit of :meth:`algebra`'s random elements (smooth random initial vorticity).
+    rotation : float
+        Rotation rate ``Ω`` of the sphere (fluid time units); planetary vorticity
+        ``f = 2Ω cos θ``. The state is then the *absolute* vorticity ``W = Q(ω + f)``.
+    lamb : float
+        Lamb parameter ``F >= 0`` of the quasi-geostrophic model (``(a/L_d)²``); the state is
+        the potential vorticity ``W = Q(Δψ - Fψ + f)``.
 
     Notes
     -----
-    ``B(W) = σ Δ_N^{-1} W`` costs one O(N²) partitioned tridiagonal sweep over all diagonals
-    of all matrices of a batch (:meth:`HoppeYauLaplacian.solve`); ``B`` is linear
-    (``linear_B = True``), so Newton's method needs nothing more. For ``W`` outside su(N)
-    (Newton directions) ``B`` is the pseudo-inverse: the trace is projected out.
+    ``B(W) = σ (Δ_N - F)^{-1}(W - F_f)`` costs one O(N²) partitioned tridiagonal sweep over
+    all diagonals of all matrices of a batch (:meth:`HoppeYauLaplacian.solve`). ``B`` is
+    linear (``linear_B``) only without rotation; :meth:`B_derivative` is the linear part. For
+    ``W`` outside su(N) (Newton directions) the solve is the pseudo-inverse: the trace is
+    projected out.
     """
 
     N: int = attrs.field(default=8, converter=matrix_size)
     dtype: np.dtype = attrs.field(default=np.dtype(np.complex128), converter=_complex_dtype)
-    hbar_scaled: bool = attrs.field(default=False, validator=attrs.validators.instance_of(bool))
+    hbar_scaled: bool | None = attrs.field(
+        default=None,
+        validator=attrs.validators.optional(attrs.validators.instance_of(bool)),
+    )
     random_degree: int = attrs.field(default=8, converter=_degree)
+    time: Literal["fluid", "matrix"] = attrs.field(
+        default=attrs.Factory(_time_default, takes_self=True), kw_only=True
+    )
+    rotation: float = attrs.field(default=0.0, converter=_rotation, kw_only=True)
+    lamb: float = attrs.field(default=0.0, converter=_lamb, kw_only=True)
     laplacian: HoppeYauLaplacian = attrs.field(init=False, repr=False)
+    planetary: Array = attrs.field(init=False, repr=False)
 
-    linear_B = True
     casimir_powers = (2, 3, 4)
+
+    @time.validator
+    def _check_time(self, _attr: attrs.Attribute, value: str) -> None:
+        if value not in ("fluid", "matrix"):
+            raise lieflow.InputError(f'time must be "fluid" or "matrix", got {value!r}')
+        if self.hbar_scaled is not None and (value == "fluid") != self.hbar_scaled:
+            raise lieflow.InputError(
+                f"hbar_scaled={self.hbar_scaled} contradicts time={value!r} (hbar_scaled is "
+                'the old spelling: True is time="fluid", False is time="matrix"); give only time'
+            )
 
     @laplacian.default
     def _laplacian(self) -> HoppeYauLaplacian:
-        return HoppeYauLaplacian(self.N, scale=self.bracket_scale)
+        return HoppeYauLaplacian(self.N, scale=self.bracket_scale, shift=self.lamb)
+
+    @planetary.default
+    def _planetary(self) -> Array:
+        # Q(2Ω cos θ) = 2Ω · iħ S_3, S_3 = diag(i - s): exact (degree 1)
+        s = (self.N - 1) / 2
+        F = np.diag(2j * self.rotation * hbar(self.N) * (np.arange(self.N) - s))
+        F.setflags(write=False)
+        return F
 
     @property
     def bracket_scale(self) -> float:
-        """``σ``: ``1/ħ`` if ``hbar_scaled`` else ``1``."""
-        return 1.0 / hbar(self.N) if self.hbar_scaled else 1.0
+        """``σ``: ``1/ħ`` in fluid time, ``1`` in matrix time."""
+        return 1.0 / hbar(self.N) if self.time == "fluid" else 1.0
+
+    @property
+    def fluid_time_unit(self) -> float:
+        """Fluid time per unit of this system's time: ``1`` (fluid) or ``ħ`` (matrix)."""
+        return 1.0 if self.time == "fluid" else hbar(self.N)
+
+    @property
+    def linear_B(self) -> bool:  # type: ignore[override]
+        """``B`` is linear exactly when the sphere does not rotate (``Ω = 0``)."""
+        return self.rotation == 0.0
 
     @property
     def algebra(self) -> VorticityAlgebra:
         """su(N) (random elements are smooth vorticity fields)."""
         return VorticityAlgebra(self.N, degree=self.random_degree, precision=self.dtype)
 
+    def _anomaly(self, W: Array) -> Array:
+        W = np.asarray(W)
+        if self.rotation == 0.0:
+            return W
+        return W - self.planetary.astype(np.result_type(W.dtype, np.complex64), copy=False)
+
     def B(self, W: Array) -> Array:
-        r"""``σ Δ_N^{-1} W`` (stream matrix ``P``), broadcasting over leading axes."""
-        return self.laplacian.solve(W)
+        r"""``σ (Δ_N - F)^{-1}(W - F_f)`` (``σ`` times the stream matrix), broadcasting."""
+        return self.laplacian.solve(self._anomaly(W))
+
+    def B_derivative(self, W: Array, dW: Array) -> Array:
+        """``B'(W)[dW] = σ (Δ_N - F)^{-1} dW`` (``B`` is affine)."""
+        return self.laplacian.solve(dW)
+
+    def stream(self, W: ArrayLike) -> Array:
+        r"""The stream matrix ``P = Q(ψ) = (Δ_N - F)^{-1}(W - F_f)`` (no ``σ``)."""
+        return self.B(np.asarray(W)) / self.bracket_scale
+
+    def from_relative(self, W_rel: ArrayLike) -> Array:
+        r"""The state ``Q(q)`` of the relative vorticity matrix ``Q(ζ)``, ``ζ = Δψ``:
+        ``W = W_rel - F Δ_N^{-1} W_rel + F_f`` (``W_rel + F_f`` without the Lamb term)."""
+        W_rel = np.asarray(W_rel)
+        W = W_rel + self.planetary.astype(np.result_type(W_rel.dtype, np.complex64))
+        if self.lamb:
+            W = W - self.lamb * HoppeYauLaplacian(self.N).solve(W_rel).astype(W.dtype)
+        return W
+
+    def relative(self, W: ArrayLike) -> Array:
+        r"""The relative vorticity matrix ``Q(ζ) = Δ_N P`` of the state ``W = Q(q)``:
+        ``W - F_f + F P`` (``W - F_f`` without the Lamb term); inverse of
+        :meth:`from_relative`."""
+        W = np.asarray(W)
+        Z = self._anomaly(W)
+        if self.lamb:
+            Z = Z + self.lamb * self.stream(W).astype(Z.dtype)
+        return Z
 
     def hamiltonian(self, W: Array) -> Array:
-        r"""Kinetic energy ``-½ Re tr(W^† B(W)) >= 0``, shape ``W.shape[:-2]``."""
-        W = np.asarray(W)
-        P = self.B(W)
-        return -0.5 * np.real(np.sum(np.conj(W) * P, axis=(-2, -1)))
+        r"""Energy ``-½ Re tr((W - F_f)^† B(W)) >= 0``, shape ``W.shape[:-2]``."""
+        A = self._anomaly(W)
+        P = self.laplacian.solve(A)
+        return -0.5 * np.real(np.sum(np.conj(A) * P, axis=(-2, -1)))
 
     def casimirs(self, W: Array) -> Array:
         r"""``tr((iW)^k)`` for ``k`` in :attr:`casimir_powers` (real), last axis indexes k.
