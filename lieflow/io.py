@@ -913,6 +913,13 @@ def _write_slot(
     slot.attrs[_DIGEST] = checkpoint_digest(index, t, items)
 
 
+def _checked(value: Array) -> dict[str, Any]:
+    """Dataset options for HDF5's Fletcher-32 checksum on the whole array (one chunk);
+    an empty or scalar array cannot be chunked and goes without."""
+    value = np.asarray(value)
+    return {"chunks": value.shape, "fletcher32": True} if value.size and value.ndim else {}
+
+
 def _put(group: h5py.Group, name: str, value: Array, cache: dict[str, Any]) -> None:
     """Write ``value`` to dataset ``name`` of ``group`` in place (``cache`` keeps handles)."""
     value = np.asarray(value)
@@ -923,8 +930,7 @@ def _put(group: h5py.Group, name: str, value: Array, cache: dict[str, Any]) -> N
         del group[name]
         ds = None
     if ds is None:
-        checked = {"chunks": value.shape, "fletcher32": True} if value.size and value.ndim else {}
-        cache[name] = group.create_dataset(name, data=value, **checked)
+        cache[name] = group.create_dataset(name, data=value, **_checked(value))
     else:
         ds[...] = value
 
@@ -954,7 +960,7 @@ def _initialise(f: h5py.File, setup: RunSetup) -> None:
     }
     for key, value in meta.items():
         f.attrs[key] = value
-    f.create_group("initial").create_dataset("W0", data=W0)
+    f.create_group("initial").create_dataset("W0", data=W0, **_checked(W0))
     H0 = system.hamiltonian(W0)
     C0 = system.casimirs(W0)
     tr = f.create_group("trajectory")
