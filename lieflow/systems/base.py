@@ -115,7 +115,8 @@ class IsospectralSystem(ABC):
         Shape ``W.shape[:-2]`` (batched over leading axes); 0 for the zero matrix.
         """
         W = np.asarray(W)
-        scale = np.maximum(frobenius_norm(W), np.finfo(float).tiny)
+        tiny = np.finfo(W.real.dtype).tiny if W.dtype.kind in "fc" else np.finfo(float).tiny
+        scale = np.maximum(frobenius_norm(W), tiny)
         dist: Array = frobenius_norm(W - self.project(W)) / scale
         return dist
 

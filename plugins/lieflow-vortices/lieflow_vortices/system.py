@@ -256,8 +256,9 @@ class PointVortices(lieflow.IsospectralSystem):
     def _pair_terms(self, m: Array) -> tuple[Array, Array]:
         """``d_ij = 1 - m_i·m_j/(Γ_iΓ_j)`` (1 on the diagonal) and ``w_ij = 1/d_ij`` (0 on it)."""
         gram = m @ np.swapaxes(m, -1, -2)
-        d = 1.0 - gram * self._inv_gg
-        return d, self._offdiag / d
+        dt = np.result_type(m.dtype, np.float32)  # float32 states stay float32
+        d = 1.0 - gram * self._inv_gg.astype(dt, copy=False)
+        return d, self._offdiag.astype(dt, copy=False) / d
 
     def B(self, W: Array) -> Array:
         r"""``B(W) = blockdiag(hat(b_i))``, :math:`b_i = \frac{1}{4\pi}\sum_{j\ne i} w_{ij} m_j`,
@@ -276,7 +277,7 @@ class PointVortices(lieflow.IsospectralSystem):
         _, w = self._pair_terms(m)
         dm_mT = dm @ np.swapaxes(m, -1, -2)
         dgram = dm_mT + np.swapaxes(dm_mT, -1, -2)
-        dw = (w * w) * dgram * self._inv_gg
+        dw = (w * w) * dgram * self._inv_gg.astype(w.dtype, copy=False)
         return block_hat(_INV_4PI * (dw @ m + w @ dm))
 
     def hamiltonian(self, W: Array) -> Array:
@@ -286,7 +287,7 @@ class PointVortices(lieflow.IsospectralSystem):
         """
         d, _ = self._pair_terms(block_vee(W))
         # sum over i != j counts each pair twice; log d_ii = log 1 = 0
-        eta: Array = _INV_4PI * np.sum(self._gg * np.log(d), axis=(-2, -1))
+        eta: Array = _INV_4PI * np.sum(self._gg.astype(d.dtype) * np.log(d), axis=(-2, -1))
         return eta
 
     def energy(self, W: Array) -> Array:
