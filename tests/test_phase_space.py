@@ -1,0 +1,156 @@
+"""The phase space of every registered system: its projection, and the distance from it.
+
+``IsospectralSystem.project`` maps onto the set the exact flow keeps states in (symmetric
+matrices for the Toda lattice, the spheres ``|m_i| = |Γ_i|`` for point vortices, su(N) for
+Euler–Zeitlin, so(n) for rigid bodies) and ``project_stage`` onto its linear span. These
+tests check that both are projections, that the distance detects every way of leaving the
+phase space (``LieAlgebra.distance`` is identically 0 on gl(n) and cannot), and that the
+projection changes a converged step by roundoff only (measured: <= 1.7e-16 relative, 0 for
+Toda; the stage projection changes a Toda step by <= 7e-17).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import SCHEMES
+from lieflow_vortices import PointVortices
+
+import lieflow as lf
+
+EPS = float(np.finfo(float).eps)
+
+
+def _ambient(system: lf.IsospectralSystem, seed: int, dtype: np.dtype | None = None) -> np.ndarray:
+    """A random matrix of the system's size and kind (not in the phase space)."""
+    rng = np.random.default_rng(seed)
+    n = system.algebra.n
+    X = rng.standard_normal((n, n))
+    if system.algebra.dtype.kind == "c":
+        X = X + 1j * rng.standard_normal((n, n))
+    return X.astype(dtype or system.algebra.dtype)
+
+
+def test_random_states_are_on_the_phase_space(system: lf.IsospectralSystem) -> None:
+    for seed in range(3):
+        assert float(system.phase_space_distance(system.random_state(seed))) <= 4 * EPS
+
+
+def test_project_is_a_projection(system: lf.IsospectralSystem) -> None:
+    X = _ambient(system, 0)
+    P = system.project(X)
+    assert P.shape == X.shape and P.dtype == X.dtype
+    assert float(system.phase_space_distance(P)) <= 4 * EPS
+    np.testing.assert_allclose(system.project(P), P, rtol=0, atol=4 * EPS * np.linalg.norm(P))
+    # the nearest point: no other point Q of the phase space (Q = project(anything)) is
+    # closer, near P (local optimality) or far from it
+    d = np.linalg.norm(X - P)
+    for seed in range(20):
+        Q = system.project(P + 10.0 ** (-seed % 4) * _ambient(system, 100 + seed))
+        assert np.linalg.norm(X - Q) >= d * (1 - 1e-12)
+
+
+def test_project_stage_is_linear_and_orthogonal(system: lf.IsospectralSystem) -> None:
+    X, Y = _ambient(system, 1), _ambient(system, 2)
+    PX, PY = system.project_stage(X), system.project_stage(Y)
+    tol = 8 * EPS * (np.linalg.norm(X) + np.linalg.norm(Y))
+    np.testing.assert_allclose(system.project_stage(2 * X - 3 * Y), 2 * PX - 3 * PY, atol=tol)
+    np.testing.assert_allclose(system.project_stage(PX), PX, rtol=0, atol=tol)
+    assert abs(lf.LieAlgebra.inner(X - PX, PY)) <= tol * np.linalg.norm(Y)
+    # the phase space lies in the span: projecting a state onto the span changes nothing
+    W = system.random_state(4)
+    np.testing.assert_allclose(system.project_stage(W), W, rtol=0, atol=4 * EPS)
+
+
+def test_distance_is_batched(system: lf.IsospectralSystem) -> None:
+    X = np.stack([[_ambient(system, s + 3 * k) for s in range(3)] for k in range(2)])
+    d = system.phase_space_distance(X)
+    assert d.shape == (2, 3)
+    assert d[1, 2] == pytest.approx(float(system.phase_space_distance(X[1, 2])), rel=1e-14)
+    P = system.project(X)
+    np.testing.assert_allclose(P[1, 2], system.project(X[1, 2]), rtol=0, atol=1e-15)
+
+
+def _off_phase_space(system: lf.IsospectralSystem, W: np.ndarray) -> np.ndarray:
+    """A direction out of the phase space: asymmetric for Toda, a trace for su(N), a
+    radial one for vortices, symmetric for so(n)."""
+    n = W.shape[-1]
+    if isinstance(system, lf.systems.PeriodicToda):
+        E = np.zeros((n, n))
+        E[0, 1] = 1.0
+        return E
+    if isinstance(system, PointVortices):
+        return W  # changes every radius |m_i|
+    if system.algebra.dtype.kind == "c":
+        return 1j * np.eye(n)  # skew-Hermitian, not traceless
+    return np.eye(n)
+
+
+@pytest.mark.parametrize("size", [1e-10, 1e-6])
+def test_distance_detects_leaving_the_phase_space(
+    system: lf.IsospectralSystem, size: float
+) -> None:
+    W = system.random_state(5)
+    E = _off_phase_space(system, W)
+    V = W + size * E / np.linalg.norm(E)
+    d = float(system.phase_space_distance(V))
+    assert d == pytest.approx(size / np.linalg.norm(V), rel=0.5)
+
+
+def test_toda_asymmetry_is_invisible_to_the_algebra_but_not_to_the_phase_space() -> None:
+    toda = lf.systems.get("periodic_toda")
+    W = toda.random_state(0)
+    W[0, 1] += 1e-8
+    assert float(toda.algebra.distance(W)) == 0.0  # gl(n): every matrix is in the algebra
+    assert float(toda.phase_space_distance(W)) > 1e-9
+
+
+@pytest.mark.parametrize("name", SCHEMES)
+def test_projection_changes_a_converged_step_by_roundoff(
+    system: lf.IsospectralSystem, name: str
+) -> None:
+    """``scheme.step`` (no projection of the new state) lands on the phase space to
+    roundoff, so projecting it changes nothing measurable (measured: <= 1.7e-16)."""
+    W0 = system.random_state(7)
+    W1 = lf.schemes.get(name).step(system, W0, 0.1, lf.solvers.FixedPoint()).W
+    assert float(system.phase_space_distance(W1)) <= 8 * EPS
+    assert np.linalg.norm(system.project(W1) - W1) <= 8 * EPS * np.linalg.norm(W1)
+
+
+def test_solution_measures_the_phase_space() -> None:
+    toda = lf.systems.get("periodic_toda")
+    sol = lf.integrate(toda, lf.schemes.get("gauss2"), lf.systems.PAPER_W0, 0.1, steps=20)
+    assert sol.phase_space_distance().shape == (21,)
+    assert sol.phase_space_distance().max() <= 4 * EPS
+    np.testing.assert_array_equal(sol.algebra_distance(), sol.phase_space_distance())
+
+
+def test_vortex_projection_puts_each_vortex_on_its_sphere() -> None:
+    system = PointVortices(strengths=(1.0, -2.0, 0.5))
+    W = system.random_state(0)
+    V = system.project(1.1 * W + 1e-3 * _ambient(system, 9))
+    m = lf_block_vee(V)
+    np.testing.assert_allclose(np.linalg.norm(m, axis=-1), [1.0, 2.0, 0.5], rtol=1e-15)
+    assert system.algebra.contains(V, tol=1e-15)
+    assert float(system.phase_space_distance(1.1 * W)) == pytest.approx(0.1 / 1.1, rel=1e-12)
+
+
+def lf_block_vee(W: np.ndarray) -> np.ndarray:
+    from lieflow_vortices import block_vee
+
+    out: np.ndarray = block_vee(W)
+    return out
+
+
+def test_toda_gradient_extension_has_all_of_gl_n_as_phase_space() -> None:
+    ext = lf.systems.get("periodic_toda", gl_gradient=True)
+    X = np.random.default_rng(0).standard_normal((4, 4))
+    assert float(ext.phase_space_distance(X)) == 0.0
+    assert ext.hadamard_factor is None
+    # same B, same trajectory on symmetric matrices
+    toda = lf.systems.get("periodic_toda")
+    W = toda.random_state(1)
+    np.testing.assert_array_equal(ext.B(W), toda.B(W))
+    a = lf.integrate(toda, lf.schemes.get("gauss3"), W, 0.1, steps=50, engine="numpy")
+    b = lf.integrate(ext, lf.schemes.get("gauss3"), W, 0.1, steps=50, engine="numpy")
+    np.testing.assert_allclose(a.W_final, b.W_final, rtol=0, atol=1e-13)
