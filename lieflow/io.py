@@ -37,7 +37,7 @@ import time
 from collections.abc import Mapping
 from pathlib import Path
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 import attrs
 import numpy as np
@@ -48,6 +48,7 @@ from .config import ConfigError, RunSetup, identity_changes
 from .driver import Chunk, Diagnostics, Monitor
 from .errors import ConvergenceError, LieflowError
 from .flows import WarmStart
+from .integrate import Engine, scheme_flow
 
 try:
     import fcntl
@@ -1076,7 +1077,8 @@ def run(
     """
     cfg = setup.config.run
     target = cfg.steps
-    flow = setup.flow()
+    flow = scheme_flow(setup.system, setup.scheme, setup.solver, setup.W0, target,
+                       engine=cast(Engine, cfg.engine))  # fmt: skip
     if resume and setup.output.exists():
         writer, ck = TrajectoryWriter.reopen(setup)
         W, done = ck.W, ck.step
