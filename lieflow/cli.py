@@ -182,7 +182,7 @@ def _parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("list", help="list systems, schemes and solvers (plugins included)")
-    p.add_argument("--kind", choices=("system", "scheme", "solver"), help="only this kind")
+    p.add_argument("--kind", choices=("system", "scheme", "solver", "flow"), help="only this kind")
     p.add_argument("-v", "--verbose", action="store_true", help="show who registered each")
     p.set_defaults(func=_cmd_list)
 

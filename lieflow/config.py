@@ -19,6 +19,10 @@ settings::
     name = "fixed_point"
     params = { rtol = 1e-15 }
 
+    [splitting]          # optional: compose the scheme with other flows (plugins')
+    method = "strang"    # lie, strang, triple_jump or suzuki5; the scheme is the inner flow
+    flows = [{ name = "viscosity", params = { nu = 1e-4 } }]
+
     [run]
     h = 0.1
     steps = 2000         # or t_final = 200.0 (a whole number of steps h): exactly one
@@ -42,13 +46,15 @@ import sys
 from collections.abc import Mapping
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import attrs
 import numpy as np
 
 from .algebras import Array
 from .errors import LieflowError, PluginError
+from .flows import Flow, Splitting
+from .integrate import Engine, scheme_flow
 from .plugins import Kind, Registry, default_registry
 from .schemes.base import Scheme
 from .solvers.base import Solver
@@ -66,6 +72,7 @@ __all__ = [
     "InitialCondition",
     "RunSettings",
     "RunSetup",
+    "SplittingSettings",
     "build",
     "check_output_path",
     "identity_changes",
@@ -73,7 +80,8 @@ __all__ = [
     "parse_config",
 ]
 
-_SECTIONS = ("system", "initial", "scheme", "solver", "run")
+_SECTIONS = ("system", "initial", "scheme", "solver", "splitting", "run")
+_OPTIONAL = ("solver", "splitting")
 
 
 class ConfigError(LieflowError, ValueError):
@@ -111,6 +119,28 @@ class Component:
     def as_dict(self) -> dict[str, Any]:
         """A plain (JSON-able) dictionary."""
         return {"name": self.name, "params": dict(self.params)}
+
+
+@attrs.frozen
+class SplittingSettings:
+    """The optional ``[splitting]`` section: the scheme composed with other flows.
+
+    Attributes
+    ----------
+    method : str
+        ``"lie"``, ``"strang"``, ``"triple_jump"`` or ``"suzuki5"``
+        (:meth:`lieflow.Splitting.named`).
+    flows : tuple of Component
+        Registered flows (``lieflow list --kind flow``) in the order of
+        :meth:`lieflow.Splitting.strang`; the scheme is the last, inner flow.
+    """
+
+    method: str
+    flows: tuple[Component, ...]
+
+    def as_dict(self) -> dict[str, Any]:
+        """A plain (JSON-able) dictionary."""
+        return {"method": self.method, "flows": [c.as_dict() for c in self.flows]}
 
 
 @attrs.frozen
@@ -208,6 +238,7 @@ class Config:
     run: RunSettings
     text: str = attrs.field(repr=False)
     source: str = "<string>"
+    splitting: SplittingSettings | None = None
 
     def identity(self) -> str:
         """JSON of everything that defines the trajectory except its length and location.
@@ -222,6 +253,7 @@ class Config:
                 "solver": self.solver.as_dict(),
                 "h": self.run.h,
                 "save_every": self.run.save_every,
+                **({} if self.splitting is None else {"splitting": self.splitting.as_dict()}),
             },
             sort_keys=True,
             default=str,
@@ -245,6 +277,8 @@ class RunSetup:
     replace : bool
         Whether a new run may replace an existing ``output`` (``lieflow run --force``);
         if false, an existing file is refused, even one created after the check.
+    flows : tuple of Flow
+        The ``[splitting]`` flows (empty without one).
     """
 
     config: Config
@@ -254,6 +288,17 @@ class RunSetup:
     W0: Array = attrs.field(repr=False)
     output: Path
     replace: bool = True
+    flows: tuple[Flow, ...] = ()
+
+    def flow(self) -> Flow:
+        """What the run advances: the scheme as a :class:`~lieflow.SchemeFlow` on the
+        ``[run] engine``, composed with the ``[splitting]`` flows if there are any."""
+        run = self.config.run
+        inner = scheme_flow(self.system, self.scheme, self.solver, self.W0, run.steps,
+                            engine=cast(Engine, run.engine))  # fmt: skip
+        if self.config.splitting is None:
+            return inner
+        return Splitting.named(self.config.splitting.method, *self.flows, inner)
 
 
 def _flatten(value: Any, prefix: str, out: dict[str, Any]) -> dict[str, Any]:
@@ -414,6 +459,30 @@ def _component(raw: Mapping[str, Any], name: str, source: str) -> Component:
     return comp
 
 
+def _splitting(raw: Mapping[str, Any], source: str) -> SplittingSettings:
+    from .flows import SPLITTINGS
+
+    sec = _Section(raw, "splitting", source)
+    method = sec.string("method", required=False, hint='"strang"') or "strang"
+    if method not in SPLITTINGS:
+        raise sec.error(
+            "method",
+            f"unknown splitting {method!r}",
+            f"use one of {', '.join(map(repr, SPLITTINGS))}",
+        )
+    hint = '[{ name = "<registered flow>", params = { ... } }]'
+    items = sec._raw("flows", True, hint)
+    if not isinstance(items, list) or not items or not all(isinstance(i, dict) for i in items):
+        raise sec.error(
+            "flows",
+            f"expected a non-empty list of tables, got {items!r}",
+            f"write flows = {hint} (see `lieflow list --kind flow`)",
+        )
+    sec.finish()
+    flows = tuple(_component(item, f"splitting.flows[{i}]", source) for i, item in enumerate(items))
+    return SplittingSettings(method, flows)
+
+
 def _initial(raw: Mapping[str, Any], source: str, base: Path) -> InitialCondition:
     sec = _Section(raw, "initial", source)
     given = [k for k in ("random", "matrix", "file") if sec.has(k)]
@@ -469,8 +538,9 @@ def _steps(sec: _Section, h: float) -> tuple[int, float | None]:
         raise _fail(
             sec.source,
             "[run] steps",
-            "neither steps nor t_final is given" if not given else "both steps and t_final "
-            "are given",
+            "neither steps nor t_final is given"
+            if not given
+            else "both steps and t_final are given",
             "give exactly one: steps = <number of steps> or t_final = <final time>",
         )
     if given[0] == "steps":
@@ -553,7 +623,7 @@ def parse_config(
             f"remove it or correct its spelling; sections are {', '.join(_SECTIONS)}",
         )
     for name in _SECTIONS:
-        if name not in data and name != "solver":
+        if name not in data and name not in _OPTIONAL:
             raise _fail(
                 source,
                 f"[{name}]",
@@ -575,6 +645,7 @@ def parse_config(
         run=_run(data["run"], source, base, f"{stem}.h5"),
         text=text,
         source=source,
+        splitting=_splitting(data["splitting"], source) if "splitting" in data else None,
     )
 
 
@@ -631,17 +702,27 @@ def check_output_path(path: Path, key: str, source: str = "") -> Path:
     return path
 
 
-def _create(registry: Registry, kind: Kind, comp: Component, source: str) -> Any:
-    entry_key = f"[{kind}] name"
+def _create(
+    registry: Registry,
+    kind: Kind,
+    comp: Component,
+    source: str,
+    section: str = "",
+    **context: Any,
+) -> Any:
+    """Build ``comp`` from the registry (``context``: arguments beyond its params, e.g. a
+    flow's ``system``); ``section`` names it in messages (default ``[kind]``)."""
+    section = section or f"[{kind}]"
+    entry_key = f"{section} name"
     try:
         entry = registry.entry(kind, comp.name)
     except LieflowError as exc:
         raise ConfigError(
             f"{source}: {entry_key}: {exc}. To fix: use a known name.", entry_key
         ) from None
-    params_key = f"[{kind}] params"
+    params_key = f"{section} params"
     try:
-        return entry.create(**comp.params)
+        return entry.create(**context, **comp.params)
     except PluginError as exc:
         raise ConfigError(f"{source}: {entry_key}: {exc}.", entry_key) from None
     except Exception as exc:
@@ -724,9 +805,13 @@ def build(
     system = _create(reg, "system", config.system, source)
     scheme = _create(reg, "scheme", config.scheme, source)
     solver = _create(reg, "solver", config.solver, source)
+    flows = tuple(
+        _create(reg, "flow", comp, source, f"[splitting] flows[{i}]", system=system)
+        for i, comp in enumerate(() if config.splitting is None else config.splitting.flows)
+    )
     W0 = _initial_state(config, system)
     if output is None:
         out = check_output_path(config.run.output, "[run] output", source)
     else:
         out = check_output_path(Path(output), "--out")
-    return RunSetup(config, system, scheme, solver, W0, out, replace)
+    return RunSetup(config, system, scheme, solver, W0, out, replace, flows)

@@ -173,6 +173,12 @@ def _check_flow(flow: object, what: str) -> None:
         )
 
 
+def _strang(m: int, g: float) -> list[tuple[int, float]]:
+    """Sub-steps of one Strang step of size ``g h`` of ``m`` flows (the last one inner)."""
+    outer = [(i, g / 2) for i in range(m - 1)]
+    return [*outer, (m - 1, g), *outer[::-1]]
+
+
 def _merge(sequence: Sequence[tuple[int, float]]) -> tuple[tuple[int, float], ...]:
     """Join consecutive sub-steps of the same flow (their sizes add up)."""
     out: list[tuple[int, float]] = []
@@ -216,6 +222,10 @@ def _sequence(seq: Sequence[tuple[int, float]]) -> tuple[tuple[int, float], ...]
 
 def _flows(flows: Sequence[Flow]) -> tuple[Flow, ...]:
     return tuple(flows)
+
+
+#: The splittings by name (:meth:`Splitting.named`, ``[splitting] method``).
+SPLITTINGS = ("lie", "strang", *_COMPOSITIONS)
 
 
 @attrs.frozen(eq=False)
@@ -274,23 +284,25 @@ class Splitting:
                 )
 
     @classmethod
-    def lie(cls, first: Flow, second: Flow) -> Splitting:
-        """Lie–Trotter splitting ``φ^B_h ∘ φ^A_h`` (``first`` = A runs first), order 1."""
-        return cls((first, second), ((0, 1.0), (1, 1.0)), order=1)
+    def lie(cls, *flows: Flow) -> Splitting:
+        """Lie–Trotter splitting ``φ^{(m)}_h ∘ ... ∘ φ^{(1)}_h`` (``flows[0]`` runs
+        first), order 1."""
+        return cls(flows, [(i, 1.0) for i in range(len(flows))], order=1)
 
     @classmethod
-    def strang(cls, outer: Flow, inner: Flow) -> Splitting:
-        """Strang splitting ``φ^A_{h/2} ∘ φ^B_h ∘ φ^A_{h/2}`` (A = ``outer``), order 2."""
-        return cls((outer, inner), ((0, 0.5), (1, 1.0), (0, 0.5)), order=2)
+    def strang(cls, *flows: Flow) -> Splitting:
+        """Strang splitting, order 2: half steps of ``flows[0], ..., flows[-2]``, a full
+        step of ``flows[-1]``, then the half steps in reverse order. With two flows:
+        ``φ^A_{h/2} ∘ φ^B_h ∘ φ^A_{h/2}``. Put the costly flow (an implicit scheme) last:
+        it then runs once per step."""
+        return cls(flows, _strang(len(flows), 1.0), order=2)
 
     @classmethod
-    def composition(
-        cls, outer: Flow, inner: Flow, method: str | Sequence[float] = "triple_jump"
-    ) -> Splitting:
+    def composition(cls, *flows: Flow, method: str | Sequence[float] = "triple_jump") -> Splitting:
         r"""A symmetric composition :math:`S_{\gamma_m h} \circ \dots \circ S_{\gamma_1 h}`
-        of Strang steps :math:`S = ` :meth:`strang` ``(outer, inner)``, adjacent half
-        steps of ``outer`` merged (Hairer, Lubich & Wanner, *Geometric Numerical
-        Integration*, §II.4 and §V.3).
+        of Strang steps :math:`S = ` :meth:`strang` ``(*flows)``, adjacent sub-steps of the
+        same flow merged (Hairer, Lubich & Wanner, *Geometric Numerical Integration*,
+        §II.4 and §V.3).
 
         ``method`` is ``"triple_jump"`` (Yoshida 1990, order 4), ``"suzuki5"`` (order 4),
         or symmetric coefficients ``gamma`` summing to 1 (order 2 claimed; raise it with
@@ -307,10 +319,20 @@ class Splitting:
             gammas, order = tuple(float(g) for g in method), 2
             if not np.allclose(gammas, gammas[::-1], rtol=0, atol=1e-14):
                 raise InputError(f"composition coefficients must be symmetric, got {gammas}")
-        seq: list[tuple[int, float]] = []
-        for g in gammas:
-            seq += [(0, g / 2), (1, g), (0, g / 2)]
-        return cls((outer, inner), _merge(seq), order=order)
+        seq = [sub for g in gammas for sub in _strang(len(flows), g)]
+        return cls(flows, _merge(seq), order=order)
+
+    @classmethod
+    def named(cls, method: str, *flows: Flow) -> Splitting:
+        """:meth:`lie`, :meth:`strang`, or :meth:`composition` with ``method``
+        (``"triple_jump"``, ``"suzuki5"``), by name."""
+        if method == "lie":
+            return cls.lie(*flows)
+        if method == "strang":
+            return cls.strang(*flows)
+        if method in _COMPOSITIONS:
+            return cls.composition(*flows, method=method)
+        raise InputError(f"unknown splitting {method!r}; choose one of {', '.join(SPLITTINGS)}")
 
     @property
     def name(self) -> str:

@@ -37,7 +37,7 @@ import time
 from collections.abc import Mapping
 from pathlib import Path
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any, Literal, cast
+from typing import TYPE_CHECKING, Any, Literal
 
 import attrs
 import numpy as np
@@ -48,7 +48,6 @@ from .config import ConfigError, RunSetup, identity_changes
 from .driver import Chunk, Diagnostics, Monitor
 from .errors import ConvergenceError, LieflowError
 from .flows import WarmStart
-from .integrate import Engine, scheme_flow
 
 try:
     import fcntl
@@ -1077,8 +1076,7 @@ def run(
     """
     cfg = setup.config.run
     target = cfg.steps
-    flow = scheme_flow(setup.system, setup.scheme, setup.solver, setup.W0, target,
-                       engine=cast(Engine, cfg.engine))  # fmt: skip
+    flow = setup.flow()
     if resume and setup.output.exists():
         writer, ck = TrajectoryWriter.reopen(setup)
         W, done = ck.W, ck.step

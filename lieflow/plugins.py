@@ -13,6 +13,11 @@ point in the group ``lieflow`` pointing at a module (or object) with a hook impl
     def lieflow_register(registry):
         registry.add_system("point_vortices", PointVortices, "N point vortices on the sphere")
 
+A plugin may also register *flows* — sub-steps such as dissipation or forcing that
+``lieflow run`` composes with the scheme (``[splitting]``) — with
+``registry.add_flow("viscosity", Viscosity)``: the factory is called as
+``factory(system=system, **params)`` and must return a :class:`~lieflow.flows.Flow`.
+
 A plugin may also register extra ``lieflow plot`` figures for trajectory files of a system,
 ``registry.add_plotter("euler_zeitlin", plot_run)`` with ``plot_run(trajectory, out_dir,
 stem) -> list of PNG paths`` (see :class:`Plotter`).
@@ -54,8 +59,8 @@ ERRORS_ENV = "LIEFLOW_PLUGIN_ERRORS"
 hookspec = pluggy.HookspecMarker(PROJECT)
 hookimpl = pluggy.HookimplMarker(PROJECT)
 
-Kind = Literal["system", "scheme", "solver"]
-KINDS: tuple[Kind, ...] = ("system", "scheme", "solver")
+Kind = Literal["system", "scheme", "solver", "flow"]
+KINDS: tuple[Kind, ...] = ("system", "scheme", "solver", "flow")
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 
 
@@ -126,11 +131,17 @@ def _signature(factory: Callable[..., Any]) -> str:
 
 def _check_kind(kind: Kind, obj: Any) -> str | None:
     """Why ``obj`` is not a valid ``kind`` (or ``None`` if it is)."""
+    from .flows import Flow
     from .schemes.base import Scheme
     from .solvers.base import Solver
     from .systems.base import IsospectralSystem
 
-    expected: type = {"system": IsospectralSystem, "scheme": Scheme, "solver": Solver}[kind]
+    expected: type = {
+        "system": IsospectralSystem,
+        "scheme": Scheme,
+        "solver": Solver,
+        "flow": Flow,
+    }[kind]
     return (
         None
         if isinstance(obj, expected)
@@ -174,6 +185,11 @@ class RegistryBuilder:
     def add_solver(self, name: str, factory: Callable[..., Any], description: str = "") -> None:
         """Register a :class:`~lieflow.solvers.Solver` class or factory."""
         self._add("solver", name, factory, description)
+
+    def add_flow(self, name: str, factory: Callable[..., Any], description: str = "") -> None:
+        """Register a :class:`~lieflow.flows.Flow` factory, called as
+        ``factory(system=system, **params)`` (a sub-step for ``[splitting]``)."""
+        self._add("flow", name, factory, description)
 
     def add_plotter(self, system: str, function: PlotFunction, description: str = "") -> None:
         """Register extra ``lieflow plot`` figures for trajectory files of ``system``.
@@ -263,6 +279,7 @@ class Registry:
     systems: Mapping[str, Entry]
     schemes: Mapping[str, Entry]
     solvers: Mapping[str, Entry]
+    flows: Mapping[str, Entry] = attrs.field(factory=lambda: MappingProxyType({}))
     plotters: Mapping[str, Plotter] = attrs.field(factory=lambda: MappingProxyType({}))
 
     def table(self, kind: Kind) -> Mapping[str, Entry]:
