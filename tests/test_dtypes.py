@@ -1,0 +1,58 @@
+"""Single precision stays single on every registered system (float32 / complex64).
+
+Every method of a system (B, its derivative, eta, Casimirs, the projections) and a whole
+run must keep the precision of the state: numpy promotes ``float32 * float64-array`` to
+float64, which is how ``-W * self.weights`` used to return float64 in the rigid bodies and
+the Toda lattice.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import lieflow as lf
+
+
+def _single(system: lf.IsospectralSystem) -> tuple[np.ndarray, np.dtype]:
+    W = system.random_state(seed=0)
+    dt = np.dtype(np.complex64 if np.iscomplexobj(W) else np.float32)
+    return W.astype(dt), dt
+
+
+def test_system_methods_keep_single_precision(system: lf.IsospectralSystem) -> None:
+    W, dt = _single(system)
+    real = np.dtype(np.float32)
+    assert system.B(W).dtype == dt
+    assert system.B_derivative(W, W).dtype == dt
+    assert system.project(W).dtype == dt
+    assert system.project_stage(W).dtype == dt
+    assert system.algebra.project(W).dtype == dt
+    assert np.asarray(system.hamiltonian(W)).dtype == real
+    assert np.asarray(system.casimirs(W)).dtype == real
+    assert np.asarray(system.phase_space_distance(W)).dtype == real
+
+
+def test_double_precision_stays_double(system: lf.IsospectralSystem) -> None:
+    W = system.random_state(seed=0)
+    dt = np.dtype(np.complex128 if np.iscomplexobj(W) else np.float64)
+    assert W.dtype == dt
+    assert system.B(W).dtype == dt and system.project(W).dtype == dt
+
+
+@pytest.mark.parametrize("name", ["midpoint", "gauss3", "sydirk7", "modin_viviani"])
+def test_single_precision_run(system: lf.IsospectralSystem, name: str) -> None:
+    W, dt = _single(system)
+    sol = lf.integrate(system, lf.schemes.get(name), W, h=0.05, steps=20, engine="numpy")
+    assert sol.success and sol.W.dtype == dt
+    eps = float(np.finfo(np.float32).eps)
+    assert sol.phase_space_distance().max() <= 8 * eps
+    assert sol.spectrum_drift().max() <= 1e3 * eps  # isospectral to single-precision roundoff
+
+
+def test_single_precision_compiled_or_fallback() -> None:
+    """engine="auto" on a float32 rigid body: whatever engine runs, float32 comes back."""
+    system = lf.systems.get("generalized_rigid_body")
+    W = system.random_state(0).astype(np.float32)
+    sol = lf.integrate(system, lf.schemes.get("gauss2"), W, h=0.05, steps=2000)
+    assert sol.W.dtype == np.float32
