@@ -609,6 +609,12 @@ def parse_config(
     ConfigError
         Invalid TOML, a missing, ill-typed or unknown key.
     """
+    if not isinstance(text, str):
+        raise ConfigError(
+            f"{source}: the configuration must be TOML text (str), got "
+            f"{type(text).__name__}. To fix: pass a str (decode bytes with .decode('utf-8')), "
+            "or use load_config(path) for a file."
+        )
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -652,6 +658,11 @@ def parse_config(
 def load_config(path: Path | str) -> Config:
     """Read and parse the configuration file ``path`` (relative paths inside it are relative
     to its directory)."""
+    if not isinstance(path, (str, os.PathLike)) or not str(path):
+        raise ConfigError(
+            f"the configuration path must be a file path (str or pathlib.Path), got {path!r}. "
+            "To fix: pass the path of a .toml file."
+        )
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
@@ -811,7 +822,17 @@ def build(
     )
     W0 = _initial_state(config, system)
     if output is None:
-        out = check_output_path(config.run.output, "[run] output", source)
+        key, out = "[run] output", check_output_path(config.run.output, "[run] output", source)
     else:
-        out = check_output_path(Path(output), "--out")
+        key, out = "--out", check_output_path(Path(output), "--out")
+    inputs = [("the configuration", Path(source))]
+    if config.initial.file is not None:
+        inputs.append(("the [initial] file", config.initial.file))
+    for what, path in inputs:
+        if out.exists() and path.exists() and os.path.samefile(out, path):
+            raise ConfigError(
+                f"{source}: {key}: {str(out)!r} is {what} of this run; writing the trajectory "
+                "there would destroy it. To fix: choose another output file.",
+                key,
+            )
     return RunSetup(config, system, scheme, solver, W0, out, replace, flows)

@@ -46,7 +46,7 @@ from . import _signals, driver, tree
 from .algebras import Array
 from .config import ConfigError, RunSetup, identity_changes
 from .driver import Chunk, Diagnostics, Monitor
-from .errors import ConvergenceError, LieflowError
+from .errors import ConvergenceError, InputError, LieflowError
 from .flows import WarmStart
 
 try:
@@ -202,6 +202,16 @@ class Trajectory:
 
 def _where(path: Path) -> str:
     return repr(str(path))
+
+
+def _as_path(path: object, what: str = "path") -> Path:
+    """``path`` as a :class:`Path`, or :class:`InputError` for anything else."""
+    if isinstance(path, (str, os.PathLike)) and str(path):
+        return Path(path)
+    raise InputError(
+        f"{what} must be a file path (str or pathlib.Path), got {path!r}. To fix: pass the "
+        "path of a file written by `lieflow run`."
+    )
 
 
 def _check_signature(path: Path, fix: str) -> None:
@@ -422,7 +432,7 @@ def read_checkpoint(path: Path | str) -> Checkpoint:
     LieflowError
         The file is missing, not HDF5, not a lieflow trajectory, or damaged.
     """
-    p = Path(path)
+    p = _as_path(path)
     with _open(p, "r") as f, _Reading(p):
         _check_format(f, p)
         return _read_checkpoint(f, p)
@@ -440,7 +450,7 @@ def read_trajectory(path: Path | str) -> Trajectory:
     LieflowError
         The file is missing, not HDF5, not a lieflow trajectory, or damaged.
     """
-    p = Path(path)
+    p = _as_path(path)
     with _open(p, "r") as f, _Reading(p):
         _check_format(f, p)
         ck = _read_checkpoint(f, p)

@@ -49,7 +49,7 @@ from typing import Any, Literal
 import attrs
 import pluggy
 
-from .errors import LieflowError, PluginError, RegistryError
+from .errors import InputError, LieflowError, PluginError, RegistryError
 
 PROJECT = "lieflow"
 ENTRY_POINT_GROUP = "lieflow"
@@ -112,6 +112,12 @@ class Entry:
             raise RegistryError(
                 f"{self.kind} {self.name!r} does not accept {sorted(params)}: {exc}. "
                 f"Its parameters are {sig}"
+            ) from exc
+        except (ValueError, ArithmeticError, LookupError, AttributeError) as exc:
+            raise InputError(
+                f"{self.kind} {self.name!r} rejected its parameters {params!r}: "
+                f"{type(exc).__name__}: {exc}. To fix: check their values; its parameters are "
+                f"{_signature(self.factory)}"
             ) from exc
         problem = _check_kind(self.kind, obj)
         if problem:

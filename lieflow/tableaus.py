@@ -107,7 +107,13 @@ def one_of(*options: str) -> Callable[[Any, Any, Any], None]:
 
 
 def _frozen_array(value: object) -> np.ndarray:
-    arr = np.array(value, dtype=float)
+    try:
+        arr = np.array(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise TableauError(
+            f"tableau coefficients must be real numbers, got {value!r} ({exc}). To fix: pass "
+            "A as an s×s array and b, c as length-s arrays of floats"
+        ) from None
     arr.setflags(write=False)
     return arr
 
@@ -301,9 +307,14 @@ def composition(weights: Sequence[float], order: int, name: str) -> ButcherTable
     A step of size ``h`` is midpoint steps of sizes ``b_1 h, ..., b_s h``; the tableau has
     ``a_ij = b_j`` for ``j < i`` and ``a_ii = b_i / 2``.
     """
-    b = np.asarray(weights, dtype=float)
+    try:
+        b = np.asarray(weights, dtype=float)
+    except (TypeError, ValueError):
+        b = np.empty((0,))
     if b.ndim != 1 or b.size < 1:
-        raise TableauError(f"composition weights must be a non-empty 1-D sequence, got {weights!r}")
+        raise TableauError(
+            f"composition weights must be a non-empty 1-D sequence of numbers, got {weights!r}"
+        )
     A = np.tril(np.broadcast_to(b, (b.size, b.size)), -1) + np.diag(b / 2)
     return ButcherTableau(A=A, b=b, order=order, name=name)
 

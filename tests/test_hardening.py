@@ -277,3 +277,53 @@ def test_identity_changes_of_parameters() -> None:
     assert identity_changes(a, b) == ["[system] params.inertia: [1.0, 2.0, 3.0] -> [1.0, 2.0, 4.0]"]
     assert identity_changes(a, a) == []
     assert identity_changes("not json", a) == []
+
+
+# -- the sweep: bad inputs to public functions and commands ----------------------------------
+
+
+@pytest.mark.parametrize("path", [None, 3, ""])
+def test_readers_refuse_non_paths(path: Any) -> None:
+    for read in (io.read_trajectory, io.read_checkpoint):
+        with pytest.raises(InputError, match="must be a file path"):
+            read(path)
+
+
+def test_config_functions_refuse_wrong_types() -> None:
+    with pytest.raises(ConfigError, match="must be TOML text"):
+        parse_config(b"[run]\nh = 0.1")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="must be a file path"):
+        lf.config.load_config(None)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: tableaus.ButcherTableau(A=[["a"]], b=[1.0], order=1, name="x"),
+        lambda: tableaus.composition("abc", 2, "x"),  # type: ignore[arg-type]
+    ],
+)
+def test_tableau_coefficients_must_be_numbers(make: Any) -> None:
+    with pytest.raises(TableauError, match="numbers"):
+        make()
+
+
+def test_a_factory_value_error_becomes_an_input_error() -> None:
+    with pytest.raises(InputError, match="rejected its parameters"):
+        lf.systems.get("rigid_body", inertia="x")
+
+
+@pytest.mark.parametrize("victim", ["config", "w0"])
+def test_output_may_not_be_an_input_of_the_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], victim: str
+) -> None:
+    """`--out CONFIG --force` used to replace the configuration with the trajectory."""
+    np.save(tmp_path / "w0.npy", lf.systems.RigidBody().random_state(0))
+    text = config_text(initial='file = "w0.npy"')
+    target = tmp_path / ("run.toml" if victim == "config" else "w0.npy")
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    (tmp_path / "run.toml").write_text(text)
+    before["run.toml"] = text.encode()
+    assert cli(tmp_path, text, "--out", str(target), "--force") == 2
+    assert "would destroy it" in one_line_error(capsys.readouterr().err)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
