@@ -13,12 +13,21 @@ the system ``"euler_zeitlin"`` through the ``lieflow`` entry-point group::
 
 Modules: :mod:`~lieflow_zeitlin.laplacian` (Hoppe–Yau Laplacian, O(N²) solve, quantized
 harmonics), :mod:`~lieflow_zeitlin.quantization` (fields ↔ matrices),
-:mod:`~lieflow_zeitlin.system` (the :class:`EulerZeitlin` system) and
+:mod:`~lieflow_zeitlin.system` (the :class:`EulerZeitlin` system: Euler, rotating sphere,
+quasi-geostrophic), :mod:`~lieflow_zeitlin.dissipation` (viscosity, hyperviscosity, drag and
+stochastic forcing as lieflow flows, for ``lieflow.flows.Splitting``) and
 :mod:`~lieflow_zeitlin.plotting` (PNG figures; needs matplotlib, imported on demand).
 """
 
 from __future__ import annotations
 
+from .dissipation import (
+    Hyperviscosity,
+    LinearDrag,
+    StochasticForcing,
+    Viscosity,
+    degree_multiplier,
+)
 from .laplacian import HoppeYauLaplacian, harmonics, spin_matrices, tridiagonal
 from .quantization import (
     SphereGrid,
@@ -40,8 +49,13 @@ from .system import EulerZeitlin, VorticityAlgebra
 __all__ = [
     "EulerZeitlin",
     "HoppeYauLaplacian",
+    "Hyperviscosity",
+    "LinearDrag",
     "SphereGrid",
+    "StochasticForcing",
+    "Viscosity",
     "VorticityAlgebra",
+    "degree_multiplier",
     "degrees_and_orders",
     "grid_to_matrix",
     "grid_to_sh",
