@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 
+import attrs
 import numpy as np
 import pytest
 from helpers import tight
@@ -182,3 +183,34 @@ def test_newton_needs_the_derivative_of_a_nonlinear_B() -> None:
         lf.schemes.get("midpoint").step(system, system.random_state(0), 0.1, lf.solvers.Newton())
     # the other solvers need no derivative
     lf.schemes.get("midpoint").step(system, system.random_state(0), 0.1, lf.solvers.FrozenB())
+
+
+def test_the_cap_accepts_an_update_at_roundoff() -> None:
+    """A contracting iteration that reaches max_iter with its update below the roundoff
+    floor is done ("roundoff"), not failed (issue 14: point vortices, contraction 0.76,
+    update 2.4e-14 at the cap); above the floor the cap is still an error."""
+    rule = lf.solvers.StoppingRule(max_iter=20)
+    contracting = list(1e-2 * 0.2 ** np.arange(20))  # ends at 5e-16 < floor
+    assert contracting[-1] < rule.roundoff_floor
+    assert rule.verdict(contracting[:19], met=False, growth=1.0) is None
+    assert rule.verdict(contracting, met=False, growth=1.0) == "roundoff"
+    short = [1e-2 * 0.5**k for k in range(20)]  # ends at 2e-8 (no early "stalled" here)
+    assert attrs.evolve(rule, project=False).verdict(short, False, 1.0) == "max_iterations"
+
+
+def test_compiled_rule_agrees_at_the_cap() -> None:
+    """The compiled engine's copy of the rule (``_kernels._verdict``) gives the same
+    verdicts at the cap."""
+    kernels = pytest.importorskip("lieflow.compiled").kernels
+    try:
+        k = kernels()
+    except ImportError:
+        pytest.skip("numba is not installed")
+    rule = lf.solvers.StoppingRule(max_iter=20, project=False)
+    frule = np.array([rule.rtol, rule.atol, rule.roundoff_floor, rule.divergence_factor])
+    irule = np.array([rule.max_iter, rule.patience, rule.window, rule.project], dtype=np.int64)
+    for res in (1e-2 * 0.2 ** np.arange(20), 1e-2 * 0.5 ** np.arange(20)):
+        expected = rule.verdict(list(res), met=False, growth=1.0)
+        got = k._verdict(np.array(res), 20, False, 1.0, frule, irule)
+        assert (got == k._ACCEPT) == (expected in ("converged", "roundoff")), (expected, got)
+        assert got != k._GO
