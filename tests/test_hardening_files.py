@@ -40,6 +40,7 @@ h = 0.1
 steps = {steps}
 save_every = 10
 output = "traj.h5"
+engine = "numpy"  # what is tested here is the file, not the engine (no numba start-up)
 """
 
 #: long enough that a run is still going when the test acts on it (it is always stopped)
