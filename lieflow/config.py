@@ -70,6 +70,7 @@ __all__ = [
     "Config",
     "ConfigError",
     "InitialCondition",
+    "Perturbation",
     "RunSettings",
     "RunSetup",
     "SplittingSettings",
@@ -162,6 +163,11 @@ class InitialCondition:
         Rows of the explicit matrix; ``imag`` holds its imaginary part, if any.
     file : Path or None
         A ``.npy`` file, resolved against the configuration's directory.
+    seeds : tuple of int, or None
+        An ensemble of random states, one per seed (``seeds = [0, 1, 2]`` instead of
+        ``seed``): ``W0`` has shape ``(K, n, n)`` and the run advances all ``K`` at once.
+    perturb : Perturbation or None
+        An ensemble of perturbations of the initial condition (``[initial.perturb]``).
     """
 
     kind: Literal["random", "matrix", "file"]
@@ -170,6 +176,15 @@ class InitialCondition:
     matrix: tuple[tuple[float, ...], ...] | None = None
     imag: tuple[tuple[float, ...], ...] | None = None
     file: Path | None = None
+    seeds: tuple[int, ...] | None = None
+    perturb: Perturbation | None = None
+
+    @property
+    def members(self) -> int | None:
+        """The ensemble size ``K``, or ``None`` for a single initial condition."""
+        if self.seeds is not None:
+            return len(self.seeds)
+        return None if self.perturb is None else self.perturb.members
 
     def as_dict(self) -> dict[str, Any]:
         """A plain (JSON-able) dictionary."""
@@ -180,7 +195,30 @@ class InitialCondition:
             "matrix": self.matrix,
             "imag": self.imag,
             "file": None if self.file is None else str(self.file),
+            **({} if self.seeds is None else {"seeds": list(self.seeds)}),
+            **({} if self.perturb is None else {"perturb": attrs.asdict(self.perturb)}),
         }
+
+
+@attrs.frozen
+class Perturbation:
+    """``[initial.perturb]``: an ensemble of ``members`` initial conditions
+    ``W0 + size * R_k``, ``R_k`` the system's ``random_state(seed + k)`` (unit Frobenius
+    norm by default), each checked by ``system.validate``.
+
+    Attributes
+    ----------
+    members : int
+        Ensemble size ``K``.
+    size : float
+        Factor on the random perturbations.
+    seed : int
+        Seed of the first member's perturbation.
+    """
+
+    members: int
+    size: float
+    seed: int = 0
 
 
 @attrs.frozen
@@ -501,17 +539,21 @@ def _initial(raw: Mapping[str, Any], source: str, base: Path) -> InitialConditio
             raise sec.error(
                 "random", "is false", "write random = true, or give matrix or file instead"
             )
-        seed = sec.integer("seed", minimum=0)
+        seeds = _seeds(sec)
+        seed = None if seeds is not None else sec.integer("seed", minimum=0)
         scale = sec.number("scale", required=False)
+        perturb = _perturbation(sec, seeds is not None)
         sec.finish()
-        return InitialCondition("random", seed=seed, scale=1.0 if scale is None else scale)
+        return InitialCondition("random", seed=seed, scale=1.0 if scale is None else scale,
+                                seeds=seeds, perturb=perturb)  # fmt: skip
     if kind == "matrix":
         rows = sec.matrix("matrix")
         imag = sec.matrix("imag") if sec.has("imag") else None
         if imag is not None and (len(imag), len(imag[0])) != (len(rows), len(rows[0])):
             raise sec.error("imag", "has a different shape than matrix", "give one entry each")
+        perturb = _perturbation(sec, False)
         sec.finish()
-        return InitialCondition("matrix", matrix=rows, imag=imag)
+        return InitialCondition("matrix", matrix=rows, imag=imag, perturb=perturb)
     name = sec.string("file", hint='"w0.npy"')
     assert name is not None
     path = Path(name).expanduser()
@@ -522,8 +564,53 @@ def _initial(raw: Mapping[str, Any], source: str, base: Path) -> InitialConditio
             f"{str(path)!r} does not exist or is not a file",
             "give the path of a .npy file (relative paths are relative to the configuration)",
         )
+    perturb = _perturbation(sec, False)
     sec.finish()
-    return InitialCondition("file", file=path)
+    return InitialCondition("file", file=path, perturb=perturb)
+
+
+def _seeds(sec: _Section) -> tuple[int, ...] | None:
+    """``[initial] seeds``: a non-empty list of distinct seeds >= 0 (an ensemble), or None."""
+    if not sec.has("seeds"):
+        return None
+    if sec.has("seed"):
+        raise sec.error(
+            "seeds",
+            "both seed and seeds are given",
+            "give seed = <int> for one run or seeds = [0, 1, ...] for an ensemble",
+        )
+    value = sec._raw("seeds", True, "[0, 1, 2, 3]")
+    ok = (
+        isinstance(value, list)
+        and value
+        and all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in value)
+    )
+    if not ok or len(set(value)) != len(value):
+        raise sec.error(
+            "seeds",
+            f"expected a non-empty list of distinct integers >= 0, got {value!r}",
+            "write seeds = [0, 1, 2, 3]",
+        )
+    return tuple(value)
+
+
+def _perturbation(sec: _Section, has_seeds: bool) -> Perturbation | None:
+    """``[initial.perturb]``: members, size and (optional) seed; or None."""
+    if not sec.has("perturb"):
+        return None
+    if has_seeds:
+        raise sec.error(
+            "perturb",
+            "both seeds and perturb are given",
+            "make the ensemble either from seeds or from perturbations of one state",
+        )
+    sub = _Section(sec.table("perturb"), "initial.perturb", sec.source)
+    members = sub.integer("members", minimum=1)
+    size = sub.number("size")
+    seed = sub.integer("seed", required=False, minimum=0)
+    sub.finish()
+    assert members is not None and size is not None
+    return Perturbation(members, size, 0 if seed is None else seed)
 
 
 #: ``t_final / h`` must be this close to a whole number (relative): ``t_final = 1.0`` with
@@ -748,16 +835,23 @@ def _initial_state(config: Config, system: IsospectralSystem) -> Array:
     init, source = config.initial, config.source
     key = f"[initial] {init.kind}"
     W: Any
-    if init.kind == "random":
+
+    def random_state(seed: int | None, key: str = key) -> Any:
         try:
-            W = np.asarray(system.random_state(init.seed))
+            return np.asarray(system.random_state(seed))
         except Exception as exc:
             raise ConfigError(
-                f"{source}: {key}: {system.name}.random_state(seed={init.seed}) failed "
+                f"{source}: {key}: {system.name}.random_state(seed={seed}) failed "
                 f"({type(exc).__name__}: {exc}). To fix: give the initial condition as "
                 "matrix or file instead, or report it to the system's author.",
                 key,
             ) from None
+
+    if init.kind == "random":
+        if init.seeds is not None:  # an ensemble: one member per seed
+            W = np.stack([random_state(seed) for seed in init.seeds])
+        else:
+            W = random_state(init.seed)
         if init.scale != 1.0:
             W = init.scale * W
     elif init.kind == "matrix":
@@ -775,7 +869,7 @@ def _initial_state(config: Config, system: IsospectralSystem) -> Array:
                 key,
             ) from None
     try:
-        return system.validate(W)
+        W = system.validate(W)
     except LieflowError as exc:
         fix = (
             "keep scale = 1.0 (this system accepts only states of its own size)"
@@ -783,6 +877,30 @@ def _initial_state(config: Config, system: IsospectralSystem) -> Array:
             else f"give an initial condition for {system.name} on {system.algebra}"
         )
         raise ConfigError(f"{source}: {key}: {exc}. To fix: {fix}.", key) from None
+    return W if init.perturb is None else _perturbed(W, init.perturb, system, source, random_state)
+
+
+def _perturbed(W: Array, rule: Perturbation, system: IsospectralSystem, source: str,
+               random_state: Any) -> Array:  # fmt: skip
+    """The ensemble ``W + size * random_state(seed + k)``, ``k < members``, validated."""
+    key = "[initial] perturb"
+    if W.ndim != 2:
+        raise ConfigError(
+            f"{source}: {key}: perturbs one initial condition, but W0 has shape {W.shape}. "
+            "To fix: give a single n x n state (or drop perturb).",
+            key,
+        )
+    members = np.stack([W + rule.size * random_state(rule.seed + k, key)
+                        for k in range(rule.members)])  # fmt: skip
+    try:
+        return system.validate(members.astype(W.dtype, copy=False))
+    except LieflowError as exc:
+        raise ConfigError(
+            f"{source}: {key}: a perturbed state is not a valid initial condition ({exc}). "
+            f"To fix: {system.name} may not accept additive perturbations; make the ensemble "
+            "from seeds = [...] instead, or use a smaller size.",
+            key,
+        ) from None
 
 
 def build(
