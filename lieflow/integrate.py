@@ -5,6 +5,7 @@ command line's HDF5 runner, :func:`lieflow.io.run`, drives too)."""
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 from collections.abc import Iterator
@@ -173,6 +174,39 @@ def scheme_flow(
     return compiled.CompiledSchemeFlow(system, scheme, solver, warm_start, plan=plan)
 
 
+def _available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (``MemAvailable``), if known."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+#: A run whose saved states need more than this fraction of the available memory is refused.
+MEMORY_FRACTION = 0.5
+
+
+def _check_memory(nbytes: int, steps: int, save_every: int) -> None:
+    """Refuse (before anything runs) a run whose saved states would not fit in memory."""
+    available = _available_memory()
+    if available is None or nbytes <= MEMORY_FRACTION * available:
+        return
+    fit = max(1, math.ceil(nbytes / (MEMORY_FRACTION * available) * save_every))
+    raise InputError(
+        f"the saved states of this run need {nbytes / 2**30:.1f} GiB, more than half of the "
+        f"{available / 2**30:.1f} GiB of memory available. To fix: save fewer states "
+        f"(save_every={fit} or more), or stream the run to a trajectory file with "
+        "`lieflow run` (which keeps only one chunk of steps in memory)"
+    )
+
+
 def _progress_monitor(progress: bool | Monitor) -> Monitor | None:
     if progress is False:
         return None
@@ -298,6 +332,7 @@ def integrate(
                            warm_start=warm_start)  # fmt: skip
 
     n_saved = 1 + n_steps // save_every + (1 if n_steps % save_every else 0)
+    _check_memory(n_saved * W0a.nbytes, n_steps, save_every)
     saved_W = np.empty((n_saved, *W0a.shape), dtype=W0a.dtype)
     saved_k = np.zeros(n_saved, dtype=np.int64)
     saved_W[0] = W0a
