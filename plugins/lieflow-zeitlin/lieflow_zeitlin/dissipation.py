@@ -86,27 +86,42 @@ def _eigenbasis(N: int) -> tuple[Array, ...]:
     return tuple(out)
 
 
+@functools.lru_cache(maxsize=4)
+def _diagonal_indices(N: int) -> tuple[Array, ...]:
+    """Flat indices of diagonal ``m`` of an ``N × N`` matrix: row 0 the lower diagonal
+    (entries ``(i+m, i)``), row 1 the upper one (``(i, i+m)``); one row for ``m = 0``."""
+    out = []
+    for m in range(N):
+        i = np.arange(N - m)
+        idx = np.stack([(i + m) * N + i, i * N + i + m]) if m else (i * N + i)[None, :]
+        idx.setflags(write=False)
+        out.append(idx)
+    return tuple(out)
+
+
 def degree_multiplier(X: Array, g: Array) -> Array:
     r"""``Σ_lm g_l <T_lm, X> T_lm``: multiply the degree-``l`` part of ``X`` by ``g[l]``.
 
     ``X`` has shape ``(..., N, N)`` (any matrices; the expansion in the orthonormal matrix
     harmonics is complete), ``g`` shape ``(N,)``. Diagonal ``±m`` holds the degrees
     ``l = m..N-1`` with the eigenvectors ``V_m`` of :func:`harmonics`, so the map is
-    ``x -> V_m (g[m:] ⊙ (V_m^T x))`` on every diagonal: O(N³) flops in all.
+    ``x -> V_m (g[m:] ⊙ (V_m^T x))`` on both diagonals ``±m`` at once: O(N³) flops and
+    ``5N`` numpy calls in all.
     """
     X = np.asarray(X)
     N = X.shape[-1]
     g = np.asarray(g, dtype=float)
     if g.shape != (N,):
         raise lieflow.InputError(f"need one multiplier per degree, shape ({N},), got {g.shape}")
-    out = np.empty(X.shape, dtype=np.result_type(X.dtype, np.complex64))
-    for m, V in enumerate(_eigenbasis(N)):
-        i = np.arange(N - m)
-        gm = g[m:].astype(V.dtype)
-        out[..., i + m, i] = ((X[..., i + m, i] @ V) * gm) @ V.T
-        if m:
-            out[..., i, i + m] = ((X[..., i, i + m] @ V) * gm) @ V.T
-    return out
+    batch = X.shape[:-2]
+    flat = X.reshape(-1, N * N)
+    out = np.empty(flat.shape, dtype=np.result_type(X.dtype, np.complex64))
+    for V, idx in zip(_eigenbasis(N), _diagonal_indices(N), strict=True):
+        m = N - V.shape[0]
+        coefficients = flat[:, idx] @ V  # (K, 1 or 2, N-m): coefficients of degrees m..N-1
+        coefficients *= g[m:]
+        out[:, idx] = coefficients @ V.T
+    return out.reshape(*batch, N, N)
 
 
 def _nonnegative(name: str, value: object) -> float:

@@ -421,4 +421,37 @@ def plot_run(trajectory: Any, out_dir: Path, stem: str) -> list[Path]:
     named ``<stem>_vorticity.png``, ``<stem>_vorticity_map.png``,
     ``<stem>_vorticity_final.png`` and ``<stem>_drift.png``.
     """
-    return save_figures(trajectory, out_dir, prefix=stem)
+    return save_figures(_relative(trajectory), out_dir, prefix=stem)
+
+
+class _RelativeView:
+    """``trajectory`` with ``W`` replaced by the relative vorticity ``Q(Δψ)``."""
+
+    def __init__(self, trajectory: Any, W: Array) -> None:
+        self._trajectory = trajectory
+        self.W = W
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._trajectory, name)
+
+
+def _relative(trajectory: Any) -> Any:
+    """For a run on a rotating sphere or of the QG model (system parameters ``rotation`` or
+    ``lamb`` in the file's configuration identity), a view whose states are the relative
+    vorticity (:meth:`~lieflow_zeitlin.EulerZeitlin.relative`), which is what the figures
+    show; otherwise the trajectory itself."""
+    import json
+
+    from .system import EulerZeitlin
+
+    try:
+        params = dict(json.loads(str(trajectory.meta["identity"]))["system"]["params"])
+    except (AttributeError, KeyError, TypeError, ValueError):
+        return trajectory
+    if not (params.get("rotation") or params.get("lamb")):
+        return trajectory
+    W = np.asarray(trajectory.W)
+    system = EulerZeitlin(
+        W.shape[-1], rotation=params.get("rotation", 0.0), lamb=params.get("lamb", 0.0)
+    )
+    return _RelativeView(trajectory, system.relative(W))

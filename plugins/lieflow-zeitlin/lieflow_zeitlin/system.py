@@ -238,6 +238,19 @@ class EulerZeitlin(lieflow.IsospectralSystem):
             return W
         return W - self.planetary.astype(np.result_type(W.dtype, np.complex64), copy=False)
 
+    def random_state(self, seed: int | np.random.Generator | None = None) -> Array:
+        """A seeded random state whose *relative* vorticity has unit Frobenius norm (smooth,
+        degrees ``1..random_degree``): ``from_relative(R)``; without rotation and Lamb
+        parameter, ``R`` itself (lieflow's contract: unit norm).
+
+        ``[initial] random = true`` with ``scale`` multiplies the whole state, so on a
+        rotating sphere keep ``scale = 1`` (or start from a file).
+        """
+        R = super().random_state(seed)
+        if self.rotation == 0.0 and self.lamb == 0.0:
+            return R
+        return self.from_relative(R)
+
     def B(self, W: Array) -> Array:
         r"""``σ (Δ_N - F)^{-1}(W - F_f)`` (``σ`` times the stream matrix), broadcasting."""
         return self.laplacian.solve(self._anomaly(W))
