@@ -176,6 +176,41 @@ def test_rossby_haurwitz_wave_moves_east_at_the_exact_speed(
     assert amplitude <= 1e-5
 
 
+SCHEMES = sorted(lf.default_registry().schemes)
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+@pytest.mark.parametrize(("l", "m"), [(3, 3), (4, 2), (4, 1)])
+def test_every_scheme_moves_every_degree_l_wave_east(scheme: str, l: int, m: int) -> None:
+    r"""Any degree-``l`` wave on solid-body rotation moves rigidly east at ``c`` (the
+    derivation uses only ``Δψ' = -l(l+1)ψ'``), so ``c_lm(t) = e^{-imct} c_lm(0)`` for sectoral
+    (``m = l``) and tesseral waves alike. N = 10, 40 steps per radian of the ``m = l``
+    phase; measured worst relative errors: midpoint 4.6e-4, triple_jump 2.9e-6, suzuki5
+    4.1e-8, gauss2 (and block, modin_viviani, gauss) 2.0e-8, sydirk7 7.9e-10, gauss3 3.5e-13,
+    gauss4 1e-15."""
+    N, a, eps = 10, 1.0, 0.1
+    system = lz.EulerZeitlin(N)
+    c = rh_speed(a, l)
+    coefficients = a * _z_coefficients(N)
+    coefficients[lz.lm_index(l, m)] = eps * (0.6 + 0.8j)
+    coefficients[lz.lm_index(l, -m)] = (-1) ** m * np.conj(coefficients[lz.lm_index(l, m)])
+    W0 = lz.sh_to_matrix(coefficients)
+    T, steps = 1.0 / (l * c), 40
+    sol = lf.integrate(
+        system,
+        lf.schemes.get(scheme),
+        W0,
+        T / steps,
+        steps=steps,
+        solver=lf.solvers.FixedPoint(rtol=1e-14),
+        save_every=steps,
+    )
+    ratio = lz.matrix_to_sh(sol.W_final)[lz.lm_index(l, m)] / coefficients[lz.lm_index(l, m)]
+    speed = -float(np.angle(ratio)) / (m * T)
+    assert speed > 0
+    assert abs(speed - c) <= (1e-3 if scheme == "midpoint" else 1e-5) * c, (speed, c)
+
+
 def test_rossby_haurwitz_error_is_the_schemes_alone() -> None:
     """The model is exact: the phase error of gauss2 falls as h⁴ (measured ratio 16.0)."""
     system = lz.EulerZeitlin(8)
