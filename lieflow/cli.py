@@ -9,6 +9,9 @@ Subcommands::
             [--quick] [--seed N]
     lieflow plot FILE.h5 [--out DIR]  energy error, Casimir drift and iterations per step,
                                       plus the figures a plugin registered for the system
+    lieflow sweep GRID.toml           every run of a grid (a product of parameter lists),
+            [--executor local|dask] [--scheduler ADDRESS] [--workers N] [--out DIR]
+            [--dry-run] [--no-progress]
 
 :func:`main` returns the exit code: 0 on success, 2 for any lieflow error (the message, one
 paragraph naming the problem and the fix, goes to stderr; no traceback), 130 when a run was
@@ -173,6 +176,47 @@ def _cmd_plot(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+EXIT_RUNS_FAILED = 1  # lieflow sweep: it finished, but some runs failed (see the manifest)
+
+
+def _cmd_sweep(args: argparse.Namespace) -> int:
+    from .sweeps import SweepProgress, load_sweep, sweep
+
+    if args.scheduler is not None and args.executor != "dask":
+        raise InputError("--scheduler is the address of a Dask scheduler: add --executor dask")
+    _check_out_dir(args.out, "lieflow sweep")
+    grid = load_sweep(args.grid, directory=args.out)
+    if args.dry_run:
+        from .config import build
+
+        for spec in grid.runs:
+            build(spec.config, output=spec.output)
+            shown = ", ".join(f"{k} = {v!r}" for k, v in spec.params.items())
+            print(f"{spec.id}  {shown}")
+        print(f"{len(grid.runs)} runs ({' x '.join(map(str, grid.shape)) or '1'}) -> "
+              f"{grid.directory}")  # fmt: skip
+        return EXIT_OK
+    _Terminated.received = False
+    with _sigterm_as_interrupt():
+        result = sweep(grid, args.executor, workers=args.workers, scheduler=args.scheduler,
+                       monitor=SweepProgress(live=_show_progress(args)))  # fmt: skip
+    c = result.counts
+    print(
+        f"sweep {grid.source}: {len(result.runs)} runs: {c['complete']} complete "
+        f"({result.skipped} already), {c['failed']} failed"
+        + (f", {c['interrupted'] + c['pending']} not finished" if result.interrupted else "")
+        + f" in {result.wall_time:.1f} s -> {result.manifest}"
+    )
+    for rec in result.failed:
+        error = str(rec.get("error", "")).strip().splitlines()
+        print(f"  failed: {rec['output']}: {error[0] if error else ''}", file=sys.stderr)
+    if result.interrupted:
+        print(f"lieflow: sweep interrupted; run the same command again to continue: "
+              f"lieflow sweep {args.grid}", file=sys.stderr)  # fmt: skip
+        return EXIT_TERMINATED if _Terminated.received else EXIT_INTERRUPTED
+    return EXIT_OK if result.ok else EXIT_RUNS_FAILED
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="lieflow",
@@ -231,7 +275,42 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("file", type=Path, metavar="FILE.h5")
     p.add_argument("--out", type=Path, metavar="DIR", help="output directory (default: FILE's)")
     p.set_defaults(func=_cmd_plot)
+
+    p = sub.add_parser(
+        "sweep",
+        help="run every run of a grid (a product of parameter lists) in parallel",
+        description=(
+            "Run the grid GRID: a run configuration plus a [sweep] table of lists over "
+            'dotted keys ("run.h" = [0.1, 0.05]) and optional [[sweep.zip]] groups; their '
+            "product defines the runs (docs: sweeps.md). Each run writes DIR/runs/<id>.h5, "
+            "DIR/manifest.json lists them all. Running the same command again skips complete "
+            "runs and resumes the others. Exit status: 0 when every run is complete, 1 when "
+            "some failed (the others still ran), 2 on an error, 130/143 when interrupted."
+        ),
+    )
+    p.add_argument("grid", type=Path, metavar="GRID.toml")
+    p.add_argument("--executor", choices=("local", "dask"), default="local",
+                   help="local process pool (default) or Dask distributed")  # fmt: skip
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="address of a running Dask scheduler (with --executor dask)")  # fmt: skip
+    p.add_argument("--workers", type=_positive_int, metavar="N",
+                   help="processes of the local pool or LocalCluster (default: cores)")  # fmt: skip
+    p.add_argument("--out", type=Path, metavar="DIR",
+                   help="sweep directory (overrides [sweep] directory)")  # fmt: skip
+    p.add_argument("--dry-run", action="store_true", help="check and list the runs only")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_sweep)
     return parser
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
 
 
 def main(argv: Sequence[str] | None = None) -> int:
