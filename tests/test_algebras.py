@@ -65,3 +65,21 @@ def test_validate_refuses_bad_input() -> None:
 def test_validate_keeps_single_precision() -> None:
     X = lf.U(3).random(0).astype(np.complex64)
     assert lf.U(3).validate(X, tol=1e-6).dtype == np.complex64
+
+
+@pytest.mark.parametrize("g", ALGEBRAS, ids=str)
+def test_projection_keeps_single_precision(g: lf.LieAlgebra) -> None:
+    """su(N)'s trace removal used a float64 identity and returned complex128."""
+    dt = np.complex64 if g.dtype.kind == "c" else np.float32
+    X = g.random(seed=2).astype(dt)
+    assert g.project(X).dtype == dt
+    assert g.project(X[None].repeat(2, axis=0)).shape == (2, *g.shape)
+
+
+def test_su_projection_removes_the_trace_that_u_keeps() -> None:
+    """A trace is invisible to u(n) but not to su(n) (the bracket of two su(n) elements is
+    traceless only to roundoff, so nothing keeps it at zero but the projection)."""
+    X = lf.SU(4).random(seed=0) + 1e-6j * np.eye(4)
+    assert float(lf.U(4).distance(X)) == 0.0
+    assert float(lf.SU(4).distance(X)) == pytest.approx(2e-6 / np.linalg.norm(X), rel=1e-6)
+    assert abs(np.trace(lf.SU(4).project(X))) <= 1e-16
