@@ -19,6 +19,7 @@ from importlib.metadata import PackageNotFoundError, version
 
 from . import algebras, driver, flows, schemes, solvers, systems, tableaus
 from .algebras import GL, SO, SU, LieAlgebra, U
+from .datasets import open_run, open_sweep
 from .errors import (
     AlgebraError,
     ConvergenceError,
@@ -34,6 +35,7 @@ from .plugins import Registry, RegistryBuilder, default_registry, hookimpl, load
 from .schemes import Scheme, StepResult
 from .solution import Solution, Status
 from .solvers import ImplicitProblem, Solver, SolveResult
+from .sweeps import load_sweep, parse_sweep, sweep
 from .systems import IsospectralSystem
 from .tableaus import ButcherTableau
 
@@ -82,8 +84,13 @@ __all__ = [
     "integrate",
     "iterate",
     "load_registry",
+    "load_sweep",
+    "open_run",
+    "open_sweep",
+    "parse_sweep",
     "schemes",
     "solvers",
+    "sweep",
     "systems",
     "tableaus",
 ]

@@ -520,7 +520,7 @@ def _worker_init() -> None:
     for var in _THREAD_VARS:
         os.environ[var] = "1"
     with contextlib.suppress(ImportError):
-        import threadpoolctl  # type: ignore[import-not-found]
+        import threadpoolctl
 
         threadpoolctl.threadpool_limits(1)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -893,7 +893,7 @@ def _dask_executor(
         stack.callback(cluster.close)
         client = distributed.Client(cluster)
     stack.callback(client.close)
-    return client.get_executor(pure=False)  # type: ignore[no-any-return]
+    return client.get_executor(pure=False)
 
 
 def _executor_of(obj: Any) -> cf.Executor:
@@ -901,7 +901,7 @@ def _executor_of(obj: Any) -> cf.Executor:
     if isinstance(obj, cf.Executor):
         return obj
     if hasattr(obj, "get_executor") and hasattr(obj, "submit"):
-        return obj.get_executor(pure=False)  # type: ignore[no-any-return]
+        return obj.get_executor(pure=False)
     raise InputError(
         f"executor must be 'local', 'dask', a concurrent.futures.Executor or a "
         f"distributed.Client, got {obj!r}"

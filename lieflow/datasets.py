@@ -1,0 +1,471 @@
+"""Trajectory files and sweeps as labelled arrays: :func:`open_run` and :func:`open_sweep`
+give :class:`xarray.Dataset` objects (``pip install 'lieflow[sweep]'``).
+
+Dimensions:
+
+``time``
+    saved states (every ``save_every``-th step and the last); coordinates ``time``
+    (``t = k h``) and ``saved_step`` (``k``).
+``step``
+    every step ``k = 0..K`` of the per-step diagnostics; coordinates ``step`` and
+    ``step_time``. ``iterations`` and ``residual`` of step 0 (the initial condition) are 0
+    and NaN.
+``ensemble``
+    members of an ensemble run (``[initial] seeds`` or ``perturb``), labelled by their
+    seeds; absent for a single initial condition.
+``row``, ``col``
+    matrix entries of the states ``W``.
+``casimir``
+    the Casimirs ``tr W^k``, labelled by ``k``.
+
+Arrays are read from the files when they are used (lazily: opening a sweep of 100 runs
+reads their headers only); ``.load()`` reads everything, ``chunks=`` gives dask arrays.
+Only what a file's checkpoint covers is shown (steps a crashed run wrote after it are not).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import sys
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError, LieflowError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+__all__ = ["open_run", "open_sweep"]
+
+
+def _xarray() -> Any:
+    try:
+        import xarray
+    except ImportError as exc:
+        raise InputError(
+            f"labelled datasets need the 'xarray' package ({exc}). To fix: pip install "
+            "'lieflow[sweep]'."
+        ) from None
+    return xarray
+
+
+class _RunInfo:
+    """What :func:`open_run` needs of one file, read once: header, valid lengths, shapes."""
+
+    def __init__(self, path: Path) -> None:
+        from . import io
+
+        h5py = io._h5py()
+        self.path = path
+        with io._open(path, "r") as f, io._Reading(path):
+            io._check_format(f, path)
+            ck = io._read_checkpoint(f, path)
+            io._check_lengths(f, ck.step, path)
+            self.attrs = {k: io._plain(v) for k, v in f.attrs.items()}
+            self.k = ck.step
+            saved = f["trajectory/step"][()]
+            self.n_saved = int(np.searchsorted(saved, self.k, side="right"))
+            self.saved_step = saved[: self.n_saved]
+            self.t = f["trajectory/t"][: self.n_saved]
+            self.shapes = {
+                name: tuple(obj.shape[1:])
+                for name, obj in (
+                    ("W", f["trajectory/W"]),
+                    *((n, f[f"diagnostics/{n}"]) for n in _DIAGNOSTICS),
+                )
+                if isinstance(obj, h5py.Dataset)
+            }
+            self.dtype = f["trajectory/W"].dtype
+        self.h = float(self.attrs["h"])
+        w = self.shapes["W"]
+        self.members = w[0] if len(w) == 3 else None
+        self.seeds = _seeds(str(self.attrs.get("config", "")), self.members)
+
+    def rows(self, name: str) -> int:
+        """Valid rows of a dataset (up to the checkpoint)."""
+        return self.n_saved if name == "W" else self.k + 1
+
+
+_DIAGNOSTICS = ("energy", "energy_error", "casimirs", "casimir_drift", "iterations", "residual")
+
+
+def _seeds(config: str, members: int | None) -> Any:
+    """The ensemble's labels: ``[initial] seeds`` if the configuration has them."""
+    if members is None:
+        return None
+    try:
+        seeds = tomllib.loads(config).get("initial", {}).get("seeds")
+    except (tomllib.TOMLDecodeError, AttributeError):
+        seeds = None
+    if isinstance(seeds, list) and len(seeds) == members:
+        return np.asarray(seeds)
+    return np.arange(members)
+
+
+def _fill(dtype: np.dtype[Any]) -> Any:
+    if np.issubdtype(dtype, np.complexfloating):
+        return complex(np.nan, np.nan)
+    return np.nan if np.issubdtype(dtype, np.floating) else 0
+
+
+class _Stacked:
+    """A lazily read array over many files: ``lead`` dimensions of runs, then a dataset of
+    each run's file padded to a common shape (missing runs and rows read as the fill).
+
+    ``offset`` shifts the first axis (``iterations`` of step ``k`` is file row ``k - 1``;
+    rows before the offset read as ``head``); ``last`` reads only each run's last valid row
+    (the final state) and drops the first axis.
+    """
+
+    def __init__(
+        self,
+        runs: Sequence[_RunInfo | None],
+        lead: tuple[int, ...],
+        name: str,
+        rows: int,
+        rest: tuple[int, ...],
+        dtype: Any,
+        *,
+        offset: int = 0,
+        head: Any = 0,
+        last: bool = False,
+    ) -> None:
+        self.runs, self.lead, self.name = list(runs), lead, name
+        self.rows, self.rest, self.offset, self.head, self.last = rows, rest, offset, head, last
+        self.dtype = np.dtype(dtype)
+        self.shape = (*lead, *(() if last else (rows,)), *rest)
+        self.fill = _fill(self.dtype)
+        self.where = "trajectory/W" if name == "W" else f"diagnostics/{name}"
+
+    def variable(self, dims: Sequence[str]) -> Any:
+        xr = _xarray()
+        from xarray.core import indexing
+
+        array = self
+
+        base: Any = xr.backends.BackendArray
+
+        class Backend(base):
+            __slots__ = ()
+            shape = array.shape
+            dtype = array.dtype
+
+            def __getitem__(self, key: Any) -> Any:
+                return indexing.explicit_indexing_adapter(
+                    key, array.shape, indexing.IndexingSupport.OUTER, array.read
+                )
+
+        return xr.Variable(tuple(dims), indexing.LazilyIndexedArray(Backend()))
+
+    def read(self, key: tuple[Any, ...]) -> Any:
+        from . import io
+
+        h5py = io._h5py()
+        idx = [np.arange(n)[k] for n, k in zip(self.shape, key, strict=True)]
+        drop = [i for i, k in enumerate(key) if isinstance(k, (int, np.integer))]
+        full = [np.atleast_1d(i) for i in idx]
+        nl = len(self.lead)
+        out = np.full(tuple(len(i) for i in full), self.fill, dtype=self.dtype)
+        body = full[nl:]
+        for combo in itertools.product(*(enumerate(ix) for ix in full[:nl])):
+            pos = tuple(p for p, _ in combo)
+            run = self.runs[
+                int(np.ravel_multi_index(tuple(v for _, v in combo), self.lead)) if nl else 0
+            ]
+            if run is None:
+                continue
+            valid = run.rows(self.name) - self.offset  # rows of the file's dataset
+            actual = run.shapes[self.name]
+            target = out[pos] if nl else out
+            if self.last:
+                rows, trailing = np.array([valid - 1]), body
+            else:
+                rows, trailing = body[0] - self.offset, body[1:]
+                if self.offset:
+                    target[rows < 0] = self.head
+            ok_rows = (rows >= 0) & (rows < valid)
+            masks = [t < a for t, a in zip(trailing, actual, strict=True)]
+            if not ok_rows.any() or not all(m.any() for m in masks):
+                continue
+            r = rows[ok_rows]
+            with io._open(run.path, "r") as f, io._Reading(run.path):
+                ds = f[self.where]
+                if not isinstance(ds, h5py.Dataset):  # pragma: no cover
+                    continue
+                block = ds[int(r.min()) : int(r.max()) + 1]
+            inner = np.ix_(*(t[m] for t, m in zip(trailing, masks, strict=True)))
+            sub = (slice(None), *inner)
+            data = block[(r - r.min(),)][sub]
+            place = np.ix_(*(np.flatnonzero(m) for m in masks))
+            if self.last:
+                target[place] = data[0]
+            else:
+                at = np.flatnonzero(ok_rows)[(...,) + (None,) * len(masks)]
+                sub = (at, *place)
+                target[sub] = data
+        if drop:
+            out = out.reshape(tuple(n for i, n in enumerate(out.shape) if i not in drop))
+        return out
+
+
+def _dims(info: _RunInfo, name: str) -> tuple[str, ...]:
+    ens = ("ensemble",) if info.members is not None else ()
+    if name == "W":
+        return ("time", *ens, "row", "col")
+    if name in ("casimirs", "casimir_drift"):
+        return ("step", *ens, "casimir")
+    if name in ("iterations", "residual"):
+        return ("step",)
+    return ("step", *ens)
+
+
+def _variables(
+    runs: Sequence[_RunInfo | None], lead: tuple[int, ...], lead_dims: Sequence[str]
+) -> dict[str, Any]:
+    """The lazily read data variables of runs arranged on ``lead`` (padded to the largest)."""
+    ref = next(r for r in runs if r is not None)
+    present = [r for r in runs if r is not None]
+    out = {}
+    for name in ("W", *_DIAGNOSTICS):
+        rows = max(r.rows(name) for r in present)
+        rest = tuple(max(s) for s in zip(*(r.shapes[name] for r in present), strict=True))
+        ragged = len(present) < len(runs) or any(
+            r.rows(name) != rows or r.shapes[name] != rest for r in present
+        )
+        dtype = (
+            np.result_type(*(r.dtype for r in present))
+            if name == "W"
+            else (np.float64 if name != "iterations" or ragged else np.int64)
+        )
+        offset, head = (
+            (1, 0 if name == "iterations" else np.nan)
+            if name in ("iterations", "residual")
+            else (0, 0)
+        )
+        dims = (*lead_dims, *_dims(ref, name))
+        out[name] = _Stacked(
+            runs, lead, name, rows, rest, dtype, offset=offset, head=head
+        ).variable(dims)
+        if name == "W":
+            final = _Stacked(runs, lead, name, rows, rest, dtype, last=True)
+            out["W_final"] = final.variable((*lead_dims, *_dims(ref, name)[1:]))
+    return out
+
+
+_ATTR_SKIP = ("casimir_powers",)
+
+
+def _attrs(info: _RunInfo) -> dict[str, Any]:
+    return {k: v for k, v in info.attrs.items() if k not in _ATTR_SKIP}
+
+
+def open_run(path: Path | str, *, chunks: Mapping[str, int] | str | None = None) -> Any:
+    """A trajectory file as an :class:`xarray.Dataset` (read lazily).
+
+    Parameters
+    ----------
+    path : path
+        A file written by ``lieflow run``, ``lieflow sweep`` or :func:`lieflow.io.run`.
+    chunks : mapping or "auto", optional
+        Give dask arrays of these chunks (``Dataset.chunk``) instead of lazy numpy ones.
+
+    Returns
+    -------
+    xarray.Dataset
+        Variables ``W`` (``time``, [``ensemble``], ``row``, ``col``), ``W_final``,
+        ``energy``, ``energy_error`` (``step``, [``ensemble``]), ``casimirs``,
+        ``casimir_drift`` (``step``, [``ensemble``], ``casimir``), ``iterations`` and
+        ``residual`` (``step``); the file's header (configuration text, identity, system,
+        scheme, solver, h, status, versions...) in ``attrs``. Complex states stay complex.
+
+    Raises
+    ------
+    LieflowError
+        The file is missing, not a trajectory, or damaged (checksums are verified).
+    """
+    from .io import _as_path
+
+    xr = _xarray()
+    info = _RunInfo(_as_path(path))
+    ds = xr.Dataset(_variables([info], (), ()), coords=_coords(info), attrs=_attrs(info))
+    return ds.chunk(chunks) if chunks is not None else ds
+
+
+def _coords(info: _RunInfo) -> dict[str, Any]:
+    k = np.arange(info.k + 1)
+    coords: dict[str, Any] = {
+        "time": ("time", info.t),
+        "saved_step": ("time", info.saved_step),
+        "step": ("step", k),
+        "step_time": ("step", k * info.h),
+        "casimir": ("casimir", np.asarray(info.attrs.get("casimir_powers", []), dtype=int)),
+    }
+    if info.members is not None:
+        coords["ensemble"] = ("ensemble", info.seeds)
+    return coords
+
+
+def _manifest(path: Path | str) -> tuple[Path, dict[str, Any]]:
+    from .sweeps import MANIFEST, SWEEP_FORMAT
+
+    p = Path(path)
+    if p.is_dir():
+        p = p / MANIFEST
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise LieflowError(
+            f"{str(p)!r} does not exist. To fix: give a sweep directory (or its "
+            f"{MANIFEST}) written by `lieflow sweep`."
+        ) from None
+    except (OSError, ValueError) as exc:
+        raise LieflowError(f"cannot read the sweep manifest {str(p)!r}: {exc}.") from None
+    if not isinstance(data, dict) or data.get("format") != SWEEP_FORMAT:
+        raise LieflowError(
+            f"{str(p)!r} is not a lieflow sweep manifest (no format = {SWEEP_FORMAT!r}). "
+            "To fix: give the directory written by `lieflow sweep`."
+        )
+    return p, data
+
+
+def _label_values(values: Sequence[Any]) -> np.ndarray[Any, Any]:
+    """Axis labels: the values, or their JSON text when they are lists or tables."""
+    if all(isinstance(v, (bool, int, float, str)) for v in values):
+        return np.asarray(values)
+    return np.asarray([json.dumps(v, sort_keys=True) for v in values])
+
+
+def open_sweep(
+    manifest_or_dir: Path | str,
+    *,
+    stack: bool = False,
+    chunks: Mapping[str, int] | str | None = None,
+) -> Any:
+    """A sweep's runs as one :class:`xarray.Dataset`, one dimension per axis of the grid.
+
+    Parameters
+    ----------
+    manifest_or_dir : path
+        The sweep directory or its ``manifest.json``.
+    stack : bool
+        One ``run`` dimension (with every swept key as a coordinate along it) instead of a
+        dimension per axis.
+    chunks : mapping or "auto", optional
+        Give dask arrays (``Dataset.chunk``).
+
+    Returns
+    -------
+    xarray.Dataset
+        The variables of :func:`open_run` with the axes in front (``scheme``, ``h``...; a
+        zipped group's other keys are coordinates along its axis; ``attrs["sweep_axes"]``
+        maps dimension names to keys), padded with NaN where runs differ in length or
+        size (the ``time`` coordinate is then ``t`` over the axes and ``time``), plus per
+        run ``status``, ``error``, ``completed_steps``, ``requested_steps``, ``wall_time``,
+        ``max_energy_error``, ``step_size`` and ``config``. A run without a readable file (failed
+        before its first step, not run yet) is all NaN with its status.
+    """
+    xr = _xarray()
+    path, data = _manifest(manifest_or_dir)
+    root = path.parent.absolute()
+    axes = data["axes"]
+    lead = tuple(len(a["values"][0]) for a in axes)
+    lead_dims = [a["name"] for a in axes]
+    records = {tuple(r["index"]): r for r in data["runs"]}
+    order = list(itertools.product(*(range(n) for n in lead)))
+    infos: list[_RunInfo | None] = []
+    for index in order:
+        rec = records.get(index)
+        info = None
+        if rec is not None and os.path.exists(root / rec["output"]):
+            try:
+                info = _RunInfo(root / rec["output"])
+            except LieflowError:
+                info = None  # damaged or being written: shown as missing, with its status
+        infos.append(info)
+    present = [i for i in infos if i is not None]
+    dims_stacked = ["run"] if stack else lead_dims
+    lead_shape = (len(order),) if stack else lead
+    variables: dict[str, Any] = {}
+    coords: dict[str, Any] = {}
+    if present:
+        variables = _variables(infos, lead_shape, dims_stacked)
+        ref = present[0]
+        same_t = all(
+            i.n_saved == ref.n_saved and np.array_equal(i.t, ref.t) for i in present
+        ) and len(present) == len(infos)
+        rows_t = max(i.n_saved for i in present)
+        if same_t:
+            coords["time"] = ("time", ref.t)
+            coords["saved_step"] = ("time", ref.saved_step)
+        else:
+            t = np.full((len(infos), rows_t), np.nan)
+            for j, i in enumerate(infos):
+                if i is not None:
+                    t[j, : i.n_saved] = i.t
+            coords["t"] = ((*dims_stacked, "time"), t.reshape(*lead_shape, rows_t))
+        k = max(i.k for i in present)
+        coords["step"] = ("step", np.arange(k + 1))
+        coords["casimir"] = (
+            "casimir",
+            np.asarray(
+                max((i.attrs.get("casimir_powers", []) for i in present), key=len), dtype=int
+            ),
+        )
+        if ref.members is not None:
+            coords["ensemble"] = ("ensemble", ref.seeds)
+
+    def per_run(get: Any, dtype: Any, fill: Any) -> Any:
+        out = np.full(len(order), fill, dtype=dtype)
+        for j, index in enumerate(order):
+            rec = records.get(index)
+            if rec is not None:
+                value = get(rec, infos[j])
+                out[j] = fill if value is None else value
+        return (dims_stacked, out.reshape(lead_shape))
+
+    variables["status"] = per_run(lambda r, i: r["status"], object, "missing")
+    variables["error"] = per_run(lambda r, i: r.get("error", ""), object, "")
+    for name in ("completed_steps", "requested_steps", "attempts"):
+        variables[name] = per_run(lambda r, i, n=name: r.get(n), np.int64, 0)
+    for name in ("wall_time", "max_energy_error"):
+        variables[name] = per_run(lambda r, i, n=name: r.get(n), np.float64, np.nan)
+    variables["step_size"] = per_run(lambda r, i: None if i is None else i.h, np.float64, np.nan)
+    variables["config"] = per_run(
+        lambda r, i: None if i is None else str(i.attrs.get("config", "")), object, ""
+    )
+    variables["output"] = per_run(lambda r, i: str(root / r["output"]), object, "")
+    # axis coordinates
+    for a, name in zip(axes, lead_dims, strict=True):
+        keys, values = a["keys"], a["values"]
+        for j, (key, vals) in enumerate(zip(keys, values, strict=True)):
+            cname = name if j == 0 else _coord_name(key, coords, lead_dims)
+            labels = _label_values(vals)
+            if stack:
+                pos = lead_dims.index(name)
+                coords[cname] = ("run", labels[[ix[pos] for ix in order]], {"key": key})
+            else:
+                coords[cname] = (name, labels, {"key": key})
+    attrs = {
+        "sweep_directory": str(root),
+        "grid_source": data.get("grid_source", ""),
+        "grid": data.get("grid", ""),
+        "sweep_axes": json.dumps({a["name"]: a["keys"] for a in axes}),
+        "lieflow_version": data.get("lieflow_version", ""),
+    }
+    ds = xr.Dataset(variables, coords=coords, attrs=attrs)
+    if stack:
+        ids = [records[ix]["id"] if ix in records else "" for ix in order]
+        ds = ds.assign_coords(run=("run", ids))
+    return ds.chunk(chunks) if chunks is not None else ds
+
+
+def _coord_name(key: str, taken: Mapping[str, Any], dims: Sequence[str]) -> str:
+    short = key.split(".")[-1]
+    return key if short in taken or short in dims or short in _DIAGNOSTICS else short
