@@ -264,6 +264,8 @@ def _short_names(groups: list[list[str]]) -> list[str]:
 
 def _set(data: dict[str, Any], key: str, value: Any, source: str) -> None:
     parts = key.split(".")
+    if parts[0] == "solver" and "solver" not in data and parts[1] != "name":
+        data["solver"] = {"name": "fixed_point"}  # the default of a configuration without one
     node = data
     for i, part in enumerate(parts[:-1]):
         child = node.setdefault(part, {})
