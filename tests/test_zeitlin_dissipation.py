@@ -295,6 +295,8 @@ def test_bad_dissipation_and_forcing_parameters_are_clear_errors() -> None:
         StochasticForcing(system, amplitude=1.0, l1=1, l2=2, seed=-1)
     with pytest.raises(lf.InputError, match="amplitude"):
         StochasticForcing(system, amplitude=-0.1, l1=1, l2=2, seed=0)
+    with pytest.raises(lf.InputError, match='needs method="exact"'):
+        Viscosity(system, nu=1.0, method="crank_nicolson").step(np.zeros((6, 6)), 0.0, -0.1, None)
     forcing = StochasticForcing(system, amplitude=1.0, l1=1, l2=2, seed=0)
     with pytest.raises(lf.InputError, match="h > 0"):
         forcing.step(np.zeros((6, 6), complex), 0.0, 0.0, None)

@@ -255,7 +255,10 @@ class Viscosity(_DegreeDamping):
         X, offset = _anomaly_parts(self.system, W)
         a = 0.5 * float(h) * self.system.fluid_time_unit * self.nu
         if a < 0:
-            raise lieflow.InputError("a Crank–Nicolson viscous step needs h > 0")
+            raise lieflow.InputError(
+                "a Crank–Nicolson viscous step needs h > 0 (a composition with negative "
+                'sub-steps needs method="exact")'
+            )
         N = self.system.N
         trace = np.trace(X, axis1=-2, axis2=-1)[..., None, None] / N
         rhs = X + a * HoppeYauLaplacian(N).apply(X)

@@ -24,8 +24,8 @@ degree 1) and ``L = Δ_N - F`` (shifted Hoppe–Yau Laplacian),
 because ``(1/ħ)[Q(f), Q(g)] = -Q({f, g}) + O(1/N)`` (:mod:`~lieflow_zeitlin.quantization`).
 ``B`` is affine when ``Ω != 0``; its derivative (Newton) is ``σ L^{-1}``.
 
-Time unit (the one place it is stated)
---------------------------------------
+Time unit (summary of the docs page "Euler–Zeitlin", section "The time unit")
+-----------------------------------------------------------------------------
 * ``time="fluid"`` (default): ``σ = 1/ħ``, ``ħ = 2/sqrt(N² - 1)``. ``t`` is the fluid's time:
   a vorticity ``ω`` turns fluid at angular speed ``ω/2``, a rotation rate ``Ω`` is in
   radians per unit ``t``, viscosities and drags are per unit ``t``.
