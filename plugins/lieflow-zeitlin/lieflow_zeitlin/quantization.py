@@ -59,7 +59,8 @@ coordinate functions to ``Q(x_a) = i ħ S_a`` exactly, ``ħ = 2/sqrt(N²-1)``, a
 which is lieflow's ``dW/dt = [B(W), W]`` with ``B(W) = (1/ħ) Δ_N^{-1} W``, forward in time
 (:class:`~lieflow_zeitlin.EulerZeitlin` with ``time="fluid"``). This is also quflow's
 convention: ``quflow.shc2mat`` of the same field (quflow's coefficients are
-``ω_lm/√(4π)``) returns the same matrix, measured to 5e-16 (quflow commit b42eede).
+``ω_lm/√(4π)``) returns the same matrix to roundoff (largest entry difference 2e-15 at
+N = 5, 8, 13; quflow commit b42eede).
 Before lieflow-zeitlin 0.2 the map was ``-J Q(f) J`` (``J`` the index reversal), which
 satisfies the bracket relation with the opposite sign and ran Euler backwards.
 
