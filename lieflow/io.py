@@ -535,7 +535,8 @@ class _OutputLock:
 
     @classmethod
     def acquire(cls, output: Path) -> _OutputLock:
-        lock_path = output.with_name(f".{output.name}.lock")
+        real = Path(os.path.realpath(output))  # one lock whatever symlink names the file
+        lock_path = real.with_name(f".{real.name}.lock")
         if fcntl is None:  # pragma: no cover - not POSIX
             return cls(lock_path, None)
         for _ in range(100):

@@ -342,3 +342,18 @@ def test_random_bit_flips_never_give_a_traceback(
         assert not in_data, f"a flip at byte {pos} inside a dataset's data was not detected"
         outcomes["read"] += 1
     assert outcomes["refused"] >= len(data_ranges)
+
+
+def test_the_lock_follows_symlinks(tmp_path: Path) -> None:
+    """Two names for one file share one lock."""
+    config = write_config(tmp_path, steps=5)
+    setup = build(load_config(config))
+    writer = io.TrajectoryWriter.create(setup)
+    try:
+        (tmp_path / "alias.h5").symlink_to(setup.output)
+        alias = build(load_config(config), output=tmp_path / "alias.h5")
+        with pytest.raises(io.OutputBusyError, match="being written by another lieflow run"):
+            io.TrajectoryWriter.reopen(alias)
+    finally:
+        writer.close("interrupted", 0.0)
+    assert not (tmp_path / ".traj.h5.lock").exists()
