@@ -637,6 +637,12 @@ def _steps(sec: _Section, h: float) -> tuple[int, float | None]:
     t_final = sec.number("t_final")
     assert t_final is not None
     ratio = t_final / h
+    if not math.isfinite(ratio) or ratio > 2**62:
+        raise sec.error(
+            "t_final",
+            f"t_final / h = {t_final!r} / {h!r} is too many steps to count",
+            "use a larger h or a smaller t_final",
+        )
     steps = round(ratio)
     if steps < 1 or abs(ratio - steps) > _WHOLE_STEPS_RTOL * max(ratio, 1.0):
         lower = max(math.floor(ratio), 1) * h
@@ -656,6 +662,8 @@ def _run(raw: Mapping[str, Any], source: str, base: Path, default_output: str) -
     steps, t_final = _steps(sec, h)
     save_every = sec.integer("save_every", required=False)
     output = sec.string("output", required=False, hint='"trajectory.h5"')
+    if output is not None and not output.strip():
+        raise sec.error("output", "is empty", 'give a file name such as output = "run.h5"')
     engine = sec.string("engine", required=False, hint='"auto"') or "auto"
     if engine not in _ENGINES:
         raise sec.error(

@@ -128,6 +128,8 @@ def test_t_final_gives_a_whole_number_of_steps(tmp_path: Path) -> None:
         ('h = 0.1\nt_final = 0.01\noutput = "x.h5"', "not a whole number of steps"),
         ('h = 0.1\nt_final = -1.0\noutput = "x.h5"', "positive"),
         ('h = 0.1\nt_final = "3"\noutput = "x.h5"', "expected a number"),
+        ('h = 1e-300\nt_final = 1e300\noutput = "x.h5"', "too many steps"),
+        ('h = 0.1\nsteps = 3\noutput = ""', "[run] output: is empty"),
     ],
 )
 def test_bad_t_final(
