@@ -171,7 +171,15 @@ def _cmd_plot(args: argparse.Namespace) -> int:
     from .plotting import plot_trajectory
 
     _check_out_dir(args.out, "lieflow plot")
-    for path in plot_trajectory(args.file, args.out):
+    try:
+        written = plot_trajectory(args.file, args.out)
+    except OSError as exc:  # reading errors are LieflowErrors already: this is writing
+        where = args.out if args.out is not None else args.file.parent
+        raise InputError(
+            f"lieflow plot: cannot write the figures to {str(where)!r}: "
+            f"{exc.strerror or exc}. To fix: give --out a directory you can write to."
+        ) from None
+    for path in written:
         print(path)
     return EXIT_OK
 

@@ -165,6 +165,15 @@ def test_plot_out_is_an_existing_file(tmp_path: Path, capsys: pytest.CaptureFixt
     assert (tmp_path / "file.txt").read_text() == "x"
 
 
+def test_plot_out_that_cannot_be_written(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert cli(tmp_path, config_text()) == 0
+    capsys.readouterr()
+    assert main(["plot", str(tmp_path / "traj.h5"), "--out", "/proc/lieflow-figures"]) == 2
+    assert "cannot write the figures" in one_line_error(capsys.readouterr().err)
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
