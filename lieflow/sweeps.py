@@ -878,7 +878,7 @@ def _dask_executor(
     distributed = _require("distributed")
     if scheduler:
         try:
-            client = distributed.Client(scheduler, timeout="30s")
+            client = distributed.Client(scheduler)  # distributed.comm.timeouts.connect
         except (OSError, TimeoutError) as exc:
             raise LieflowError(
                 f"cannot connect to the Dask scheduler at {scheduler!r} ({exc}). To fix: start "
