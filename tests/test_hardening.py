@@ -253,6 +253,17 @@ def test_the_shipped_tableaus_have_their_orders() -> None:
     assert tableaus.radau_iia2().order == 3
 
 
+def test_an_eighth_order_composition_is_checked_tree_by_tree() -> None:
+    """Yoshida's 15-stage order-8 composition (solution D, 15 digits): all 200 rooted-tree
+    conditions up to order 8 hold to roundoff, and order 9 fails."""
+    w = [0.102799849391985, -1.96061023297549, 1.93813913762276, -0.158240635368243]
+    w += [-1.44485223686048, 0.253693336566229, 0.914844246229740]
+    b = [*w[::-1], 1 - 2 * sum(w), *w]
+    assert tableaus.composition(b, 8, "yoshida8").order == 8
+    with pytest.raises(TableauError, match="at most 8"):
+        tableaus.composition(b, 10, "yoshida8")
+
+
 def test_resume_with_fewer_steps_is_refused_without_writing(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
