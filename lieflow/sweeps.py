@@ -513,6 +513,8 @@ def load_sweep(path: Path | str, *, directory: Path | str | None = None) -> Swee
 #: True while a worker of the default pool runs a task (its SIGTERM handler then raises
 #: KeyboardInterrupt, which lieflow.io.run turns into an "interrupted", resumable file).
 _BUSY = False
+#: Set by SIGTERM in a worker of the default pool: tasks it has not started return at once.
+_STOP = False
 
 
 def _worker_init() -> None:
@@ -528,9 +530,10 @@ def _worker_init() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     def on_term(signum: int, frame: FrameType | None) -> None:
+        global _STOP
+        _STOP = True
         if _BUSY:
             raise KeyboardInterrupt
-        os._exit(0)
 
     signal.signal(signal.SIGTERM, on_term)
 
@@ -590,6 +593,8 @@ def run_task(task: Mapping[str, Any]) -> dict[str, Any]:
 
     started = time.time()
     out: dict[str, Any] = {"host": socket.gethostname(), "pid": os.getpid(), "started": started}
+    if _STOP:  # this worker was told to stop (the sweep was interrupted)
+        return {**out, "status": "interrupted", "error": "", "finished": started}
     _BUSY = True
     try:
         config = parse_config(task["text"], source=task["source"], base_dir=task["base_dir"])

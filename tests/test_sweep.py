@@ -382,3 +382,46 @@ def test_ensemble_grid_and_progress_monitor(tmp_path: Path) -> None:
     assert total == 80 and steps == 80 and counts["complete"] == 2
     tr = io.read_trajectory(res.directory / res.runs[0]["output"])
     assert tr.W.shape == (5, 3, 3, 3) and tr.energy_error.shape == (41, 3)
+
+
+def test_ctrl_c_stops_the_sweep_resumably_and_rerunning_finishes_it(tmp_path: Path) -> None:
+    """``lieflow sweep`` in its own process group, SIGINT to the group as a terminal's Ctrl-C
+    sends it: exit 130 soon, runs marked interrupted; the same command then completes them,
+    bit for bit equal to uninterrupted runs."""
+    import signal
+    import subprocess
+    import sys
+
+    base = BASE.replace("steps = 40", "steps = 1200").replace("save_every = 10", "save_every = 20")
+    grid = write_grid(
+        tmp_path, '"initial.seed" = [0, 1, 2, 3]', base.replace("h = 0.1", "h = 0.01")
+    )
+    cmd = [sys.executable, "-m", "lieflow", "sweep", str(grid), "--workers", "2", "--no-progress"]
+    proc = subprocess.Popen(cmd, cwd=tmp_path, start_new_session=True, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)  # fmt: skip
+    try:
+        progress = tmp_path / "grid" / ".progress"
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and len(list(progress.glob("*.json"))) < 2:
+            time.sleep(0.05)
+        time.sleep(0.3)
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 130, err.decode()
+    assert b"sweep interrupted; run the same command again" in err
+    manifest = json.loads((tmp_path / "grid" / "manifest.json").read_text())
+    statuses = [r["status"] for r in manifest["runs"]]
+    assert "interrupted" in statuses and "running" not in statuses, statuses
+    for rec in manifest["runs"]:
+        path = tmp_path / "grid" / rec["output"]
+        if path.exists():
+            assert io.read_trajectory(path).status in ("interrupted", "complete")
+    res = sweep(grid, threads())
+    assert res.ok
+    spec = load_sweep(grid).runs[0]
+    io.run(build(spec.config, output=tmp_path / "ref.h5"))
+    _files_equal(spec.output, tmp_path / "ref.h5")
