@@ -106,17 +106,25 @@ def iterate(
         )
 
 
+#: The most steps a run may ask for (indices and times stay exact in 64-bit integers).
+MAX_STEPS = 2**53
+
+
 def _resolve_steps(h: float, steps: int | None, t_final: float | None) -> int:
     if (steps is None) == (t_final is None):
         raise InputError("give exactly one of steps=N or t_final=T")
     if steps is not None:
         if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
             raise InputError(f"steps must be a positive integer, got {steps!r}")
+        if steps > MAX_STEPS:
+            raise InputError(f"steps = {steps} is too many to count; use fewer steps or a larger h")
         return int(steps)
     assert t_final is not None
     if not (math.isfinite(t_final) and t_final > 0):
         raise InputError(f"t_final must be positive and finite, got {t_final!r}")
     n = round(t_final / h)
+    if n > MAX_STEPS:
+        raise InputError(f"t_final / h = {t_final / h:.3g} steps is too many to count")
     if n < 1 or abs(n * h - t_final) > 1e-9 * t_final:
         raise InputError(
             f"t_final = {t_final} is not a whole number of steps of h = {h}; "
@@ -207,6 +215,15 @@ def _check_memory(nbytes: int, steps: int, save_every: int) -> None:
     )
 
 
+def _validated(system: IsospectralSystem, W0: ArrayLike) -> Array:
+    W0a = system.validate(W0)
+    if W0a.size == 0:
+        raise InputError(
+            f"W0 is an empty stack of states (shape {W0a.shape}); pass at least one n x n state"
+        )
+    return W0a
+
+
 def _progress_monitor(progress: bool | Monitor) -> Monitor | None:
     if progress is False:
         return None
@@ -214,6 +231,10 @@ def _progress_monitor(progress: bool | Monitor) -> Monitor | None:
         from .progress import ProgressBar
 
         return ProgressBar()
+    if not all(callable(getattr(progress, m, None)) for m in ("start", "advance", "stop")):
+        raise InputError(
+            f"progress must be True, False or a Monitor (start, advance, stop), got {progress!r}"
+        )
     return progress
 
 
@@ -322,12 +343,12 @@ def integrate(
                 "(set them on its SchemeFlow parts)"
             )
         _check_types(system, scheme, None)
-        W0a = system.validate(W0)
+        W0a = _validated(system, W0)
         flow: Flow = scheme
     else:
         solver = FixedPoint() if solver is None else solver
         _check_types(system, scheme, solver)
-        W0a = system.validate(W0)
+        W0a = _validated(system, W0)
         flow = scheme_flow(system, scheme, solver, W0a, n_steps, engine=engine,
                            warm_start=warm_start)  # fmt: skip
 

@@ -101,3 +101,38 @@ def test_non_finite_step_is_an_error() -> None:
 def test_progress_bar_runs() -> None:
     sol = lf.integrate(RB, MID, W0, 0.1, steps=20, progress=True)
     assert sol.success
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"W0": np.zeros((0, 3, 3))}, "empty stack"),
+        ({"steps": 2**60}, "too many"),
+        ({"progress": "yes"}, "Monitor"),
+        ({"h": "0.1"}, "real number"),
+    ],
+)
+def test_bad_run_arguments_are_refused(kwargs: dict, match: str) -> None:
+    body = lf.systems.get("rigid_body", inertia=(1.0, 2.0, 3.0))
+    args = {"W0": body.random_state(0), "h": 0.1, "steps": 3, **kwargs}
+    with pytest.raises(lf.InputError, match=match):
+        lf.integrate(body, lf.schemes.get("midpoint"), **args)
+
+
+def test_a_monitor_object_receives_every_step() -> None:
+    seen: list[tuple[str, int]] = []
+
+    class Log:
+        def start(self, done: int, total: int) -> None:
+            seen.append(("start", total))
+
+        def advance(self, steps: int, iterations: int, energy_error: float | None) -> None:
+            seen.append(("advance", steps))
+
+        def stop(self) -> None:
+            seen.append(("stop", 0))
+
+    body = lf.systems.get("rigid_body", inertia=(1.0, 2.0, 3.0))
+    lf.integrate(body, lf.schemes.get("midpoint"), body.random_state(0), 0.1, steps=5,
+                 progress=Log(), engine="numpy")  # fmt: skip
+    assert seen == [("start", 5), *[("advance", 1)] * 5, ("stop", 0)]
