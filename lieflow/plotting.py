@@ -142,6 +142,11 @@ def plot_trajectory(
     traj = read_trajectory(path)
     src = Path(path)
     out = src.parent if out_dir is None else Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise LieflowError(
+            f"{str(out)!r} is a file, not a directory. To fix: give out_dir a directory "
+            "(it is created if missing)."
+        )
     stem = src.stem
     meta = traj.meta
     label = f"{meta['system']}, {meta['scheme']}, h = {meta['h']:g}"

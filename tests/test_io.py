@@ -252,3 +252,15 @@ def test_environment_has_versions() -> None:
     assert env["numpy"] == np.__version__
     assert env["lieflow_version"] == lf.__version__
     assert os.path.sep not in env["python"]
+
+
+def test_plot_into_a_file_is_refused_with_a_message(tmp_path: Path) -> None:
+    from lieflow.plotting import plot_trajectory
+
+    out = tmp_path / "run.h5"
+    io.run(setup_for(write_config(tmp_path, steps=5), out))
+    blocker = tmp_path / "not_a_dir"
+    blocker.write_text("keep me")
+    with pytest.raises(lf.LieflowError, match="is a file, not a directory"):
+        plot_trajectory(out, blocker)
+    assert blocker.read_text() == "keep me"
