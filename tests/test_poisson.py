@@ -130,20 +130,22 @@ class NonGradientBody(lf.systems.RigidBody):
         return np.einsum("...i,ij,...j->...", m, 0.5 * (self.M + self.M.T), m)
 
 
-def _systems() -> list[lf.IsospectralSystem]:
+def _systems() -> list:  # type: ignore[type-arg]
+    """Every registered system, as pytest params with the registry name as id."""
     from conftest import SYSTEMS, make_system
 
-    return [make_system(name) for name in SYSTEMS]
+    return [pytest.param(make_system(name), id=name) for name in SYSTEMS]
 
 
-def _lie_poisson_systems() -> list[lf.IsospectralSystem]:
+def _lie_poisson_systems() -> list:  # type: ignore[type-arg]
     """Where the Poisson-tensor test applies: every registered system, the Toda lattice
     through its gl(n) gradient extension (the paper's ``B`` is not a gradient on gl(n))."""
     out = []
-    for s in _systems():
+    for p in _systems():
+        (s,) = p.values
         if isinstance(s, lf.systems.PeriodicToda):
             s = lf.systems.get("periodic_toda", gl_gradient=True)
-        out.append(s)
+        out.append(pytest.param(s, id=p.id))
     return out
 
 
@@ -158,7 +160,7 @@ def _start(system: lf.IsospectralSystem) -> np.ndarray:
 # ------------------------------------------------------------------ gradient test
 
 
-@pytest.mark.parametrize("system", _systems(), ids=lambda s: s.name)
+@pytest.mark.parametrize("system", _systems())
 def test_B_is_the_gradient_of_eta(system: lf.IsospectralSystem) -> None:
     assert gradient_defect(system, system.random_state(seed=2)) <= GRADIENT_TOL
 
@@ -188,7 +190,7 @@ def test_gradient_test_fails_for_a_wrong_B() -> None:
 # ------------------------------------------------------------------ Poisson-tensor test
 
 
-@pytest.mark.parametrize("system", _lie_poisson_systems(), ids=lambda s: s.name)
+@pytest.mark.parametrize("system", _lie_poisson_systems())
 def test_one_step_map_is_poisson(system: lf.IsospectralSystem) -> None:
     d = poisson_defect(system, lf.schemes.get("gauss3"), _start(system), 0.2)
     assert d <= POISSON_TOL
