@@ -51,6 +51,7 @@ from types import FrameType, MappingProxyType
 from typing import Any
 
 import attrs
+import numpy as np
 
 from .config import _SECTIONS, Config, ConfigError, _fail, _Section, parse_config
 from .errors import InputError, LieflowError
@@ -644,8 +645,17 @@ def _file_state(spec: RunSpec) -> dict[str, Any] | None:
                 "requested_steps": int(a.get("requested_steps", 0)),
                 "identity": str(_plain(a.get("identity", ""))),
                 "wall_time": float(a.get("wall_time", 0.0)),
-                "max_energy_error": float(f["diagnostics/energy_error"][()].max()),
             }
+    except Exception:
+        return None
+
+
+def _max_energy_error(path: Path) -> float | None:
+    try:
+        import h5py
+
+        with h5py.File(path, "r") as f:
+            return float(np.max(f["diagnostics/energy_error"][()]))
     except Exception:
         return None
 
@@ -1049,8 +1059,17 @@ class _Coordinator:
         self.dirty = False
         self.skipped = 0
 
-    def _record(self, spec: RunSpec, state: Mapping[str, Any] | None) -> dict[str, Any]:
+    def _record(
+        self, spec: RunSpec, state: Mapping[str, Any] | None, previous: Mapping[str, Any]
+    ) -> dict[str, Any]:
         complete = _is_complete(spec, state)
+        carried = {}
+        if complete:  # what the last sweep recorded of it, or the file's own numbers
+            carried = {k: previous[k] for k in ("host", "pid") if k in previous}
+            error = previous.get("max_energy_error")
+            carried["max_energy_error"] = (
+                error if isinstance(error, float) else _max_energy_error(spec.output)
+            )
         return {
             "id": spec.id,
             "index": list(spec.index),
@@ -1061,8 +1080,9 @@ class _Coordinator:
             "completed_steps": state["completed_steps"] if state else 0,
             "requested_steps": spec.config.run.steps,
             "wall_time": state["wall_time"] if state else 0.0,
-            "max_energy_error": state["max_energy_error"] if state else None,
-            "attempts": 0,
+            "max_energy_error": None,
+            "attempts": previous.get("attempts", 0) if complete else 0,
+            **carried,
         }
 
     def write_manifest(self, force: bool = False) -> None:
@@ -1122,7 +1142,12 @@ class _Coordinator:
         grid = self.grid
         with contextlib.suppress(OSError):
             self.progress_dir.mkdir(exist_ok=True)
-        self.records = [self._record(s, _file_state(s)) for s in grid.runs]
+        try:
+            old = json.loads(grid.manifest.read_text(encoding="utf-8"))
+            before = {r["id"]: r for r in old["runs"]}
+        except (OSError, ValueError, KeyError, TypeError):
+            before = {}
+        self.records = [self._record(s, _file_state(s), before.get(s.id, {})) for s in grid.runs]
         todo: deque[tuple[float, int]] = deque(
             (0.0, i) for i, r in enumerate(self.records) if r["status"] != "complete"
         )
@@ -1134,7 +1159,12 @@ class _Coordinator:
             self.monitor.start(len(grid.runs), skipped)
         in_flight: dict[cf.Future[Any], int] = {}
         busy_since: dict[int, float] = {}
-        cap = 2 * (self.local.workers if self.local is not None else 64)
+        # at most two runs per worker queued in a pool we know the size of (so that an
+        # interrupt has little to cancel); a Dask scheduler queues everything itself
+        size = (
+            self.local.workers if self.local is not None else getattr(self.pool, "_max_workers", 0)
+        )
+        cap = 2 * size if size else len(grid.runs)
         interrupted = False
         try:
             while todo or in_flight:
@@ -1243,7 +1273,6 @@ class _Coordinator:
         if state is not None:
             rec["completed_steps"] = state["completed_steps"]
             rec["wall_time"] = state["wall_time"]
-            rec["max_energy_error"] = state["max_energy_error"]
         with contextlib.suppress(OSError):
             (self.progress_dir / f"{spec.id}.json").unlink()
         self.dirty = True

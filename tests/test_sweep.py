@@ -156,6 +156,11 @@ def test_sweep_runs_every_run_writes_manifest_and_skips_complete_runs(tmp_path: 
     again = sweep(grid, threads())
     assert again.ok and again.skipped == 8
     assert {p: p.stat().st_mtime_ns for p in mtimes} == mtimes  # complete files untouched
+    errors = [r["max_energy_error"] for r in res.runs]
+    assert all(isinstance(e, float) and 0 <= e < 1e-3 for e in errors)
+    assert [r["max_energy_error"] for r in again.runs] == errors  # carried over
+    res.manifest.unlink()
+    assert [r["max_energy_error"] for r in sweep(grid, threads()).runs] == errors  # from files
 
 
 class _StopAfter:
