@@ -1058,6 +1058,7 @@ class _Coordinator:
         self.last_write = 0.0
         self.dirty = False
         self.skipped = 0
+        self.worked = False  # some task returned (the pool's workers can start)
 
     def _record(
         self, spec: RunSpec, state: Mapping[str, Any] | None, previous: Mapping[str, Any]
@@ -1219,6 +1220,7 @@ class _Coordinator:
         broken = False
         try:
             out = fut.result(timeout=0)
+            self.worked = True
         except cf.CancelledError:
             rec["status"] = "pending"
             return False
@@ -1226,6 +1228,14 @@ class _Coordinator:
             from concurrent.futures.process import BrokenProcessPool
 
             broken = isinstance(exc, BrokenProcessPool)
+            if broken and self.local is not None and not self.worked:
+                raise LieflowError(
+                    "the sweep's worker processes could not start (they died before running "
+                    f"any run: {exc}). If lieflow.sweep is called from a script, protect the "
+                    'call with `if __name__ == "__main__":` (Python starts the workers by '
+                    "importing the script, as for any process pool); otherwise see the "
+                    'workers\' errors above, or pass executor="dask" or another Executor.'
+                ) from None
             state = _file_state(spec)
             if _is_complete(spec, state):
                 out = {"status": "complete", **(state or {})}

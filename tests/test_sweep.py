@@ -430,3 +430,27 @@ def test_ctrl_c_stops_the_sweep_resumably_and_rerunning_finishes_it(tmp_path: Pa
     spec = load_sweep(grid).runs[0]
     io.run(build(spec.config, output=tmp_path / "ref.h5"))
     _files_equal(spec.output, tmp_path / "ref.h5")
+
+
+def test_a_script_without_a_main_guard_gets_a_clear_error(tmp_path: Path) -> None:
+    """The local pool spawns its workers, which import the calling script: unguarded, they
+    die at once; the sweep says why instead of failing every run."""
+    import subprocess
+    import sys
+
+    grid = write_grid(tmp_path, '"initial.seed" = [0, 1]')
+    script = tmp_path / "study.py"
+    script.write_text(f"import lieflow\nlieflow.sweep({str(grid)!r}, workers=1)\n")
+    proc = subprocess.run([sys.executable, str(script)], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=120)  # fmt: skip
+    assert proc.returncode != 0
+    assert 'protect the call with `if __name__ == "__main__":`' in proc.stderr
+    guarded = tmp_path / "guarded.py"
+    guarded.write_text(
+        "import lieflow\n"
+        "if __name__ == '__main__':\n"
+        f"    assert lieflow.sweep({str(grid)!r}, workers=1).ok\n"
+    )
+    proc = subprocess.run([sys.executable, str(guarded)], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=120)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
