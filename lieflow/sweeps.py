@@ -438,6 +438,16 @@ def parse_sweep(
                     "give every key of a zipped group one value per point",
                 )
             groups.append(keys)
+    for g in groups:
+        points = [json.dumps(p, sort_keys=True) for p in zip(*g.values(), strict=True)]
+        twice = next((p for i, p in enumerate(points) if p in points[:i]), None)
+        if twice is not None:
+            raise _fail(
+                source,
+                f"[sweep] {next(iter(g))}",
+                f"the point {twice} is listed twice",
+                "list each value once (two runs would be the same run)",
+            )
     all_keys = [k for g in groups for k in g]
     for a, b in itertools.permutations(all_keys, 2):
         if a == b or b.startswith(a + "."):

@@ -240,3 +240,19 @@ def test_open_errors(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(sys.modules, "xarray", None)
     with pytest.raises(lf.InputError, match=r"lieflow\[sweep\]"):
         lf.open_run(tmp_path / "x.h5")
+
+
+def test_a_solution_as_a_dataset_matches_the_file_of_the_same_run(tmp_path: Path) -> None:
+    from lieflow.datasets import solution_dataset
+
+    path = run_file(tmp_path, rigid("seeds = [0, 1]"))
+    setup = build(parse_config(rigid("seeds = [0, 1]")), output=tmp_path / "unused.h5")
+    sol = lf.integrate(setup.system, setup.scheme, setup.W0, h=0.1, steps=30, save_every=7,
+                       solver=setup.solver, engine="numpy")  # fmt: skip
+    mem, disk = solution_dataset(sol), lf.open_run(path)
+    assert mem.W.dims == disk.W.dims and mem.energy_error.dims == disk.energy_error.dims
+    for name in ("W", "W_final", "energy_error", "casimir_drift", "iterations"):
+        np.testing.assert_allclose(mem[name].values, disk[name].values, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(mem.time.values, disk.time.values)
+    np.testing.assert_array_equal(mem.saved_step.values, disk.saved_step.values)
+    assert mem.attrs["status"] == "success" and mem.attrs["completed_steps"] == 30

@@ -108,6 +108,7 @@ def test_run_ids_are_deterministic_readable_and_order_independent() -> None:
         ('[[sweep.zip]]\n"run.h" = [0.1, 0.2]\n"run.steps" = [1]', "lists of different lengths"),
         ('"run.h" = [-0.1]', "[run] h: must be positive"),
         ('"scheme" = [1]', "whole section"),
+        ('"run.h" = [0.1, 0.2, 0.1]', "[sweep] run.h: the point [0.1] is listed twice"),
     ],
 )
 def test_bad_grids_are_refused_naming_the_key(tmp_path: Path, table: str, needle: str) -> None:
