@@ -1139,14 +1139,22 @@ class _Coordinator:
             "id": spec.id,
         }
 
-    def _steps_now(self, running: Sequence[int]) -> int:
-        steps = sum(r["completed_steps"] for j, r in enumerate(self.records) if j not in running)
-        for i in running:
+    def _steps_now(self, in_flight: Sequence[int]) -> int:
+        """Steps done in all runs, those of in-flight runs as their workers report them; an
+        in-flight run is "running" once its worker has reported, "pending" (queued) before."""
+        flying = set(in_flight)
+        steps = sum(r["completed_steps"] for j, r in enumerate(self.records) if j not in flying)
+        for i in flying:
+            rec = self.records[i]
             p = self.progress_dir / f"{self.grid.runs[i].id}.json"
             try:
                 steps += int(json.loads(p.read_text())["done"])
             except (OSError, ValueError, KeyError, TypeError):
-                steps += self.records[i]["completed_steps"]
+                steps += rec["completed_steps"]
+            else:
+                if rec["status"] == "pending":
+                    rec["status"] = "running"
+                    self.dirty = True
         return steps
 
     def run(self) -> bool:
@@ -1189,7 +1197,9 @@ class _Coordinator:
                         continue
                     rec = self.records[i]
                     rec["attempts"] += 1
-                    rec["status"], rec["error"] = "running", ""
+                    rec["status"], rec["error"] = "pending", ""  # queued: "running" once started
+                    with contextlib.suppress(OSError):  # a lost attempt's
+                        (self.progress_dir / f"{grid.runs[i].id}.json").unlink()
                     in_flight[self.pool.submit(run_task, self._task(i))] = i
                     self.dirty = True
                 done, _ = cf.wait(list(in_flight), timeout=0.5, return_when=cf.FIRST_COMPLETED)
@@ -1203,10 +1213,9 @@ class _Coordinator:
                         self._collect(fut, i, todo, busy_since)
                     self.local.renew()
                     self.pool = self.local.pool
+                steps = self._steps_now(list(in_flight.values()))
                 if self.monitor is not None:
-                    self.monitor.update(
-                        self.counts(), self._steps_now(list(in_flight.values())), total_steps
-                    )
+                    self.monitor.update(self.counts(), steps, total_steps)
                 self.write_manifest()
         except KeyboardInterrupt:
             interrupted = True
