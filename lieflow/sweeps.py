@@ -623,6 +623,11 @@ def run_task(task: Mapping[str, Any]) -> dict[str, Any]:
         )
     except io.OutputBusyError as exc:
         out.update(status="busy", error=str(exc))
+    except ConfigError as exc:
+        # another attempt created the file between this one's check and its create: try
+        # again (it will resume it); any other configuration error is the run's failure
+        raced = exc.key == "[run] output" and "already exists" in str(exc)
+        out.update(status="busy" if raced else "failed", error=str(exc))
     except LieflowError as exc:
         out.update(status="failed", error=str(exc))
     except KeyboardInterrupt:

@@ -455,3 +455,20 @@ def test_a_script_without_a_main_guard_gets_a_clear_error(tmp_path: Path) -> Non
     proc = subprocess.run([sys.executable, str(guarded)], cwd=tmp_path, capture_output=True,
                           text=True, timeout=120)  # fmt: skip
     assert proc.returncode == 0, proc.stderr
+
+
+def test_a_file_created_by_another_attempt_meanwhile_is_retried_not_failed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Attempt B finds no file, attempt A then creates and finishes it, B's exclusive create
+    is refused: B reports "busy" (retried later, then skipped), not a failure."""
+    from lieflow.sweeps import run_task
+
+    spec = load_sweep(write_grid(tmp_path, '"initial.seed" = [0]')).runs[0]
+    io.run(build(spec.config))  # attempt A
+    real_exists = Path.exists
+    monkeypatch.setattr(Path, "exists", lambda p: p != spec.output and real_exists(p))
+    task = {"text": spec.config.text, "source": "g", "base_dir": str(tmp_path),
+            "output": str(spec.output)}  # fmt: skip
+    out = run_task(task)
+    assert out["status"] == "busy" and "already exists" in out["error"]
