@@ -1,0 +1,513 @@
+r"""Three-term recurrences for the matrix harmonics ``T_lm`` and the Legendre functions.
+
+These build one *diagonal* (matrix harmonics) or one *order* (Legendre functions) of a basis
+at a time, in O(N²) time and memory each, so that a whole transform costs O(N³) flops —
+the size of the transform itself — without an eigensolver and without holding the
+``N³/3`` numbers of the whole basis (the fast transforms of :mod:`.quantization`).
+
+Matrix harmonics
+----------------
+On the lower diagonal ``m`` (entries ``(i+m, i)``, ``i = 0..n-1``, ``n = N-m``) the
+anticommutator ``X ↦ S_3 X + X S_3`` multiplies entry ``i`` by ``c_i = 2i + m - (N-1)``; it is
+a rank-1 tensor operator, so it maps ``T_lm`` into ``T_{l±1,m}`` only:
+
+.. math:: c_i\, T_{lm}[i] = a_{l+1}\, T_{l+1,m}[i] + a_l\, T_{l-1,m}[i],\qquad
+          a_l = \sqrt{\frac{(l^2 - m^2)(N^2 - l^2)}{4l^2 - 1}}
+
+(the quantized ``z Y_lm`` recurrence; the positive signs are those of the Condon–Shortley
+ladder of :func:`~lieflow_zeitlin.laplacian.harmonics`, checked against it in the tests).
+For fixed ``i`` this is a recurrence in ``l`` whose solution is row ``i`` of the orthogonal
+matrix ``V_m`` (the unit eigenvector of the Jacobi matrix ``(a_l)`` for the eigenvalue
+``c_i``). It is run from both ends: *forward* from ``T_mm`` (closed form, entries
+``∝ (-1)^m Π_{j=i+1}^{i+m} sqrt(j(N-j))``) up to ``l* = round(sqrt(mN))``, where
+``2 a_l ≈ N - m`` is largest and every row is oscillatory, and *backward* from
+``T_{N-1,m}`` (closed form up to sign, ``∝ 1/sqrt(i! (N-1-i)! (i+m)! (N-1-i-m)!)``, the
+stretched 3j symbol) down to ``l*``. Each direction grows out of its forbidden region, where
+it is stable; the two are matched at ``l*, l*+1`` (ratio by least squares, which also carries
+the sign) and the row is normalised to one. Starting values below ``1e-300`` are raised to it
+(the rows are rescaled anyway), which keeps every value finite for ``N <= MAX_N``.
+
+Legendre functions
+------------------
+The orthonormal ``P̄_lm(cos θ) = Y_lm(θ, 0)`` (Condon–Shortley phase, as
+:func:`scipy.special.sph_legendre_p`) by the standard forward recurrence in ``l`` (stable):
+``P̄_mm = (-1)^m sqrt((2m+1)/4π · Π_{k<=m} (2k-1)/2k) sin^m θ`` and
+``P̄_lm = α_lm (x P̄_{l-1,m} - β_lm P̄_{l-2,m})``.
+
+Both kernels are compiled with numba when it is installed (``lieflow-zeitlin[fast]``) and
+run as row-wise numpy otherwise (same arithmetic, more Python overhead).
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.special import gammaln
+
+Array = NDArray[Any]
+F = TypeVar("F", bound=Callable[..., Any])
+
+#: Largest N for which the harmonic recurrence keeps every value finite (the dynamic range
+#: of a row is about ``2^N``; starting values are floored at ``1e-300``).
+MAX_N = 1400
+
+_FLOOR = 1e-300
+
+numba: Any
+try:
+    numba = importlib.import_module("numba")
+except ImportError:  # pragma: no cover - exercised by the numpy fallback tests via a flag
+    numba = None
+
+
+def _jit(func: F, fastmath: bool = False) -> F:
+    """``numba.njit`` with an on-disk cache; ``fastmath`` lets the compiler reassociate
+    sums (vectorised dot products; the order of additions is then the compiler's)."""
+    if numba is None:  # pragma: no cover
+        return func
+    flags = {"reassoc", "contract"} if fastmath else False
+    try:
+        compiled: F = numba.njit(cache=True, nogil=True, fastmath=flags)(func)
+    except Exception:  # pragma: no cover - read-only package directory
+        compiled = numba.njit(nogil=True, fastmath=flags)(func)
+    return compiled
+
+
+# ------------------------------------------------------------------ matrix harmonics
+def harmonic_coefficients(N: int, m: int) -> Array:
+    """``a[k] = a_{m+k}`` for ``k = 0..n`` (``n = N - m``; ``a[0] = a[n] = 0``)."""
+    n = N - m
+    a = np.zeros(n + 1)
+    l = np.arange(m + 1, N, dtype=float)
+    a[1:n] = np.sqrt((l * l - m * m) * (N * N - l * l) / (4 * l * l - 1))
+    return a
+
+
+def _unit_log(logv: Array) -> Array:
+    """``logv`` shifted so that ``Σ exp(2 logv) = 1``."""
+    logv = logv - logv.max()
+    return logv - 0.5 * math.log(float(np.sum(np.exp(2 * logv))))
+
+
+def harmonic_start(N: int, m: int) -> tuple[Array, Array]:
+    """Starting rows: ``T_mm`` on diagonal ``m`` (sign ``(-1)^m``) and ``|T_{N-1,m}|``,
+    unit norm, floored at ``1e-300`` in magnitude."""
+    n = N - m
+    j = np.arange(1, N, dtype=float)
+    cum = np.concatenate([[0.0], np.cumsum(0.5 * (np.log(j) + np.log(N - j)))])
+    i = np.arange(n)
+    logf = _unit_log(cum[i + m] - cum[i])
+    logb = _unit_log(-0.5 * (gammaln(i + 1) + gammaln(N - i) + gammaln(i + m + 1) + gammaln(n - i)))
+    f0 = (-1.0) ** m * np.exp(np.maximum(logf, math.log(_FLOOR)))
+    b0 = np.exp(np.maximum(logb, math.log(_FLOOR)))
+    return f0, b0
+
+
+def split_degree(N: int, m: int) -> int:
+    """``k1``: rows ``k < k1`` (degree ``m + k``) come from the forward recurrence, the rest
+    from the backward one (``k1 = n`` when the diagonal is short enough to run forward only)."""
+    n = N - m
+    kstar = min(max(round(math.sqrt(m * N)) - m, 0), n - 1)
+    return n if kstar + 3 > n else kstar + 2
+
+
+def _harmonic_kernel(
+    N: int, m: int, a: Array, f0: Array, b0: Array, k1: int, Vt: Array, sf: Array, sb: Array
+) -> None:
+    """Fill ``Vt`` (``(n+1, n)``, row ``n`` zero) with the unscaled recurrence rows and
+    ``sf``/``sb`` with the column scales of rows ``< k1`` / ``>= k1`` (explicit loops for
+    numba)."""
+    n = N - m
+    c = np.empty(n)
+    nf = np.zeros(n)
+    nb = np.zeros(n)
+    for i in range(n):
+        c[i] = 2.0 * i + m - (N - 1)
+        Vt[0, i] = f0[i]
+        Vt[n, i] = 0.0
+        nf[i] = f0[i] * f0[i]
+    if k1 > 1:
+        inv = 1.0 / a[1]
+        for i in range(n):
+            v = c[i] * f0[i] * inv
+            Vt[1, i] = v
+            nf[i] += v * v
+    for k in range(1, k1 - 1):
+        inv = 1.0 / a[k + 1]
+        ak = a[k]
+        for i in range(n):
+            v = (c[i] * Vt[k, i] - ak * Vt[k - 1, i]) * inv
+            Vt[k + 1, i] = v
+            nf[i] += v * v
+    if k1 == n:
+        for i in range(n):
+            s = 1.0 / math.sqrt(nf[i])
+            sf[i] = s
+            sb[i] = s
+        return
+    for i in range(n):
+        Vt[n - 1, i] = b0[i]
+        nb[i] = b0[i] * b0[i]
+    for k in range(n - 2, k1 - 1, -1):
+        inv = 1.0 / a[k + 1]
+        ak = a[k + 2]
+        for i in range(n):
+            v = (c[i] * Vt[k + 1, i] - ak * Vt[k + 2, i]) * inv
+            Vt[k, i] = v
+            nb[i] += v * v
+    # the backward values at k1 - 1 and k1 - 2 (the forward rows hold those places)
+    inv1 = 1.0 / a[k1]
+    inv2 = 1.0 / a[k1 - 1]
+    for i in range(n):
+        b1 = (c[i] * Vt[k1, i] - a[k1 + 1] * Vt[k1 + 1, i]) * inv1
+        b2 = (c[i] * b1 - a[k1] * Vt[k1, i]) * inv2
+        r = (Vt[k1 - 1, i] * b1 + Vt[k1 - 2, i] * b2) / (b1 * b1 + b2 * b2)
+        s = 1.0 / math.sqrt(nf[i] + r * r * nb[i])
+        sf[i] = s
+        sb[i] = s * r
+
+
+def _harmonic_rows(
+    N: int, m: int, a: Array, f0: Array, b0: Array, k1: int, Vt: Array, sf: Array, sb: Array
+) -> None:
+    """:func:`_harmonic_kernel` with numpy row operations (no numba)."""
+    n = N - m
+    c = 2.0 * np.arange(n) + m - (N - 1)
+    Vt[0] = f0
+    Vt[n] = 0.0
+    if k1 > 1:
+        Vt[1] = c * f0 / a[1]
+    for k in range(1, k1 - 1):
+        Vt[k + 1] = (c * Vt[k] - a[k] * Vt[k - 1]) / a[k + 1]
+    nf = np.einsum("ki,ki->i", Vt[:k1], Vt[:k1])
+    if k1 == n:
+        sf[:] = sb[:] = 1.0 / np.sqrt(nf)
+        return
+    Vt[n - 1] = b0
+    for k in range(n - 2, k1 - 1, -1):
+        Vt[k] = (c * Vt[k + 1] - a[k + 2] * Vt[k + 2]) / a[k + 1]
+    nb = np.einsum("ki,ki->i", Vt[k1:n], Vt[k1:n])
+    b1 = (c * Vt[k1] - a[k1 + 1] * Vt[k1 + 1]) / a[k1]
+    b2 = (c * b1 - a[k1] * Vt[k1]) / a[k1 - 1]
+    r = (Vt[k1 - 1] * b1 + Vt[k1 - 2] * b2) / (b1 * b1 + b2 * b2)
+    sf[:] = 1.0 / np.sqrt(nf + r * r * nb)
+    sb[:] = sf * r
+
+
+_harmonic_compiled = _jit(_harmonic_kernel) if numba is not None else None
+
+
+def _harmonic_sweeps(
+    N: int,
+    m: int,
+    a: Array,
+    f0: Array,
+    b0: Array,
+    k1: int,
+    C: Array,
+    accf: Array,
+    accb: Array,
+    Xf: Array,
+    Xb: Array,
+    coef: Array,
+    stats: Array,
+) -> None:
+    """The recurrences of :func:`_harmonic_kernel` with three rolling rows, fused with the
+    products (numba): for every unscaled row ``v_k``, ``acc[q] += C[q, k] v_k`` (``accf``
+    for ``k < k1``, ``accb`` after) and ``coef[q, k] = Σ_i X[q, i] v_k[i]`` (``Xf``/``Xb``).
+    ``stats`` rows: ``nf``, ``nb`` (sums of squares), the backward values at ``k1 - 1`` and
+    ``k1 - 2`` and the forward ones there (for the matching)."""
+    n = N - m
+    Q = C.shape[0]
+    P = Xf.shape[0]
+    c = np.empty(n)
+    u = np.zeros(n)
+    v = np.empty(n)
+    w = np.empty(n)
+    for i in range(n):
+        c[i] = 2.0 * i + m - (N - 1)
+        v[i] = f0[i]
+        stats[0, i] = 0.0
+        stats[1, i] = 0.0
+    for k in range(k1):
+        if k > 0:
+            inv = 1.0 / a[k]
+            ak = a[k - 1]
+            for i in range(n):
+                w[i] = (c[i] * v[i] - ak * u[i]) * inv
+            u, v, w = v, w, u
+        for i in range(n):
+            stats[0, i] += v[i] * v[i]
+        for q in range(Q):
+            cq = C[q, k]
+            for i in range(n):
+                accf[q, i] += cq * v[i]
+        for q in range(P):
+            t = 0.0
+            for i in range(n):
+                t += Xf[q, i] * v[i]
+            coef[q, k] = t
+    if k1 == n:
+        return
+    for i in range(n):
+        stats[4, i] = v[i]
+        stats[5, i] = u[i]
+        u[i] = 0.0
+        v[i] = b0[i]
+    for k in range(n - 1, k1 - 3, -1):
+        if k < n - 1:
+            inv = 1.0 / a[k + 1]
+            ak = a[k + 2]
+            for i in range(n):
+                w[i] = (c[i] * v[i] - ak * u[i]) * inv
+            u, v, w = v, w, u
+        if k < k1:
+            row = 2 if k == k1 - 1 else 3
+            for i in range(n):
+                stats[row, i] = v[i]
+            continue
+        for i in range(n):
+            stats[1, i] += v[i] * v[i]
+        for q in range(Q):
+            cq = C[q, k]
+            for i in range(n):
+                accb[q, i] += cq * v[i]
+        for q in range(P):
+            t = 0.0
+            for i in range(n):
+                t += Xb[q, i] * v[i]
+            coef[q, k] = t
+
+
+_sweeps_compiled = _jit(_harmonic_sweeps, fastmath=True) if numba is not None else None
+
+
+def _scales(stats: Array, k1: int, n: int) -> tuple[Array, Array]:
+    """Column scales ``(sf, sb)`` from the statistics of :func:`_harmonic_sweeps`."""
+    if k1 == n:
+        s = 1.0 / np.sqrt(stats[0])
+        return s, s
+    b1, b2, f1, f2 = stats[2], stats[3], stats[4], stats[5]
+    r = (f1 * b1 + f2 * b2) / (b1 * b1 + b2 * b2)
+    s = 1.0 / np.sqrt(stats[0] + r * r * stats[1])
+    return s, s * r
+
+
+def harmonic_synthesis(N: int, m: int, C: Array) -> Array:
+    """``C @ V_m.T`` for real ``C`` of shape ``(Q, n)`` (columns by degree ``m + k``), fused
+    with the recurrence (numba required): ``O(n)`` memory besides the result."""
+    assert _sweeps_compiled is not None
+    n = N - m
+    a = harmonic_coefficients(N, m)
+    f0, b0 = harmonic_start(N, m)
+    k1 = split_degree(N, m)
+    Q = C.shape[0]
+    accf = np.zeros((Q, n))
+    accb = np.zeros((Q, n))
+    stats = np.zeros((6, n))
+    empty = np.zeros((0, n))
+    _sweeps_compiled(
+        N,
+        m,
+        a,
+        f0,
+        b0,
+        k1,
+        np.ascontiguousarray(C),
+        accf,
+        accb,
+        empty,
+        empty,
+        np.zeros((0, n)),
+        stats,
+    )
+    sf, sb = _scales(stats, k1, n)
+    return accf * sf + accb * sb
+
+
+def harmonic_analysis(N: int, m: int, X: Array) -> Array:
+    """``X @ V_m`` for real ``X`` of shape ``(P, n)`` (entries along the diagonal): one sweep
+    for the scales, one for the products (numba required)."""
+    assert _sweeps_compiled is not None
+    n = N - m
+    a = harmonic_coefficients(N, m)
+    f0, b0 = harmonic_start(N, m)
+    k1 = split_degree(N, m)
+    stats = np.zeros((6, n))
+    empty = np.zeros((0, n))
+    _sweeps_compiled(N, m, a, f0, b0, k1, empty, empty, empty, empty, empty, empty, stats)
+    sf, sb = _scales(stats, k1, n)
+    coef = np.zeros((X.shape[0], n))
+    _sweeps_compiled(N, m, a, f0, b0, k1, empty, empty, empty, X * sf, X * sb, coef, stats)
+    return coef
+
+
+def harmonic_diagonal(
+    N: int, m: int, *, compiled: bool | None = None
+) -> tuple[Array, int, Array, Array]:
+    """``(Vt, k1, sf, sb)`` for diagonal ``m``: ``V_m[i, k] = Vt[k, i] * (sf[i] if k < k1
+    else sb[i])`` is the matrix of :func:`~lieflow_zeitlin.laplacian.harmonics` (``Vt`` has
+    ``n + 1`` rows; the last is zero padding)."""
+    n = N - m
+    a = harmonic_coefficients(N, m)
+    f0, b0 = harmonic_start(N, m)
+    k1 = split_degree(N, m)
+    Vt = np.empty((n + 1, n))
+    sf = np.empty(n)
+    sb = np.empty(n)
+    use = (numba is not None) if compiled is None else compiled
+    kernel = _harmonic_compiled if use and _harmonic_compiled is not None else _harmonic_rows
+    kernel(N, m, a, f0, b0, k1, Vt, sf, sb)
+    return Vt, k1, sf, sb
+
+
+def harmonics_by_recurrence(N: int, *, compiled: bool | None = None) -> Any:
+    """The ``(m, V_m)`` of :func:`~lieflow_zeitlin.laplacian.harmonics`, by recurrence
+    (``m = N-1, ..., 0``)."""
+    for m in range(N - 1, -1, -1):
+        Vt, k1, sf, sb = harmonic_diagonal(N, m, compiled=compiled)
+        V = Vt[: N - m].T.copy()
+        V[:, :k1] *= sf[:, None]
+        V[:, k1:] *= sb[:, None]
+        yield m, V
+
+
+# ------------------------------------------------------------------ Legendre functions
+def legendre_start(m: int, theta: Array) -> Array:
+    """``P̄_mm(cos θ)`` (Condon–Shortley phase), computed through logarithms."""
+    k = np.arange(1, m + 1, dtype=float)
+    log_c = 0.5 * math.log((2 * m + 1) / (4 * math.pi)) + 0.5 * float(
+        np.sum(np.log((2 * k - 1) / (2 * k)))
+    )
+    s = np.sin(theta)
+    with np.errstate(divide="ignore"):
+        logp = log_c + m * np.log(s) if m else np.full(theta.shape, log_c)
+    return (-1.0) ** m * np.exp(logp)
+
+
+def legendre_coefficients(N: int, m: int) -> tuple[Array, Array]:
+    """``α_l, β_l`` of ``P̄_lm = α_l (x P̄_{l-1,m} - β_l P̄_{l-2,m})`` at index ``k = l - m``."""
+    n = N - m
+    l = np.arange(m, N, dtype=float)
+    alpha = np.zeros(n)
+    beta = np.zeros(n)
+    alpha[1:] = np.sqrt((4 * l[1:] ** 2 - 1) / (l[1:] ** 2 - m * m))
+    lm1 = l[1:] - 1
+    beta[1:] = np.sqrt((lm1**2 - m * m) / (4 * lm1**2 - 1))
+    return alpha, beta
+
+
+def _legendre_kernel(x: Array, p0: Array, alpha: Array, beta: Array, P: Array) -> None:
+    n = alpha.shape[0]
+    nx = x.shape[0]
+    for j in range(nx):
+        P[0, j] = p0[j]
+    if n > 1:
+        for j in range(nx):
+            P[1, j] = alpha[1] * x[j] * p0[j]
+    for k in range(2, n):
+        al = alpha[k]
+        be = beta[k]
+        for j in range(nx):
+            P[k, j] = al * (x[j] * P[k - 1, j] - be * P[k - 2, j])
+
+
+def _legendre_rows(x: Array, p0: Array, alpha: Array, beta: Array, P: Array) -> None:
+    n = alpha.shape[0]
+    P[0] = p0
+    if n > 1:
+        P[1] = alpha[1] * x * p0
+    for k in range(2, n):
+        P[k] = alpha[k] * (x * P[k - 1] - beta[k] * P[k - 2])
+
+
+_legendre_compiled = _jit(_legendre_kernel) if numba is not None else None
+
+
+def _legendre_sweep(
+    x: Array, p0: Array, alpha: Array, beta: Array, C: Array, acc: Array, X: Array, coef: Array
+) -> None:
+    """The recurrence of :func:`_legendre_kernel` with rolling rows, fused with
+    ``acc[q] += C[q, k] P_k`` and ``coef[q, k] = Σ_j X[q, j] P_k[j]`` (numba)."""
+    n = alpha.shape[0]
+    nx = x.shape[0]
+    Q = C.shape[0]
+    R = X.shape[0]
+    u = np.zeros(nx)
+    v = p0.copy()
+    w = np.empty(nx)
+    for k in range(n):
+        if k == 1:
+            for j in range(nx):
+                w[j] = alpha[1] * x[j] * v[j]
+            u, v, w = v, w, u
+        elif k > 1:
+            al = alpha[k]
+            be = beta[k]
+            for j in range(nx):
+                w[j] = al * (x[j] * v[j] - be * u[j])
+            u, v, w = v, w, u
+        for q in range(Q):
+            cq = C[q, k]
+            for j in range(nx):
+                acc[q, j] += cq * v[j]
+        for q in range(R):
+            t = 0.0
+            for j in range(nx):
+                t += X[q, j] * v[j]
+            coef[q, k] = t
+
+
+_legendre_sweep_compiled = _jit(_legendre_sweep, fastmath=True) if numba is not None else None
+
+
+def legendre_synthesis(N: int, m: int, theta: Array, C: Array) -> Array:
+    """``C @ P`` with ``P = legendre_order(N, m, θ)``, fused (numba required)."""
+    assert _legendre_sweep_compiled is not None
+    alpha, beta = legendre_coefficients(N, m)
+    acc = np.zeros((C.shape[0], theta.size))
+    empty = np.zeros((0, theta.size))
+    _legendre_sweep_compiled(
+        np.cos(theta),
+        legendre_start(m, theta),
+        alpha,
+        beta,
+        np.ascontiguousarray(C),
+        acc,
+        empty,
+        np.zeros((0, N - m)),
+    )
+    return acc
+
+
+def legendre_analysis(N: int, m: int, theta: Array, X: Array) -> Array:
+    """``X @ P.T`` with ``P = legendre_order(N, m, θ)``, fused (numba required)."""
+    assert _legendre_sweep_compiled is not None
+    alpha, beta = legendre_coefficients(N, m)
+    coef = np.zeros((X.shape[0], N - m))
+    _legendre_sweep_compiled(
+        np.cos(theta),
+        legendre_start(m, theta),
+        alpha,
+        beta,
+        np.zeros((0, N - m)),
+        np.zeros((0, theta.size)),
+        np.ascontiguousarray(X),
+        coef,
+    )
+    return coef
+
+
+def legendre_order(N: int, m: int, theta: Array, *, compiled: bool | None = None) -> Array:
+    """``P[k, j] = Y_{m+k, m}(θ_j, 0)`` for ``k = 0..N-m-1``: shape ``(N - m, len(θ))``."""
+    alpha, beta = legendre_coefficients(N, m)
+    P = np.empty((N - m, theta.size))
+    use = (numba is not None) if compiled is None else compiled
+    kernel = _legendre_compiled if use and _legendre_compiled is not None else _legendre_rows
+    kernel(np.cos(theta), legendre_start(m, theta), alpha, beta, P)
+    return P
