@@ -1,24 +1,47 @@
 """numba loops behind :mod:`lieflow.compiled` (imported only when the compiled engine runs).
 
-Every loop here is the numpy code path written out entry by entry for a system with
-``B(W) = S ⊙ W``: same maps, same update, same stopping rule, same warm starts, so that the
-two engines agree to roundoff and take the same iterations (up to one, where roundoff moves a
-relative update across the tolerance). Products of ``n×n`` matrices are plain loops up to
-``n = 8`` and BLAS calls (``np.dot`` from compiled code: no Python overhead) above.
+One compiled driver and per-formulation map kernels:
+
+* :func:`_driver` is the chunk loop: warm-start extrapolation and trust
+  (:class:`~lieflow.flows.WarmStart`), the cold retry of a failed warm solve
+  (:func:`lieflow.schemes.base.solve`), the per-step phase-space projection and the
+  finiteness check; :func:`_solver` is the fixed-point loop, judged by
+  :func:`lieflow.solvers.fixed_point.stopping_verdict` — the same function object the numpy
+  path calls, compiled here (:data:`verdict`);
+* the formulations are a map (:func:`_midpoint_map`, :func:`_reduced_map`) and a step
+  (:func:`_sydirk_step`: a composition of midpoint solves; :func:`_reduced_step`: the
+  reduced stage form), each the numpy code path written out entry by entry.
+
+The system enters as compiled functions passed as *arguments* of the type
+:data:`MAP_TYPE` (``B(W, params, out)`` and ``project(W, params, out)``, see
+:meth:`lieflow.IsospectralSystem.compiled_B`): a typed first-class function keeps the loops
+in numba's on-disk cache whatever the system (an untyped dispatcher argument would make
+numba recompile them in every process). ``B`` is the stage-value ``B`` of
+:class:`~lieflow.schemes.base.StageProblem`, i.e. ``B(project_stage(W))``.
+
+numba's cache tracks this file only, not the files of the functions it inlines; the two
+entry points (:data:`sydirk_advance`, :data:`reduced_advance`) are therefore keyed by a hash
+of the stopping rule's source (:data:`RULE_KEY`), so editing the rule recompiles them.
 
 Conventions: real ``float64`` data only; an ensemble is a ``(K, n, n)`` stack advanced
-trajectory by trajectory inside each step; the solvers return the number of updates, negated
+trajectory by trajectory inside each step; solves return the number of updates, negated
 when the stopping rule reports a failure (the caller then hands the step to numpy).
+Products of ``n×n`` matrices are plain loops up to ``n = 8`` and BLAS calls (``np.dot``
+from compiled code: no Python overhead) above.
 """
 
 from __future__ import annotations
 
+import hashlib
 import importlib
+import inspect
 import math
 from collections.abc import Callable
 from typing import Any, TypeVar, cast
 
 import numpy as np
+
+from .solvers import fixed_point
 
 numba: Any
 try:
@@ -29,11 +52,26 @@ except ImportError:  # pragma: no cover - importable without numba (doctest coll
 F = TypeVar("F", bound=Callable[..., Any])
 
 _TINY = float(np.finfo(float).tiny)
-_GO, _ACCEPT, _FAIL = 0, 1, 2
+_GO, _CONVERGED, _ROUNDOFF = fixed_point.GO, fixed_point.CONVERGED, fixed_point.ROUNDOFF
 #: Up to this ``n`` a skew ``B M B`` is formed as a strict upper triangle of dot products,
 #: and products are plain loops; above it BLAS (``np.dot`` called from compiled code, no
 #: Python overhead) is faster: 2.5x at n = 16 and 50 for ``A @ B``, up to 8x for ``A @ B^T``.
 _SMALL = 8
+
+#: Hash of the stopping rule's source: part of the cache key of the entry points.
+RULE_KEY = hashlib.sha256(
+    (inspect.getsource(fixed_point.stopping_verdict) + repr(fixed_point.REASONS)).encode()
+).hexdigest()
+
+if numba is not None:
+    _MAT = numba.types.float64[:, ::1]
+    #: Signature of a system's compiled map: ``f(W, params, out)`` writes into ``out``
+    #: (``W``, ``out``: C-contiguous ``float64`` ``(n, n)``; ``params``: ``float64`` 1-D).
+    MAP_SIGNATURE: Any = numba.types.void(_MAT, numba.types.float64[::1], _MAT)
+    #: The first-class function type of :data:`MAP_SIGNATURE` (argument type of the loops).
+    MAP_TYPE: Any = numba.types.FunctionType(MAP_SIGNATURE)
+else:  # pragma: no cover
+    MAP_SIGNATURE = MAP_TYPE = None
 
 
 def _jit(func: F) -> F:
@@ -51,6 +89,69 @@ def _jit(func: F) -> F:
         return cast(F, numba.njit(cache=True, error_model="numpy")(func))
     except RuntimeError:  # pragma: no cover - no writable cache location
         return cast(F, numba.njit(error_model="numpy")(func))
+
+
+def _inner(func: F, name: str | None = None) -> F:
+    """``numba.njit`` without a cache, for the functions between an entry point and the
+    stopping rule: they are compiled into the entry points (whose cache is keyed by
+    :data:`RULE_KEY`), never loaded from a cache of their own that could hold an old rule.
+
+    They are inlined by numba (``inline="always"``): as separate calls, the generic driver
+    and solve cost twice the time per step of hand-inlined loops (so(3) midpoint, measured).
+    ``name`` renames a function made by a factory: numba's symbol names are the qualified
+    name, the argument types and a per-process counter, so two closures of one factory with
+    the same argument types could meet under one symbol in code loaded from the cache."""
+    if name is not None:
+        func.__name__ = func.__qualname__ = name
+    if numba is None:  # pragma: no cover
+        return func
+    return cast(F, numba.njit(error_model="numpy", inline="always")(func))
+
+
+def compiled_map(func: F) -> F:
+    """Compile ``func(W, params, out)`` for :data:`MAP_SIGNATURE`, cached on disk (what a
+    system's :meth:`~lieflow.IsospectralSystem.compiled_B` may return)."""
+    if numba is None:  # pragma: no cover
+        return func
+    try:
+        return cast(F, numba.njit(MAP_SIGNATURE, cache=True, error_model="numpy")(func))
+    except RuntimeError:  # pragma: no cover - no writable cache location
+        return cast(F, numba.njit(MAP_SIGNATURE, error_model="numpy")(func))
+
+
+# ------------------------------------------------------------------ the stopping rule
+
+#: :func:`lieflow.solvers.fixed_point.stopping_verdict`, compiled (the same function).
+verdict = _jit(fixed_point.stopping_verdict)
+
+
+@_inner
+def _judge(
+    step2: float, size2: float, k: int, size0: float, res: Any, rule: Any, irule: Any
+) -> tuple[int, float]:
+    """Record the ``k``-th update, of squared norm ``step2`` to an iterate of squared norm
+    ``size2`` (the :class:`~lieflow.solvers.fixed_point.IterationMonitor` bookkeeping),
+    and judge it with :data:`verdict`.
+
+    Returns the verdict's code and the (possibly updated) reference size for the growth
+    test. ``rule = (rtol, atol, roundoff_floor, divergence_factor)``, ``irule = (max_iter,
+    patience, window, project, ...)``.
+    """
+    step, size = math.sqrt(step2), math.sqrt(size2)
+    if not (math.isfinite(step) and math.isfinite(size)):
+        return fixed_point.NON_FINITE, size0
+    if k == 1:
+        size0 = max(size0, size, _TINY)
+    res[k - 1] = step / max(size, _TINY)
+    met = step <= rule[1] + rule[0] * size
+    code = verdict(
+        res, k, met, size / size0, rule[0], rule[2], rule[3], irule[0], irule[1], irule[2],
+        irule[3] != 0,
+    )  # fmt: skip
+    return code, size0
+
+
+# ------------------------------------------------------------------ products
 
 
 @_jit
@@ -90,156 +191,370 @@ def _matmul_nt(A: Any, B: Any, out: Any) -> None:
 
 
 @_jit
-def _verdict(res: Any, k: int, met: bool, growth: float, rule: Any, irule: Any) -> int:
-    """:meth:`lieflow.solvers.StoppingRule.verdict` on the relative updates ``res[:k]``.
-
-    ``_ACCEPT`` for ``"converged"`` and ``"roundoff"``, ``_FAIL`` for every other stop,
-    ``_GO`` to iterate on.
-    """
-    rtol, floor, divergence = rule[0], rule[2], rule[3]
-    max_iter, patience, window, project = irule[0], irule[1], irule[2], irule[3]
-    r = res[k - 1]
-    if not (math.isfinite(r) and math.isfinite(growth)):
-        return _FAIL
-    if met:
-        return _ACCEPT
-    if growth > divergence:
-        return _FAIL
-    best_at = 0
-    for i in range(1, k):
-        if res[i] < res[best_at]:
-            best_at = i
-    best = res[best_at]
-    if k - 1 - best_at >= patience:
-        return _ACCEPT if best <= floor else _FAIL
-    if project != 0 and k > window and best > floor:
-        earlier = res[0]
-        for i in range(1, k - window):
-            earlier = min(earlier, res[i])
-        if earlier > 0.0:
-            rate = (best / earlier) ** (1.0 / window)
-            if rate >= 1.0:
-                return _FAIL
-            if rate > 0.0 and k + math.log(max(rtol, floor) / best) / math.log(rate) > max_iter:
-                return _FAIL
-    if k >= max_iter:  # at the cap, an update at roundoff is accepted (as StoppingRule)
-        return _ACCEPT if r <= floor else _FAIL
-    return _GO
-
-
-@_jit
-def _judge(
-    step2: float, size2: float, k: int, size0: float, res: Any, rule: Any, irule: Any
-) -> tuple[int, float]:
-    """Record the ``k``-th update, of squared norm ``step2`` to an iterate of squared norm
-    ``size2`` (the :class:`IterationMonitor` bookkeeping), and judge it.
-
-    Returns the verdict and the (possibly updated) reference size for the growth test.
-    """
-    step, size = math.sqrt(step2), math.sqrt(size2)
-    if not (math.isfinite(step) and math.isfinite(size)):
-        return _FAIL, size0
-    if k == 1:
-        size0 = max(size0, size, _TINY)
-    res[k - 1] = step / max(size, _TINY)
-    met = step <= rule[1] + rule[0] * size
-    return _verdict(res, k, met, size / size0, rule, irule), size0
-
-
-@_jit
-def _norm(x: Any) -> float:
-    xf = x.reshape(x.size)
+def _norm(xf: Any) -> float:
+    """Euclidean norm of a 1-D array."""
     acc = 0.0
     for i in range(xf.size):
         acc += xf[i] * xf[i]
     return math.sqrt(acc)
 
 
-@_jit
-def _midpoint_solve(
-    W0: Any, S: Any, q: float, skew: bool, x: Any, scratch: Any, res: Any, rule: Any, irule: Any
-) -> int:
-    """Fixed-point iteration of the midpoint map (SPEC §4.1) from the guess in ``x``:
-
-    ``M <- W0 + q (B M - M B) + q^2 B M B``, ``B = S ⊙ M``, ``q = h/2``;
-    for skew algebras ``M B = (B M)^T`` (two products per iteration, SPEC §4.1), and for
-    small ``n`` only half of the skew ``B M B`` is formed. The new iterate overwrites ``x``
-    entry by entry once the products are formed; on acceptance ``x`` holds the solution.
-    """
-    n = W0.shape[0]
-    B, BM, BMB, MB = scratch[1], scratch[2], scratch[3], scratch[4]
-    qq = q * q
-    size0 = _norm(x)
-    k = 0
-    while True:
-        for i in range(n):
-            for j in range(n):
-                B[i, j] = S[i, j] * x[i, j]
-        _matmul(B, x, BM)
-        step2 = 0.0
-        size2 = 0.0
-        if skew and n <= _SMALL:
-            # B M B is skew for skew B, M: form its strict upper triangle only (its diagonal
-            # is zero in exact arithmetic) and mirror it, half a product instead of one.
-            for i in range(n):
-                g = W0[i, i]
-                d = g - x[i, i]
-                step2 += d * d
-                size2 += g * g
-                x[i, i] = g
-                for j in range(i + 1, n):
-                    bmb = 0.0
-                    for c in range(n):
-                        bmb += BM[i, c] * B[c, j]
-                    c1 = BM[i, j] - BM[j, i]
-                    g = W0[i, j] + q * c1 + qq * bmb
-                    gt = W0[j, i] - q * c1 - qq * bmb
-                    d = g - x[i, j]
-                    dt = gt - x[j, i]
-                    step2 += d * d + dt * dt
-                    size2 += g * g + gt * gt
-                    x[i, j] = g
-                    x[j, i] = gt
-        else:
-            _matmul(BM, B, BMB)
-            if not skew:
-                _matmul(x, B, MB)
-            for i in range(n):
-                for j in range(n):
-                    mb = BM[j, i] if skew else MB[i, j]
-                    g = W0[i, j] + q * (BM[i, j] - mb) + qq * BMB[i, j]
-                    d = g - x[i, j]
-                    step2 += d * d
-                    size2 += g * g
-                    x[i, j] = g
-        k += 1
-        verdict, size0 = _judge(step2, size2, k, size0, res, rule, irule)
-        if verdict == _ACCEPT:
-            return k
-        if verdict == _FAIL:
-            return -k
+# ------------------------------------------------------------------ systems' maps
+# Compiled forms of the built-in systems' B and projections (MAP_SIGNATURE); ``params`` is
+# the flattened factor S for the Hadamard maps.
 
 
-@_jit
-def _commutator_add(
-    W: Any, S: Any, hb: float, skew: bool, M: Any, B: Any, BM: Any, MB: Any
-) -> None:
-    """``W += hb [S ⊙ M, M]`` in place (one product for skew algebras); ``B``, ``BM``,
-    ``MB`` are scratch matrices."""
+@compiled_map
+def hadamard_B(W: Any, params: Any, out: Any) -> None:
+    """``out = S ⊙ W`` (``params = S.ravel()``): ``B`` on gl(n)."""
     n = W.shape[0]
     for i in range(n):
         for j in range(n):
-            B[i, j] = S[i, j] * M[i, j]
-    _matmul(B, M, BM)
+            out[i, j] = params[i * n + j] * W[i, j]
+
+
+@compiled_map
+def hadamard_B_skew(W: Any, params: Any, out: Any) -> None:
+    """``out = S ⊙ (W - W^T)/2``: ``B`` of a stage value on so(n) (projected first)."""
+    n = W.shape[0]
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = params[i * n + j] * (0.5 * (W[i, j] - W[j, i]))
+
+
+@compiled_map
+def hadamard_B_symmetric(W: Any, params: Any, out: Any) -> None:
+    """``out = S ⊙ (W + W^T)/2``: ``B`` of a stage value on the symmetric matrices."""
+    n = W.shape[0]
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = params[i * n + j] * (0.5 * (W[i, j] + W[j, i]))
+
+
+@compiled_map
+def symmetric_part(W: Any, params: Any, out: Any) -> None:
+    """``out = (W + W^T)/2`` (``out`` may be ``W``; ``params`` unused)."""
+    n = W.shape[0]
+    for i in range(n):
+        out[i, i] = W[i, i]
+        for j in range(i + 1, n):
+            a = 0.5 * (W[i, j] + W[j, i])
+            out[i, j] = a
+            out[j, i] = a
+
+
+def _call_map(f: Any, W: Any, params: Any, out: Any) -> None:
+    """Call a system's compiled map through its first-class function type, as the loops
+    do (:func:`lieflow.compiled.plan` checks a map with it)."""
+    f(W, params, out)
+
+
+if numba is not None:
+    call_map: Any = numba.njit(
+        numba.types.void(MAP_TYPE, _MAT, numba.types.float64[::1], _MAT), cache=True
+    )(_call_map)
+else:  # pragma: no cover
+    call_map = _call_map
+
+
+_Protocol: Any = object if numba is None else numba.core.types.WrapperAddressProtocol
+
+
+class _FunctionPointer(_Protocol):
+    """A compiled map as the loops take it: its address, resolved once.
+
+    numba turns a dispatcher passed for a first-class function argument into an address
+    on every call, through Python (a few hundred microseconds per argument and call); an
+    object of numba's wrapper address protocol hands over the address it holds.
+    """
+
+    def __init__(self, function: Any) -> None:
+        from numba.experimental.function_type import _get_wrapper_address
+
+        self.function = function  # keeps the compiled code alive
+        self.address = _get_wrapper_address(function, MAP_SIGNATURE)
+
+    def __wrapper_address__(self) -> int:
+        return int(self.address)
+
+    def signature(self) -> Any:
+        return MAP_SIGNATURE
+
+
+def function_pointer(function: Any) -> Any:
+    """``function`` (a numba dispatcher compiled for :data:`MAP_SIGNATURE`) in the form the
+    loops take it, cheaply converted on every call."""
+    return function if isinstance(function, _FunctionPointer) else _FunctionPointer(function)
+
+
+# ------------------------------------------------------------------ formulations
+
+
+@_inner
+def _midpoint_map(
+    W0: Any, q: float, x: Any, Bm: Any, BM: Any, BMB: Any, MB: Any, B: Any, params: Any,
+    skew: bool,
+) -> tuple[float, float]:  # fmt: skip
+    """One update of the midpoint map (SPEC §4.1), in place:
+
+    ``M <- W0 + q (B M - M B) + q^2 B M B``, ``B = B(M)``, ``q = h/2``;
+    for skew algebras ``M B = (B M)^T`` (two products per update, SPEC §4.1), and for
+    small ``n`` only half of the skew ``B M B`` is formed. The new iterate overwrites ``x``
+    entry by entry once the products are formed; ``Bm``, ... ``MB`` are scratch matrices
+    (separate arguments: unpacking a tuple of arrays costs reference counts). Returns the
+    squared norms of the update and of the new iterate.
+    """
+    n = W0.shape[0]
+    qq = q * q
+    B(x, params, Bm)
+    _matmul(Bm, x, BM)
+    step2 = 0.0
+    size2 = 0.0
+    if skew and n <= _SMALL:
+        # B M B is skew for skew B, M: form its strict upper triangle only (its diagonal
+        # is zero in exact arithmetic) and mirror it, half a product instead of one.
+        for i in range(n):
+            g = W0[i, i]
+            d = g - x[i, i]
+            step2 += d * d
+            size2 += g * g
+            x[i, i] = g
+            for j in range(i + 1, n):
+                bmb = 0.0
+                for c in range(n):
+                    bmb += BM[i, c] * Bm[c, j]
+                c1 = BM[i, j] - BM[j, i]
+                g = W0[i, j] + q * c1 + qq * bmb
+                gt = W0[j, i] - q * c1 - qq * bmb
+                d = g - x[i, j]
+                dt = gt - x[j, i]
+                step2 += d * d + dt * dt
+                size2 += g * g + gt * gt
+                x[i, j] = g
+                x[j, i] = gt
+    else:
+        _matmul(BM, Bm, BMB)
+        if not skew:
+            _matmul(x, Bm, MB)
+        for i in range(n):
+            for j in range(n):
+                mb = BM[j, i] if skew else MB[i, j]
+                g = W0[i, j] + q * (BM[i, j] - mb) + qq * BMB[i, j]
+                d = g - x[i, j]
+                step2 += d * d
+                size2 += g * g
+                x[i, j] = g
+    return step2, size2
+
+
+@_inner
+def _commutator_add(
+    W: Any, hb: float, skew: bool, M: Any, B: Any, params: Any, Bm: Any, BM: Any, MB: Any
+) -> None:
+    """``W += hb [B(M), M]`` in place (one product for skew algebras); ``Bm``, ``BM``,
+    ``MB`` are scratch matrices."""
+    n = W.shape[0]
+    B(M, params, Bm)
+    _matmul(Bm, M, BM)
     if skew:
         for i in range(n):
             for j in range(n):
                 MB[i, j] = BM[j, i]
     else:
-        _matmul(M, B, MB)
+        _matmul(M, Bm, MB)
     for i in range(n):
         for j in range(n):
             W[i, j] = W[i, j] + hb * (BM[i, j] - MB[i, j])
+
+
+@_inner
+def _reduced_map(
+    W0: Any, hA: Any, x: Any, Wst: Any, Bs: Any, GB: Any, PB: Any, B: Any, params: Any,
+    skew: bool,
+) -> tuple[float, float]:  # fmt: skip
+    """One update of the reduced stage form (SPEC §4.5), in place (``x[0] = G``,
+    ``x[1] = P``, each ``(s, n, n)``):
+
+    ``G_i <- I + h sum_j a_ij G_j B_j^T``, ``P_i <- W0 - h sum_j a_ij P_j B_j``,
+    ``B_j = B(G_j^T P_j)``; for skew algebras ``B^T = -B``. ``3 s`` products per
+    update; ``Wst``, ... ``PB`` are scratch stacks ``(s, n, n)``. Returns the squared norms of the
+    update and of the new iterate.
+    """
+    s, n = hA.shape[0], W0.shape[0]
+    for j in range(s):
+        _matmul_tn(x[0, j], x[1, j], Wst[j])
+        B(Wst[j], params, Bs[j])
+        if skew:
+            _matmul(x[0, j], Bs[j], GB[j])
+            for a in range(n):
+                for c in range(n):
+                    GB[j, a, c] = -GB[j, a, c]
+        else:
+            _matmul_nt(x[0, j], Bs[j], GB[j])
+        _matmul(x[1, j], Bs[j], PB[j])
+    step2 = 0.0
+    size2 = 0.0
+    for i in range(s):
+        for a in range(n):
+            for c in range(n):
+                accG = 0.0
+                accP = 0.0
+                for j in range(s):
+                    accG += hA[i, j] * GB[j, a, c]
+                    accP += hA[i, j] * -PB[j, a, c]
+                gG = accG + (1.0 if a == c else 0.0)
+                gP = accP + W0[a, c]
+                dG = gG - x[0, i, a, c]
+                dP = gP - x[1, i, a, c]
+                step2 += dG * dG + dP * dP
+                size2 += gG * gG + gP * gP
+                x[0, i, a, c] = gG
+                x[1, i, a, c] = gP
+    return step2, size2
+
+
+# ------------------------------------------------------------------ the one driver
+
+
+def _solver(fmap: Any) -> Any:
+    """The fixed-point solve of the map ``fmap`` (:func:`_midpoint_map` or
+    :func:`_reduced_map`): one source for every formulation, compiled once per map (the map
+    is a closure variable, i.e. a direct call, not a value passed at run time)."""
+
+    def iterate(
+        W0: Any, coef: Any, x: Any, xf: Any, m0: Any, m1: Any, m2: Any, m3: Any, B: Any,
+        params: Any, skew: bool, res: Any, rule: Any, irule: Any,
+    ) -> int:  # fmt: skip
+        """Fixed-point iteration ``x <- fmap(x)`` from the guess in ``x`` (``xf``: its flat
+        view) until the stopping rule stops it: the number of updates (``x`` holds the
+        solution), negated on failure."""
+        size0 = _norm(xf)
+        k = 0
+        while True:
+            step2, size2 = fmap(W0, coef, x, m0, m1, m2, m3, B, params, skew)
+            k += 1
+            code, size0 = _judge(step2, size2, k, size0, res, rule, irule)
+            if code == _CONVERGED or code == _ROUNDOFF:
+                return k
+            if code != _GO:
+                return -k
+
+    iterate = _inner(iterate, f"_iterate_{fmap.__name__}")
+
+    def solve(
+        W0: Any, coef: Any, x: Any, xf: Any, x0f: Any, pred: Any, solved: Any, off: int,
+        guessing: bool, retry_cold: bool, m0: Any, m1: Any, m2: Any, m3: Any, B: Any,
+        params: Any, skew: bool, res: Any, rule: Any, irule: Any,
+    ) -> int:  # fmt: skip
+        """Solve from the warm guess ``x0 + pred[off:]`` (when ``guessing``), retried from
+        the cold guess ``x0`` if that fails and ``retry_cold``
+        (:func:`lieflow.schemes.base.solve`); on success ``solved[off:] = x - x0`` (the
+        offsets a warm start keeps) and the updates of both attempts are returned, else a
+        negative number. ``xf``, ``x0f``: flat views of ``x`` and the cold guess."""
+        m = xf.size
+        total = 0
+        its = 0
+        if guessing:
+            for e in range(m):
+                xf[e] = x0f[e] + pred[off + e]
+            its = iterate(W0, coef, x, xf, m0, m1, m2, m3, B, params, skew, res, rule, irule)
+            if its < 0 and not retry_cold:
+                return -1
+            total = abs(its)
+        if its <= 0:
+            for e in range(m):
+                xf[e] = x0f[e]
+            its = iterate(W0, coef, x, xf, m0, m1, m2, m3, B, params, skew, res, rule, irule)
+            if its < 0:
+                return -1
+            total += its
+        for e in range(m):
+            solved[off + e] = xf[e] - x0f[e]
+        return total
+
+    return _inner(solve, f"_solve_{fmap.__name__}")
+
+
+_solve_midpoint = _solver(_midpoint_map)
+_solve_reduced = _solver(_reduced_map)
+
+
+@_inner
+def _sydirk_views(work: Any, scratch: Any) -> Any:
+    """Views of the work arrays for :func:`_sydirk_step`, made once per chunk: the iterate
+    ``x`` and the sub-step's start ``x0`` (``n×n``, and flat), four scratch matrices."""
+    x, x0 = work[0, 0, 0], work[1, 0, 0]
+    m0, m1, m2, m3 = scratch[1, 0], scratch[2, 0], scratch[3, 0], scratch[4, 0]
+    return x, x0, x.reshape(x.size), x0.reshape(x0.size), m0, m1, m2, m3
+
+
+@_inner
+def _sydirk_step(
+    cur: Any, out: Any, pred: Any, solved: Any, guessing: bool, retry_cold: bool, hA: Any,
+    hb: Any, x: Any, x0: Any, xf: Any, x0f: Any, m0: Any, m1: Any, m2: Any, m3: Any, B: Any,
+    params: Any, skew: bool, res: Any, rule: Any, irule: Any,
+) -> int:  # fmt: skip
+    """One step of a composition of midpoint steps of sizes ``hb`` (SPEC §4.2) from
+    ``cur`` into ``out``; ``solved``/``pred``: the ``(s, n, n)`` offsets, flattened."""
+    n = cur.shape[0]
+    nn = n * n
+    for a in range(n):
+        for c in range(n):
+            out[a, c] = cur[a, c]
+    total = 0
+    for i in range(hb.shape[0]):
+        for a in range(n):
+            for c in range(n):
+                x0[a, c] = out[a, c]
+        its = _solve_midpoint(
+            x0, 0.5 * hb[i], x, xf, x0f, pred, solved, i * nn, guessing, retry_cold, m0, m1,
+            m2, m3, B, params, skew, res, rule, irule,
+        )  # fmt: skip
+        if its < 0:
+            return -1
+        total += its
+        _commutator_add(out, hb[i], skew, x, B, params, m0, m1, m3)
+    return total
+
+
+@_inner
+def _reduced_views(work: Any, scratch: Any) -> Any:
+    """Views of the work arrays for :func:`_reduced_step`, made once per chunk: the
+    unknowns ``x = (G, P)`` and the cold guess ``x0 = (I, W0)`` (and flat), four scratch
+    stacks."""
+    x, x0 = work[0], work[1]
+    xf, x0f = x.reshape(x.size), x0.reshape(x0.size)
+    return x, x0, xf, x0f, scratch[0], scratch[1], scratch[2], scratch[3]
+
+
+@_inner
+def _reduced_step(
+    cur: Any, out: Any, pred: Any, solved: Any, guessing: bool, retry_cold: bool, hA: Any,
+    hb: Any, x: Any, x0: Any, xf: Any, x0f: Any, m0: Any, m1: Any, m2: Any, m3: Any, B: Any,
+    params: Any, skew: bool, res: Any, rule: Any, irule: Any,
+) -> int:  # fmt: skip
+    """One step of the reduced stage form of a symplectic tableau (SPEC §4.5) from ``cur``
+    into ``out``: unknowns ``(G, P)``, cold guess ``(I, cur)``; ``solved``/``pred``: the
+    ``(2, s, n, n)`` offsets, flattened. ``out = cur + sum_i hb_i [B(W_i), W_i]``,
+    ``W_i = G_i^T P_i``."""
+    s, n = hb.shape[0], cur.shape[0]
+    for i in range(s):
+        for a in range(n):
+            for c in range(n):
+                x0[0, i, a, c] = 1.0 if a == c else 0.0
+                x0[1, i, a, c] = cur[a, c]
+    its = _solve_reduced(cur, hA, x, xf, x0f, pred, solved, 0, guessing, retry_cold, m0, m1,
+                         m2, m3, B, params, skew, res, rule, irule)  # fmt: skip
+    if its < 0:
+        return -1
+    Wi, Bi, BW, WB = m0[0], m1[0], m2[0], m3[0]
+    for a in range(n):
+        for c in range(n):
+            out[a, c] = cur[a, c]
+    for i in range(s):
+        _matmul_tn(x[0, i], x[1, i], Wi)
+        _commutator_add(out, hb[i], skew, Wi, B, params, Bi, BW, WB)
+    return its
 
 
 @_jit
@@ -276,242 +591,114 @@ def _distance2(a: Any, b: Any) -> tuple[float, float]:
     return d2, n2
 
 
-@_jit
-def sydirk_advance(
-    W: Any,
-    S: Any,
-    b: Any,
-    h: float,
-    skew: bool,
-    rule: Any,
-    irule: Any,
-    last: Any,
-    prev: Any,
-    flags: Any,
-    states: Any,
-    iters: Any,
-) -> int:
-    """Advance the stack ``W`` (``(K, n, n)``) by up to ``states.shape[0]`` steps of the
-    composition of midpoint steps with fractions ``b`` (SPEC §4.2).
+def _driver(fstep: Any, fviews: Any) -> Any:
+    """The chunk loop over the steps ``fstep`` (:func:`_sydirk_step` or
+    :func:`_reduced_step`, with views of the work arrays from ``fviews``): one source,
+    compiled once per formulation."""
 
-    ``last``/``prev`` (``(K, s n n)``: the ``(K, s, n, n)`` offsets, flattened) and
-    ``flags = (has_last, has_prev, trusted)`` are the warm-start state, updated in place
-    after every completed step. ``irule`` holds
-    ``(max_iter, patience, window, project, retry_cold, use_warm)``. Writes each step's states
-    and its iteration count (max over the stack) and returns how many steps completed; fewer
-    than asked means the next step failed and nothing of it was committed.
-    """
-    K, n, s = W.shape[0], W.shape[1], b.shape[0]
-    retry_cold, use_warm = irule[4] != 0, irule[5] != 0
-    solved = np.empty((K, s * n * n))
-    pred = np.empty(s * n * n)
-    x = np.empty((n, n))
-    scratch = np.empty((5, n, n))
-    res = np.empty(irule[0])
-    for step in range(states.shape[0]):
-        has_last, has_prev = flags[0] != 0, flags[1] != 0
-        guessing = use_warm and has_last and flags[2] != 0
-        diff2 = 0.0
-        norm2 = 0.0
-        most = 0
-        for kk in range(K):
-            if has_last:
-                _predict(last[kk], prev[kk], has_prev, pred)
-            Wc = states[step, kk]  # the state, advanced in place through the sub-steps
-            cur = W[kk] if step == 0 else states[step - 1, kk]
-            for a in range(n):
-                for c in range(n):
-                    Wc[a, c] = cur[a, c]
-            total = 0
-            for i in range(s):
-                q = 0.5 * (b[i] * h)
-                its = -1
-                if guessing:
-                    for a in range(n):
-                        for c in range(n):
-                            x[a, c] = Wc[a, c] + pred[(i * n + a) * n + c]
-                    its = _midpoint_solve(Wc, S, q, skew, x, scratch, res, rule, irule)
-                    if its < 0:
-                        total -= its
-                        if not retry_cold:
-                            return step
-                if its < 0:
-                    for a in range(n):
-                        for c in range(n):
-                            x[a, c] = Wc[a, c]
-                    its = _midpoint_solve(Wc, S, q, skew, x, scratch, res, rule, irule)
-                    if its < 0:
-                        return step
-                total += its
-                for a in range(n):
-                    for c in range(n):
-                        solved[kk, (i * n + a) * n + c] = x[a, c] - Wc[a, c]
-                _commutator_add(Wc, S, 2.0 * q, skew, x, scratch[1], scratch[2], scratch[4])
-            for a in range(n):
-                for c in range(n):
-                    if not math.isfinite(Wc[a, c]):
-                        return step
-            d2, n2 = _distance2(solved[kk], pred)
-            norm2 += n2
-            if has_last:
-                diff2 += d2
-            most = max(most, total)
-        _commit(solved, last, prev, flags, diff2, norm2)
-        iters[step] = most
-    return states.shape[0]
+    def advance(
+        W: Any, hA: Any, hb: Any, skew: bool, B: Any, params: Any, P: Any,
+        pparams: Any, project: bool, rule: Any, irule: Any, last: Any, prev: Any, flags: Any,
+        states: Any, iters: Any,
+    ) -> int:  # fmt: skip
+        """Advance the stack ``W`` (``(K, n, n)``) by up to ``states.shape[0]`` steps of
+        ``fstep``.
 
-
-@_jit
-def _reduced_solve(
-    W0: Any,
-    S: Any,
-    hA: Any,
-    skew: bool,
-    x: Any,
-    scratch: Any,
-    res: Any,
-    rule: Any,
-    irule: Any,
-) -> int:
-    """Fixed-point iteration of the reduced stage form (SPEC §4.5) from the guess in ``x``
-    (``x[0] = G``, ``x[1] = P``, each ``(s, n, n)``):
-
-    ``G_i <- I + h sum_j a_ij G_j B_j^T``, ``P_i <- W0 - h sum_j a_ij P_j B_j``,
-    ``B_j = S ⊙ (G_j^T P_j)``; for skew algebras ``B^T = -B``. ``3 s`` products per
-    iteration. The new iterate overwrites ``x`` once the products are formed; on
-    acceptance ``x`` holds the solution.
-    """
-    s, n = hA.shape[0], W0.shape[0]
-    Wst, Bs, GB, PB = scratch[0], scratch[1], scratch[2], scratch[3]
-    size0 = _norm(x)
-    k = 0
-    while True:
-        for j in range(s):
-            _matmul_tn(x[0, j], x[1, j], Wst[j])
-            for a in range(n):
-                for c in range(n):
-                    Bs[j, a, c] = S[a, c] * Wst[j, a, c]
-            if skew:
-                _matmul(x[0, j], Bs[j], GB[j])
-                for a in range(n):
-                    for c in range(n):
-                        GB[j, a, c] = -GB[j, a, c]
-            else:
-                _matmul_nt(x[0, j], Bs[j], GB[j])
-            _matmul(x[1, j], Bs[j], PB[j])
-        step2 = 0.0
-        size2 = 0.0
-        for i in range(s):
-            for a in range(n):
-                for c in range(n):
-                    accG = 0.0
-                    accP = 0.0
-                    for j in range(s):
-                        accG += hA[i, j] * GB[j, a, c]
-                        accP += hA[i, j] * -PB[j, a, c]
-                    gG = accG + (1.0 if a == c else 0.0)
-                    gP = accP + W0[a, c]
-                    dG = gG - x[0, i, a, c]
-                    dP = gP - x[1, i, a, c]
-                    step2 += dG * dG + dP * dP
-                    size2 += gG * gG + gP * gP
-                    x[0, i, a, c] = gG
-                    x[1, i, a, c] = gP
-        k += 1
-        verdict, size0 = _judge(step2, size2, k, size0, res, rule, irule)
-        if verdict == _ACCEPT:
-            return k
-        if verdict == _FAIL:
-            return -k
-
-
-@_jit
-def _reduced_update(W0: Any, S: Any, hb: Any, skew: bool, x: Any, out: Any, scratch: Any) -> None:
-    """``out = W0 + sum_i h b_i [B_i, W_i]``, ``W_i = G_i^T P_i``, ``B_i = S ⊙ W_i``."""
-    Wi, Bi, BW, WB = scratch[0, 0], scratch[1, 0], scratch[2, 0], scratch[3, 0]
-    out[:, :] = W0
-    for i in range(hb.shape[0]):
-        _matmul_tn(x[0, i], x[1, i], Wi)
-        _commutator_add(out, S, hb[i], skew, Wi, Bi, BW, WB)
-
-
-@_jit
-def reduced_advance(
-    W: Any,
-    S: Any,
-    hA: Any,
-    hb: Any,
-    skew: bool,
-    rule: Any,
-    irule: Any,
-    last: Any,
-    prev: Any,
-    flags: Any,
-    states: Any,
-    iters: Any,
-) -> int:
-    """As :func:`sydirk_advance`, for the reduced stage form of a symplectic tableau with
-    coefficients ``hA = h A``, ``hb = h b``; warm state ``(K, 2, s, n, n)`` (offsets of
-    ``G`` from ``I`` and of ``P`` from ``W0``)."""
-    K, n, s = W.shape[0], W.shape[1], hb.shape[0]
-    retry_cold, use_warm = irule[4] != 0, irule[5] != 0
-    m = s * n * n
-    solved = np.empty((K, 2 * m))
-    pred = np.empty(2 * m)
-    x = np.empty((2, s, n, n))
-    scratch = np.empty((5, s, n, n))
-    res = np.empty(irule[0])
-    for step in range(states.shape[0]):
-        has_last, has_prev = flags[0] != 0, flags[1] != 0
-        guessing = use_warm and has_last and flags[2] != 0
-        diff2 = 0.0
-        norm2 = 0.0
-        most = 0
-        for kk in range(K):
-            W0 = W[kk] if step == 0 else states[step - 1, kk]
-            if has_last:
-                _predict(last[kk], prev[kk], has_prev, pred)
-            total = 0
-            its = -1
-            if guessing:
-                for i in range(s):
-                    for a in range(n):
-                        for c in range(n):
-                            e = (i * n + a) * n + c
-                            x[0, i, a, c] = (1.0 if a == c else 0.0) + pred[e]
-                            x[1, i, a, c] = W0[a, c] + pred[m + e]
-                its = _reduced_solve(W0, S, hA, skew, x, scratch, res, rule, irule)
-                if its < 0:
-                    total -= its
-                    if not retry_cold:
-                        return step
-            if its < 0:
-                for i in range(s):
-                    for a in range(n):
-                        for c in range(n):
-                            x[0, i, a, c] = 1.0 if a == c else 0.0
-                            x[1, i, a, c] = W0[a, c]
-                its = _reduced_solve(W0, S, hA, skew, x, scratch, res, rule, irule)
-                if its < 0:
+        ``last``/``prev`` (``(K, m)``: each trajectory's warm offsets, flattened) and
+        ``flags = (has_last, has_prev, trusted)`` are the warm-start state, updated in place
+        after every completed step. ``irule`` holds
+        ``(max_iter, patience, window, project, retry_cold, use_warm)``. Each new state is
+        mapped by ``P`` (the system's compiled projection) when ``project``. Writes each
+        step's states and its iteration count (max over the stack) and returns how many steps
+        completed; fewer than asked means the next step failed and nothing of it was committed.
+        """
+        K, n, s = W.shape[0], W.shape[1], hb.shape[0]
+        retry_cold, use_warm = irule[4] != 0, irule[5] != 0
+        m = last.shape[1]
+        solved = np.empty((K, m))
+        pred = np.zeros(m)
+        work = np.empty((2, 2, s, n, n))
+        scratch = np.empty((5, s, n, n))
+        res = np.empty(irule[0])
+        x, x0, xf, x0f, m0, m1, m2, m3 = fviews(work, scratch)
+        for step in range(states.shape[0]):
+            has_last, has_prev = flags[0] != 0, flags[1] != 0
+            guessing = use_warm and has_last and flags[2] != 0
+            diff2 = 0.0
+            norm2 = 0.0
+            most = 0
+            for kk in range(K):
+                if has_last:
+                    _predict(last[kk], prev[kk], has_prev, pred)
+                cur = W[kk] if step == 0 else states[step - 1, kk]
+                out = states[step, kk]
+                total = fstep(cur, out, pred, solved[kk], guessing, retry_cold, hA, hb, x, x0, xf,
+                              x0f, m0, m1, m2, m3, B, params, skew, res, rule, irule)  # fmt: skip
+                if total < 0:
                     return step
-            total += its
-            for i in range(s):
+                if project:
+                    P(out, pparams, out)
                 for a in range(n):
                     for c in range(n):
-                        e = (i * n + a) * n + c
-                        solved[kk, e] = x[0, i, a, c] - (1.0 if a == c else 0.0)
-                        solved[kk, m + e] = x[1, i, a, c] - W0[a, c]
-            out = states[step, kk]
-            _reduced_update(W0, S, hb, skew, x, out, scratch)
-            for a in range(n):
-                for c in range(n):
-                    if not math.isfinite(out[a, c]):
-                        return step
-            d2, n2 = _distance2(solved[kk], pred)
-            norm2 += n2
-            if has_last:
-                diff2 += d2
-            most = max(most, total)
-        _commit(solved, last, prev, flags, diff2, norm2)
-        iters[step] = most
-    return states.shape[0]
+                        if not math.isfinite(out[a, c]):
+                            return step
+                d2, n2 = _distance2(solved[kk], pred)
+                norm2 += n2
+                if has_last:
+                    diff2 += d2
+                most = max(most, total)
+            _commit(solved, last, prev, flags, diff2, norm2)
+            iters[step] = most
+        return states.shape[0]
+
+    return _inner(advance, f"_advance_{fstep.__name__}")
+
+
+_advance_sydirk = _driver(_sydirk_step, _sydirk_views)
+_advance_reduced = _driver(_reduced_step, _reduced_views)
+
+
+def _entry_points(key: str) -> tuple[Any, Any]:
+    """The two entry points, closures over ``key`` (:data:`RULE_KEY`) so that numba's
+    cache key (which hashes closure variables) changes with the stopping rule."""
+
+    def sydirk_advance(
+        W: Any, hA: Any, hb: Any, skew: bool, B: Any, params: Any, P: Any, pparams: Any,
+        project: bool, rule: Any, irule: Any, last: Any, prev: Any, flags: Any, states: Any,
+        iters: Any,
+    ) -> int:  # fmt: skip
+        """The chunk loop of compositions of midpoint steps, ``hb = h b``."""
+        key  # noqa: B018 - part of the cache key
+        return _advance_sydirk(W, hA, hb, skew, B, params, P, pparams, project, rule, irule,
+                               last, prev, flags, states, iters)  # fmt: skip
+
+    def reduced_advance(
+        W: Any, hA: Any, hb: Any, skew: bool, B: Any, params: Any, P: Any, pparams: Any,
+        project: bool, rule: Any, irule: Any, last: Any, prev: Any, flags: Any, states: Any,
+        iters: Any,
+    ) -> int:  # fmt: skip
+        """The chunk loop of the reduced stage form, ``hA = h A``, ``hb = h b``."""
+        key  # noqa: B018 - part of the cache key
+        return _advance_reduced(W, hA, hb, skew, B, params, P, pparams, project, rule,
+                                irule, last, prev, flags, states, iters)  # fmt: skip
+
+    if numba is None:  # pragma: no cover
+        return sydirk_advance, reduced_advance
+    t = numba.types
+    f8, i8 = t.float64, t.int64
+    sig = t.int64(
+        f8[:, :, ::1], f8[:, ::1], f8[::1], t.boolean, MAP_TYPE, f8[::1], MAP_TYPE, f8[::1],
+        t.boolean, f8[::1], i8[::1], f8[:, ::1], f8[:, ::1], i8[::1], f8[:, :, :, ::1],
+        i8[::1],
+    )  # fmt: skip
+
+    def jit(func: F) -> F:
+        try:
+            return cast(F, numba.njit(sig, cache=True, error_model="numpy")(func))
+        except RuntimeError:  # pragma: no cover - no writable cache location
+            return cast(F, numba.njit(sig, error_model="numpy")(func))
+
+    return jit(sydirk_advance), jit(reduced_advance)
+
+
+sydirk_advance, reduced_advance = _entry_points(RULE_KEY)

@@ -6,18 +6,28 @@ array) dominates by two orders of magnitude. This engine runs the same fixed-poi
 iterations in loops compiled with numba (``pip install 'lieflow[fast]'``), advancing a chunk
 of steps per call, for the case where that is simple and exact:
 
-* the system's ``B`` is an entrywise product with a constant matrix,
-  :math:`B(W) = S \odot W` (:attr:`IsospectralSystem.hadamard_factor`: rigid bodies and the
-  periodic Toda lattice, SPEC §3), so ``B`` is evaluated inside the loops;
-* the scheme is a composition of midpoint steps (:class:`~lieflow.schemes.SyDIRK`, minimal
-  variable form, SPEC §4.1–4.2) or the reduced stage form of a symplectic tableau
+* the system supplies its ``B`` compiled (:meth:`IsospectralSystem.compiled_B
+  <lieflow.IsospectralSystem.compiled_B>`): by default every system whose ``B`` is an
+  entrywise product :math:`B(W) = S \odot W` (:attr:`~lieflow.IsospectralSystem.hadamard_factor`:
+  rigid bodies and the periodic Toda lattice, SPEC §3); any other system (a plugin's) by
+  overriding the hook, as the point-vortex plugin does. ``B`` enters the loops as a typed
+  compiled function, so they stay in numba's disk cache whatever the system;
+* the scheme has a compiled form (:meth:`Scheme.compiled_form
+  <lieflow.schemes.Scheme.compiled_form>`): compositions of midpoint steps
+  (:class:`~lieflow.schemes.SyDIRK` and its subclasses, minimal variable form, SPEC
+  §4.1–4.2) and the reduced stage form of a symplectic tableau
   (:class:`~lieflow.schemes.BlockGauss` with ``form="reduced"``, SPEC §4.5);
-* the solver is plain :class:`~lieflow.solvers.FixedPoint` iteration (no Anderson), or
-  :class:`~lieflow.solvers.Auto` whose first solver is one (SPEC §5);
+* the solver is plain :class:`~lieflow.solvers.FixedPoint` iteration (no Anderson, a
+  subclass that keeps its map), or :class:`~lieflow.solvers.Auto` whose first solver is
+  one (SPEC §5);
 * the data are real ``float64``.
 
-Same maps, same stopping rule (``rtol``, ``atol``, ``max_iter``, stagnation, divergence),
-same warm starts (:class:`~lieflow.flows.WarmStart`) as the numpy path. A step the
+Same maps, same stopping rule (the very function the numpy path calls,
+:func:`lieflow.solvers.fixed_point.stopping_verdict`, compiled), same warm starts
+(:class:`~lieflow.flows.WarmStart`) and the same per-step projection onto the phase space
+(:meth:`IsospectralSystem.compiled_project <lieflow.IsospectralSystem.compiled_project>`;
+without one, each chunk's states are projected by ``system.project`` afterwards) as the
+numpy path. A step the
 compiled solve does not accept is handed to the numpy path from the last good state and warm
 state, so failures (:class:`~lieflow.errors.ConvergenceError` with its step index) and
 ``Auto``'s Newton fallback behave exactly as with ``engine="numpy"``.
@@ -32,7 +42,7 @@ from __future__ import annotations
 
 import importlib.util
 from types import ModuleType
-from typing import Literal
+from typing import Any
 
 import attrs
 import numpy as np
@@ -41,8 +51,6 @@ from . import driver
 from .algebras import Array
 from .flows import SchemeFlow, WarmStart
 from .schemes.base import Scheme
-from .schemes.block import BlockGauss
-from .schemes.sydirk import SyDIRK
 from .solvers.base import Solver
 from .solvers.fixed_point import FixedPoint
 from .solvers.newton import Auto
@@ -108,28 +116,30 @@ class Chunk:
 class CompiledPlan:
     """A supported case (see the module docstring), ready to advance.
 
-    Build it with :func:`plan`. ``kind`` selects the loop; ``b`` (and ``A`` for the reduced
-    form) are the tableau's coefficients; ``rule = (rtol, atol, roundoff_floor,
+    Build it with :func:`plan`. ``kind`` selects the formulation (``Scheme.compiled_form``);
+    ``A``, ``b`` are the tableau's coefficients; ``B``/``params`` the system's compiled
+    ``B`` (:meth:`~lieflow.IsospectralSystem.compiled_B`) and ``project``/``pparams`` its
+    compiled projection onto the phase space (``None``: each chunk is projected by
+    ``system.project`` afterwards); ``rule = (rtol, atol, roundoff_floor,
     divergence_factor)`` and ``irule = (max_iter, patience, window, project, retry_cold)``
-    are the fixed-point stopping rule (:class:`~lieflow.solvers.StoppingRule`); ``retry_cold``
-    repeats a failed warm-started solve from the cold guess, as
-    :func:`lieflow.schemes.base.solve` does (not under ``Auto``, which hands a failed solve to
-    Newton first).
+    are the fixed-point stopping rule (:class:`~lieflow.solvers.StoppingRule`);
+    ``retry_cold`` repeats a failed warm-started solve from the cold guess, as
+    :func:`lieflow.schemes.base.solve` does (not under ``Auto``, which hands a failed solve
+    to Newton first).
     """
 
-    kind: Literal["sydirk", "reduced"]
-    S: Array = attrs.field(repr=False)
+    kind: str
+    n: int
     skew: bool
     A: Array = attrs.field(repr=False)
     b: Array = attrs.field(repr=False)
+    B: Any = attrs.field(repr=False)
+    params: Array = attrs.field(repr=False)
+    project: Any = attrs.field(repr=False)
+    pparams: Array = attrs.field(repr=False)
     rule: Array = attrs.field(repr=False)
     irule: Array = attrs.field(repr=False)
     solver_name: str
-
-    @property
-    def n(self) -> int:
-        """Matrix size."""
-        return int(self.S.shape[0])
 
     def warm_shape(self) -> tuple[int, ...]:
         """Core shape of the warm-start offsets of one trajectory."""
@@ -166,16 +176,13 @@ class CompiledPlan:
         irule = np.append(self.irule, np.int64(warm_start))
         states = np.empty((steps, K, n, n))
         iters = np.zeros(steps, dtype=np.int64)
-        if self.kind == "sydirk":
-            done = k.sydirk_advance(
-                Wk, self.S, self.b, h, self.skew, self.rule, irule, lastk, prevk, flags,
-                states, iters,
-            )  # fmt: skip
-        else:
-            done = k.reduced_advance(
-                Wk, self.S, h * self.A, h * self.b, self.skew, self.rule, irule, lastk, prevk,
-                flags, states, iters,
-            )  # fmt: skip
+        run = k.sydirk_advance if self.kind == "sydirk" else k.reduced_advance
+        project = self.project is not None
+        done = run(
+            Wk, h * self.A, h * self.b, self.skew, self.B, self.params,
+            self.project if project else self.B, self.pparams, project, self.rule,
+            irule, lastk, prevk, flags, states, iters,
+        )  # fmt: skip
         shape = (*batch, *core)
         return Chunk(
             states[:done].reshape(done, *batch, n, n),
@@ -194,10 +201,11 @@ class CompiledSchemeFlow(SchemeFlow):
     numpy path) takes any step they do not accept. Build it with
     :func:`lieflow.integrate.scheme_flow`.
 
-    The states of a chunk are mapped onto the phase space afterwards
-    (:meth:`~lieflow.IsospectralSystem.project`) and the next chunk starts from the last
-    projected state; iterations and warm starts are the numpy path's. The per-step
-    residual is not recorded by the compiled loops (``nan``).
+    Each new state is mapped onto the phase space inside the loops, as the numpy path does
+    (:meth:`~lieflow.IsospectralSystem.compiled_project`), or, for a system without a
+    compiled projection, by :meth:`~lieflow.IsospectralSystem.project` once the chunk is
+    done. Iterations and warm starts are the numpy path's. The per-step residual is not
+    recorded by the compiled loops (``nan``).
     """
 
     plan: CompiledPlan = attrs.field(kw_only=True)
@@ -211,10 +219,13 @@ class CompiledSchemeFlow(SchemeFlow):
             W, h, steps, warm.last, warm.previous, warm.trusted, warm_start=self.warm_start
         )
         new = WarmStart(c.last, c.previous, c.trusted) if state is not None else None
+        states = c.states
+        if c.done and self.plan.project is None:
+            states = self.system.project(states)
         return driver.Chunk(
             start,
             h,
-            self.system.project(c.states) if c.done else c.states,
+            states,
             c.iterations,
             np.full(c.done, np.nan),
             (self.plan.solver_name,) * c.done,
@@ -224,15 +235,51 @@ class CompiledSchemeFlow(SchemeFlow):
 
 def _fixed_point_of(solver: Solver) -> tuple[FixedPoint, bool] | None:
     """The plain fixed-point iteration a solver runs first, and whether a failed warm
-    solve is retried cold by that same iteration (``None`` if not supported)."""
-    if type(solver) is Auto:
-        first = solver.first
-        if type(first) is FixedPoint and first.anderson == 0:
-            return first, False
-        return None
-    if type(solver) is FixedPoint and solver.anderson == 0:
+    solve is retried cold by that same iteration (``None`` if not supported).
+
+    A subclass of :class:`FixedPoint` (or :class:`Auto`) qualifies as long as it keeps the
+    iteration: the same ``solve`` and map (:class:`~lieflow.solvers.FrozenB` changes the
+    map, so it does not).
+    """
+    if isinstance(solver, Auto) and type(solver).solve is Auto.solve:
+        fp = _fixed_point_of(solver.first)
+        return None if fp is None else (fp[0], False)
+    if (
+        isinstance(solver, FixedPoint)
+        and type(solver).solve is FixedPoint.solve
+        and type(solver)._map is FixedPoint._map
+        and solver.anderson == 0
+    ):
         return solver, True
     return None
+
+
+def _checked_map(
+    what: str, got: tuple[Any, Array] | None, W: Array, want: Array | None
+) -> tuple[Any, Array] | str:
+    """``(function, params)`` of a system's compiled map, compiled for
+    :data:`~lieflow._kernels.MAP_SIGNATURE` and checked on ``W`` against ``want`` (the numpy
+    result) to roundoff; or the reason it cannot be used."""
+    k = kernels()
+    if not (isinstance(got, tuple) and len(got) == 2):
+        return f"{what} must return (function, params), got {got!r}"
+    fn, params = got
+    params = np.ascontiguousarray(params, dtype=np.float64).reshape(-1)
+    try:
+        if hasattr(fn, "compile") and not any(
+            sig == k.MAP_SIGNATURE.args for sig in getattr(fn, "signatures", ())
+        ):
+            fn.compile(k.MAP_SIGNATURE)
+        fn = k.function_pointer(fn)
+        out = np.zeros_like(W)
+        k.call_map(fn, np.ascontiguousarray(W), params, out)
+    except Exception as exc:
+        return f"{what} does not compile for (W, params, out): {type(exc).__name__}: {exc}"
+    if want is not None:
+        scale = max(float(np.max(np.abs(want), initial=0.0)), np.finfo(float).tiny)
+        if not np.allclose(out, want, rtol=0.0, atol=1e-12 * scale):
+            return f"{what} does not reproduce the numpy result on W0"
+    return fn, params
 
 
 def plan(
@@ -240,22 +287,15 @@ def plan(
 ) -> CompiledPlan | str:
     """A :class:`CompiledPlan` for this case, or the reason it is not supported.
 
-    Checks the system's :attr:`~IsospectralSystem.hadamard_factor` against ``system.B(W0)``
-    (bit for bit) so that a subclass overriding ``B`` cannot be integrated wrongly.
+    Checks the system's compiled ``B`` (:meth:`~lieflow.IsospectralSystem.compiled_B`)
+    against ``system.B(system.project_stage(W0))``, and its compiled projection against
+    ``system.project(W0)``, to roundoff, so that a subclass overriding ``B`` without its
+    compiled form cannot be integrated wrongly.
     """
-    S = system.hadamard_factor
-    if S is None:
-        return f"{system.name} does not expose B(W) = S ⊙ W (hadamard_factor is None)"
     if W0.dtype != np.float64:
         return f"only real float64 data are compiled, got {W0.dtype}"
-    S = np.ascontiguousarray(S, dtype=np.float64)
-    if S.shape != W0.shape[-2:] or not np.array_equal(system.B(W0), S * W0):
-        return f"{system.name}.hadamard_factor does not reproduce {system.name}.B"
-    if type(scheme) is SyDIRK:
-        kind: Literal["sydirk", "reduced"] = "sydirk"
-    elif type(scheme) is BlockGauss and scheme.form == "reduced":
-        kind = "reduced"
-    else:
+    form = scheme.compiled_form()
+    if form is None:
         return (
             f"scheme {scheme.name!r} is not compiled (only midpoint compositions, SyDIRK, "
             "and the reduced stage form of BlockGauss are)"
@@ -266,14 +306,48 @@ def plan(
             f"solver {getattr(solver, 'name', type(solver).__name__)!r} is not compiled "
             "(only FixedPoint without Anderson acceleration, alone or first in Auto)"
         )
+    try:
+        kernels()
+        got_B = system.compiled_B()
+    except ImportError as exc:
+        return f"it needs numba: pip install 'lieflow[fast]' (importing it failed: {exc})"
+    if got_B is None:
+        hint = " (hadamard_factor is None)" if system.hadamard_factor is None else ""
+        return f"{system.name} has no compiled B{hint}: see IsospectralSystem.compiled_B"
+    W = np.ascontiguousarray(W0.reshape(-1, *W0.shape[-2:])[0])
+    Bw = _checked_map(f"{system.name}.compiled_B()", got_B, W,
+                      system.B(system.project_stage(W)))  # fmt: skip
+    if isinstance(Bw, str):
+        return Bw
+    Wp = W + 1e-3 * float(np.max(np.abs(W), initial=1.0)) * np.cos(np.arange(W.size)).reshape(
+        W.shape
+    )
+    Bp = _checked_map(f"{system.name}.compiled_B()", got_B, Wp,
+                      system.B(system.project_stage(Wp)))  # fmt: skip
+    if isinstance(Bp, str):
+        return Bp.replace("on W0", "off W0")
+    got_P = system.compiled_project()
+    P: tuple[Any, Array] | None = None
+    if got_P is not None:
+        Pw = _checked_map(f"{system.name}.compiled_project()", got_P, Wp, system.project(Wp))
+        if isinstance(Pw, str):
+            return Pw
+        P = Pw
+    kind, A, b = form
+    if kind not in ("sydirk", "reduced"):
+        return f"scheme {scheme.name!r}: unknown compiled form {kind!r}"
     fixed, retry_cold = fp
     r = fixed.rule
     return CompiledPlan(
         kind=kind,
-        S=S,
+        n=int(W.shape[-1]),
         skew=bool(system.algebra.skew),
-        A=np.ascontiguousarray(scheme.tableau.A, dtype=np.float64),
-        b=np.ascontiguousarray(scheme.tableau.b, dtype=np.float64),
+        A=np.ascontiguousarray(A, dtype=np.float64),
+        b=np.ascontiguousarray(b, dtype=np.float64),
+        B=Bw[0],
+        params=Bw[1],
+        project=None if P is None else P[0],
+        pparams=np.zeros(0) if P is None else P[1],
         rule=np.array([r.rtol, r.atol, r.roundoff_floor, r.divergence_factor], dtype=float),
         irule=np.array([r.max_iter, r.patience, r.window, r.project, retry_cold], dtype=np.int64),
         solver_name=fixed.name,

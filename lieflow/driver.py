@@ -175,12 +175,16 @@ def advance(
     size = chunk_steps(W0)
     while k < steps:
         if many is not None:
-            chunk = many(W, k, h, min(size, steps - k), state)
+            # Chunks end at multiples of ``size`` counted from step 0, wherever the run
+            # started, so a run resumed at a chunk end takes the same chunks as an
+            # uninterrupted one (bit-for-bit resume).
+            asked = min(size - k % size, steps - k)
+            chunk = many(W, k, h, asked, state)
             if chunk.size:
                 yield chunk
                 W, k, state = chunk.W[-1], chunk.stop, chunk.state
-                if k == steps:
-                    return
+            if chunk.size == asked:
+                continue
         try:
             W, state, stats = flow.step(W, k * h, h, state)
         except ConvergenceError as exc:

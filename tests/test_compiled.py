@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import attrs
 import numpy as np
 import pytest
 
@@ -262,13 +263,14 @@ def test_auto_picks_compiled_only_for_small_n() -> None:
 
 
 @pytest.mark.usefixtures("numba")
-def test_stopping_rule_matches_the_numpy_rule() -> None:
+def test_stopping_rule_is_one_function_on_both_engines() -> None:
+    """The compiled loops judge with the numpy path's rule: the same function object,
+    compiled, giving the same reason on every case (not just accept/fail)."""
     from lieflow import _kernels
+    from lieflow.solvers import fixed_point
 
+    assert _kernels.verdict.py_func is fixed_point.stopping_verdict
     rule = lf.solvers.StoppingRule(rtol=1e-16, patience=3)
-    fl = np.array([rule.rtol, rule.atol, rule.roundoff_floor, rule.divergence_factor])
-    il = np.array([rule.max_iter, rule.patience, rule.window, rule.project], dtype=np.int64)
-    names = {0: None, 1: "accept", 2: "fail"}
     cases = [
         [1e-3, 1e-8, 1e-15, 3e-16],
         [1e-3, 1e-8, 1e-15, 3e-16, 4e-16, 5e-16, 3.5e-16],
@@ -277,12 +279,19 @@ def test_stopping_rule_matches_the_numpy_rule() -> None:
         [float("nan")],
         list(0.5 * 0.97 ** np.arange(12)),
         list(0.5 * 0.5 ** np.arange(12)),
+        list(0.5 * 0.6 ** np.arange(100)),  # the cap, at roundoff: accepted
+        list(0.5 * 0.9 ** np.arange(100)),  # the cap, not at roundoff
     ]
+    seen = set()
     for res in cases:
-        for growth in (1.0, 20.0, 1e3):
+        for growth in (1.0, 20.0, 1e3, float("inf")):
             for met in (False, True):
-                want = rule.verdict(list(res), met, growth)
-                want = None if want is None else ("accept" if want in ("converged", "roundoff")
-                                                  else "fail")  # fmt: skip
-                got = _kernels._verdict(np.array(res), len(res), met, growth, fl, il)
-                assert names[got] == want, (res, growth, met)
+                for r in (rule, attrs.evolve(rule, project=False, max_iter=len(res))):
+                    want = r.verdict(list(res), met, growth)
+                    got = _kernels.verdict(
+                        np.array(res), len(res), met, growth, r.rtol, r.roundoff_floor,
+                        r.divergence_factor, r.max_iter, r.patience, r.window, r.project,
+                    )  # fmt: skip
+                    assert fixed_point.REASONS[got] == want, (res, growth, met, r)
+                    seen.add(want)
+    assert seen == set(fixed_point.REASONS)

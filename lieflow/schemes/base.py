@@ -64,6 +64,16 @@ class Scheme(ABC):
         """Classical order of accuracy."""
         return self.tableau.order
 
+    def compiled_form(self) -> tuple[str, Array, Array] | None:
+        """How the compiled engine (:mod:`lieflow.compiled`) can run this scheme, or ``None``
+        (the default: numpy only).
+
+        ``("sydirk", A, b)``: a composition of midpoint steps of sizes ``b_i h`` (SPEC §4.2);
+        ``("reduced", A, b)``: the reduced stage form of the symplectic tableau ``(A, b)``
+        (SPEC §4.5). A scheme returning one promises that its :meth:`step` is that method.
+        """
+        return None
+
     @abstractmethod
     def step(
         self,

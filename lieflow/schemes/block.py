@@ -236,6 +236,11 @@ class BlockGauss(Scheme):
     def name(self) -> str:
         return self.tableau.name if self.form == "reduced" else f"block_{self.tableau.name}"
 
+    def compiled_form(self) -> tuple[str, Array, Array] | None:
+        """``("reduced", A, b)`` for the reduced form (compiled); ``None`` for the block
+        form."""
+        return ("reduced", self.tableau.A, self.tableau.b) if self.form == "reduced" else None
+
     def step(
         self,
         system: IsospectralSystem,

@@ -82,6 +82,10 @@ class SyDIRK(Scheme):
 
     tableau: ButcherTableau = attrs.field(factory=midpoint, converter=_composition_tableau)
 
+    def compiled_form(self) -> tuple[str, Array, Array] | None:
+        """``("sydirk", A, b)``: the compiled engine runs this composition."""
+        return "sydirk", self.tableau.A, self.tableau.b
+
     def step(
         self,
         system: IsospectralSystem,

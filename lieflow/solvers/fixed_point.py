@@ -3,7 +3,9 @@ frozen-B quasi-Newton iteration of SPEC §5."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
+from typing import Any
 
 import attrs
 import numpy as np
@@ -69,33 +71,76 @@ class StoppingRule:
         """``None`` to go on, else the reason to stop.
 
         ``residuals`` are the relative updates so far, ``met`` whether the last one meets
-        the tolerance, ``growth`` the largest ``||x_k|| / ||x_0||`` over the batch.
+        the tolerance, ``growth`` the largest ``||x_k|| / ||x_0||`` over the batch. The rule
+        itself is :func:`stopping_verdict`, which the compiled engine runs too.
         """
-        r = residuals[-1]
-        if not (np.isfinite(r) and np.isfinite(growth)):
-            return "non_finite"
-        if met:
-            return "converged"
-        if growth > self.divergence_factor:
-            return "diverged"
-        k = len(residuals)
-        best_at = int(np.argmin(residuals))
-        best = residuals[best_at]
-        if k - 1 - best_at >= self.patience:
-            if best <= self.roundoff_floor:
-                return "roundoff"
-            return "diverged" if growth > 10.0 else "stalled"
-        if self.project and k > self.window and best > self.roundoff_floor:
-            earlier = min(residuals[: k - self.window])
-            rate = (best / earlier) ** (1.0 / self.window) if earlier > 0 else 0.0
-            target = max(self.rtol, self.roundoff_floor)
-            if rate >= 1.0 or k + np.log(target / best) / np.log(rate) > self.max_iter:
-                return "stalled"
-        if k >= self.max_iter:
-            # A contracting iteration whose update is already at roundoff is done: with
-            # contraction rho the error is below r rho / (1 - rho), a few ulps of the floor.
-            return "roundoff" if r <= self.roundoff_floor else "max_iterations"
-        return None
+        code = stopping_verdict(
+            residuals, len(residuals), met, growth, self.rtol, self.roundoff_floor,
+            self.divergence_factor, self.max_iter, self.patience, self.window, self.project,
+        )  # fmt: skip
+        return REASONS[code]
+
+
+#: The reasons :func:`stopping_verdict` returns, by code (0: go on).
+REASONS: tuple[str | None, ...] = (
+    None, "converged", "roundoff", "non_finite", "diverged", "stalled", "max_iterations",
+)  # fmt: skip
+GO, CONVERGED, ROUNDOFF, NON_FINITE, DIVERGED, STALLED, MAX_ITERATIONS = range(7)
+
+
+def stopping_verdict(
+    res: Any,
+    k: int,
+    met: bool,
+    growth: float,
+    rtol: float,
+    floor: float,
+    divergence: float,
+    max_iter: int,
+    patience: int,
+    window: int,
+    project: bool,
+) -> int:
+    """The stopping rule of :class:`StoppingRule` on the relative updates ``res[:k]``: the
+    code of the reason to stop (an index into :data:`REASONS`), :data:`GO` to go on.
+
+    One source for both engines: :meth:`StoppingRule.verdict` calls it as plain Python (on
+    a list), and :mod:`lieflow.compiled` compiles this very function with numba (on an
+    array); hence scalars, indexing and ``math`` only. ``met``: the last update meets the
+    tolerance; ``growth``: the largest ``||x_k|| / ||x_0||``; ``floor``: the roundoff floor;
+    ``divergence``: the divergence factor; the rest as in :class:`StoppingRule`.
+    """
+    r = res[k - 1]
+    if not (math.isfinite(r) and math.isfinite(growth)):
+        return NON_FINITE
+    if met:
+        return CONVERGED
+    if growth > divergence:
+        return DIVERGED
+    best_at = 0
+    for i in range(1, k):
+        if res[i] < res[best_at]:
+            best_at = i
+    best = res[best_at]
+    if k - 1 - best_at >= patience:
+        if best <= floor:
+            return ROUNDOFF
+        return DIVERGED if growth > 10.0 else STALLED
+    if project and k > window and best > floor:
+        earlier = res[0]
+        for i in range(1, k - window):
+            earlier = min(earlier, res[i])
+        if earlier > 0.0:
+            rate = (best / earlier) ** (1.0 / window)
+            if rate >= 1.0:
+                return STALLED
+            if rate > 0.0 and k + math.log(max(rtol, floor) / best) / math.log(rate) > max_iter:
+                return STALLED
+    if k >= max_iter:
+        # A contracting iteration whose update is already at roundoff is done: with
+        # contraction rho the error is below r rho / (1 - rho), a few ulps of the floor.
+        return ROUNDOFF if r <= floor else MAX_ITERATIONS
+    return GO
 
 
 class IterationMonitor:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -63,11 +63,50 @@ class IsospectralSystem(ABC):
         ``None`` (the default) when ``B`` is not of that form.
 
         Rigid bodies (:math:`B = -\mathcal I^{-1}W`, SPEC §3) and the periodic Toda lattice
-        are. A system that exposes ``S`` can be advanced by :func:`lieflow.integrate`'s
-        compiled engine, which evaluates ``B`` entrywise inside its loops; it is checked
-        against :meth:`B` on the initial state before use. A subclass that overrides
-        :meth:`B` must override this property too (or return ``None``).
+        are. From ``S`` the default :meth:`compiled_B` is derived, so such a system runs on
+        :func:`lieflow.integrate`'s compiled engine. A subclass that overrides :meth:`B`
+        must override this property too (or return ``None``).
         """
+        return None
+
+    def compiled_B(self) -> tuple[Any, Array] | None:
+        """``B`` of a stage value for the compiled engine (:mod:`lieflow.compiled`), or
+        ``None`` (then the engine refuses the system and ``engine="auto"`` uses numpy).
+
+        Returns ``(function, params)``: a numba-compiled ``function(W, params, out)`` that
+        writes ``B(project_stage(W))`` — what :class:`~lieflow.schemes.base.StageProblem`
+        evaluates — into ``out`` (``W``, ``out``: C-contiguous ``float64`` ``(n, n)``;
+        ``params``: a ``float64`` vector of the system's constants). It reaches the loops as
+        a typed first-class function, so numba's disk cache of the loops stays valid for
+        every system; compile it with ``numba.njit(cache=True)`` at module level (or
+        ``lieflow._kernels.compiled_map``) so that it is cached too. The engine checks it
+        against :meth:`B` and :meth:`project_stage` on the initial state (to roundoff)
+        before use. Importing numba inside this method keeps it optional.
+
+        The default is derived from :attr:`hadamard_factor` ``S`` for the algebra's own
+        stage projection on so(n) (``S ⊙ (W - W^T)/2``) and gl(n) (``S ⊙ W``); ``None``
+        otherwise. The point-vortex plugin (``lieflow_vortices``) shows a nonlinear one.
+        """
+        from ..algebras import GL, SO
+
+        S = self.hadamard_factor
+        if S is None or type(self).project_stage is not IsospectralSystem.project_stage:
+            return None
+        from .. import _kernels
+
+        kind = type(self.algebra)
+        fn = _kernels.hadamard_B_skew if kind is SO else _kernels.hadamard_B if kind is GL else None
+        if fn is None:
+            return None
+        return fn, np.ascontiguousarray(S, dtype=np.float64).ravel()
+
+    def compiled_project(self) -> tuple[Any, Array] | None:
+        """:meth:`project` for the compiled engine, applied to each new state inside its
+        loops as the numpy path does; ``(function, params)`` as for :meth:`compiled_B`
+        (``function(W, params, out)`` writes ``project(W)`` into ``out``, which may be
+        ``W``), or ``None`` (the default): the engine then projects each chunk's states with
+        :meth:`project` once the chunk is done — exact when the loops keep states on the
+        phase space anyway (so(n), gl(n))."""
         return None
 
     def B_derivative(self, W: Array, dW: Array) -> Array:

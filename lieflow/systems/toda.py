@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import attrs
 import numpy as np
 
@@ -126,6 +128,23 @@ class PeriodicToda(IsospectralSystem):
         """``S = sign``: :math:`B(W) = S \\odot W` (SPEC §3); a copy. ``None`` for the
         gradient extension (``B̃(W) = S ⊙ W^T`` is not of that form)."""
         return None if self.gl_gradient else self.sign.copy()
+
+    def compiled_B(self) -> tuple[Any, Array] | None:
+        """``S ⊙ (W + W^T)/2`` compiled: ``B`` of the symmetric part of a stage value
+        (``None`` for the gradient extension)."""
+        if self.gl_gradient:
+            return None
+        from .. import _kernels
+
+        return _kernels.hadamard_B_symmetric, self.sign.ravel().copy()
+
+    def compiled_project(self) -> tuple[Any, Array] | None:
+        """The symmetric part, compiled: the compiled engine symmetrizes every step."""
+        if self.gl_gradient:
+            return None
+        from .. import _kernels
+
+        return _kernels.symmetric_part, np.zeros(0)
 
     def hamiltonian(self, W: Array) -> Array:
         """The paper's ``η(W) = 2 tr W² - ½ tr(W^T B(W))`` (``= 2 tr W²`` on symmetric W),
