@@ -13,6 +13,11 @@ File layout (format ``lieflow-trajectory``, format version 1)::
     /diagnostics/casimir_drift  |C_j(W_k) - C_j(W_0)| / ||W_0||^{k_j}
     /diagnostics/iterations   solver updates of steps 1..K
     /diagnostics/residual     last relative update of each step's solve
+    /diagnostics/extra/step, t, <name>  optional: a system's own diagnostics
+                              (``system.extra_diagnostics(W) -> {name: array}``) at step 0
+                              and every ``system.diagnostics_every``-th step (default:
+                              save_every; 0: none), rows up to the checkpoint
+                              (:func:`read_extra`)
     /checkpoint/slot0, slot1  (W, warm) at a step, written alternately; the root group's
                               "current" attribute names the valid one and is set last
 
@@ -69,6 +74,7 @@ __all__ = [
     "checkpoint_digest",
     "environment",
     "read_checkpoint",
+    "read_extra",
     "read_trajectory",
     "run",
 ]
@@ -78,6 +84,8 @@ FORMAT_VERSION = 1
 _TINY = float(np.finfo(float).tiny)
 _PER_STEP = ("energy", "energy_error", "casimirs", "casimir_drift")
 _PER_UPDATE = ("iterations", "residual")
+#: Group (under /diagnostics) of the optional per-sample diagnostics a system provides.
+_EXTRA = "extra"
 #: Checkpoint slots store the flow's state leaf by leaf under ``warm/<path>`` (a scheme's
 #: :class:`~lieflow.flows.WarmStart`: ``warm/last``, ``warm/previous``, ``warm/trusted``).
 _STATE = "warm"
@@ -475,6 +483,51 @@ def read_trajectory(path: Path | str) -> Trajectory:
         )
 
 
+def read_extra(path: Path | str) -> dict[str, Array]:
+    """The system's own diagnostics in a trajectory file (``/diagnostics/extra``): ``step``,
+    ``t`` and one array per name, one row per sample up to the last checkpoint; empty if the
+    system provides none (no ``extra_diagnostics`` method)."""
+    p = _as_path(path)
+    with _open(p, "r") as f, _Reading(p):
+        _check_format(f, p)
+        k = _read_checkpoint(f, p).step
+        group = f["diagnostics"].get(_EXTRA)
+        if group is None:
+            return {}
+        n = int(np.searchsorted(group["step"][()], k, side="right"))
+        return {name: group[name][:n] for name in group}
+
+
+def _extra_hook(system: Any, save_every: int) -> tuple[Any, int]:
+    """``(system.extra_diagnostics or None, interval in steps)``: the interval is
+    ``system.diagnostics_every`` (``None``: ``save_every``; ``0``: no extra diagnostics)."""
+    every = getattr(system, "diagnostics_every", None)
+    if every is not None and int(every) == 0:
+        return None, 0
+    return getattr(system, "extra_diagnostics", None), int(every) if every else save_every
+
+
+def _append_extra(d: h5py.Group, rows: list[tuple[int, float, dict[str, Any]]]) -> None:
+    """Append ``(step, t, {name: value})`` rows to ``/diagnostics/extra`` (datasets are
+    created at the first row, shaped like its values)."""
+    if not rows:
+        return
+    group = d.require_group(_EXTRA)
+    columns: dict[str, Array] = {
+        "step": np.array([r[0] for r in rows], dtype=np.int64),
+        "t": np.array([r[1] for r in rows], dtype=np.float64),
+    }
+    for name in rows[0][2]:
+        columns[name] = np.stack([np.asarray(r[2][name]) for r in rows])
+    for name, values in columns.items():
+        if name not in group:
+            _growable(group, name, values[0], values.dtype)
+        ds = group[name]
+        n = ds.shape[0]
+        ds.resize(n + len(values), axis=0)
+        ds[n:] = values
+
+
 def _plain(value: Any) -> Any:
     if isinstance(value, bytes):
         return value.decode()
@@ -693,10 +746,11 @@ class TrajectoryWriter:
         self._slot_data: list[dict[str, Any]] = [{}, {}]
         self._n_diag = self._diag["iterations"].shape[0] + 1  # rows committed (steps 0..K)
         self._n_saved = self._traj["step"].shape[0]
-        self._buffer: list[tuple[Chunk, Array, Array, Array]] = []
+        self._buffer: list[tuple[Chunk, Array, Array, Array, list[Any]]] = []
         self._slot = int(self._ck.attrs["current"])
         self._step = int(self._slots[self._slot].attrs["step"])  # the checkpoint's step
         self._max_error = float(np.max(self._diag["energy_error"][: self._n_diag]))
+        self._extra, self._extra_every = _extra_hook(setup.system, setup.config.run.save_every)
 
     @property
     def path(self) -> Path:
@@ -802,7 +856,12 @@ class TrajectoryWriter:
         H = self._diagnostics.energy(chunk.W)
         C = self._diagnostics.casimirs(chunk.W)
         err = float(np.max(self._diagnostics.energy_error(H)))
-        self._buffer.append((chunk, keep, H, C))  # one append: recorded entirely or not at all
+        extra = []
+        if self._extra is not None:
+            for j in np.flatnonzero(chunk.index % self._extra_every == 0):
+                extra.append((int(chunk.index[j]), float(chunk.t[j]), self._extra(chunk.W[j])))
+        # one append: recorded entirely or not at all
+        self._buffer.append((chunk, keep, H, C, extra))
         self._max_error = max(self._max_error, err)
         return err
 
@@ -849,6 +908,7 @@ class TrajectoryWriter:
                     ds = self._traj[name]
                     ds.resize(n_saved + steps.size, axis=0)
                     ds[n_saved:] = value
+            _append_extra(self._f["diagnostics"], [e for b in buf for e in b[4]])
             self._checkpoint(last.stop, last.stop * last.h, last.W[-1], last.state)
             self._f.flush()
             self._n_diag, self._n_saved = n0 + H.shape[0], n_saved + steps.size
@@ -995,6 +1055,9 @@ def _initialise(f: h5py.File, setup: RunSetup) -> None:
     for name, value in (("step", 0), ("t", 0.0), ("W", W0)):
         tr[name].resize(1, axis=0)
         tr[name][0] = value
+    extra, _ = _extra_hook(system, cfg.run.save_every)
+    if extra is not None:
+        _append_extra(d, [(0, 0.0, extra(W0))])
     ck = f.create_group("checkpoint")
     for i in (0, 1):
         _write_slot(ck.create_group(f"slot{i}"), 0, 0.0, {"W": W0}, {})
@@ -1019,6 +1082,10 @@ def _truncate(f: h5py.File, k: int) -> None:
     n = int(np.searchsorted(tr["step"][()], k, side="right"))
     for name in ("step", "t", "W"):
         tr[name].resize(n, axis=0)
+    if _EXTRA in d:
+        n = int(np.searchsorted(d[_EXTRA]["step"][()], k, side="right"))
+        for name in d[_EXTRA]:
+            d[_EXTRA][name].resize(n, axis=0)
     f.attrs["completed_steps"] = k
 
 

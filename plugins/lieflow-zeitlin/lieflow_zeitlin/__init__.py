@@ -16,11 +16,22 @@ harmonics), :mod:`~lieflow_zeitlin.quantization` (fields ↔ matrices),
 :mod:`~lieflow_zeitlin.system` (the :class:`EulerZeitlin` system: Euler, rotating sphere,
 quasi-geostrophic), :mod:`~lieflow_zeitlin.dissipation` (viscosity, hyperviscosity, drag and
 stochastic forcing as lieflow flows, for ``lieflow.flows.Splitting``) and
+:mod:`~lieflow_zeitlin.diagnostics` (spectra by degree, Casimirs, vorticity distribution, time
+averages; stored by ``lieflow run`` under ``/diagnostics/extra``) and
 :mod:`~lieflow_zeitlin.plotting` (PNG figures; needs matplotlib, imported on demand).
 """
 
 from __future__ import annotations
 
+from . import diagnostics
+from .diagnostics import (
+    energy_spectrum,
+    enstrophy_spectrum,
+    running_mean,
+    spectra,
+    time_mean,
+    vorticity_levels,
+)
 from .dissipation import (
     Hyperviscosity,
     LinearDrag,
@@ -57,6 +68,9 @@ __all__ = [
     "VorticityAlgebra",
     "degree_multiplier",
     "degrees_and_orders",
+    "diagnostics",
+    "energy_spectrum",
+    "enstrophy_spectrum",
     "grid_to_matrix",
     "grid_to_sh",
     "harmonics",
@@ -67,8 +81,12 @@ __all__ = [
     "matrix_to_sh",
     "random_sh",
     "random_vorticity",
+    "running_mean",
     "sh_to_grid",
     "sh_to_matrix",
+    "spectra",
     "spin_matrices",
+    "time_mean",
     "tridiagonal",
+    "vorticity_levels",
 ]

@@ -132,6 +132,16 @@ def _lamb(value: float) -> float:
     return out
 
 
+def _every(value: int | None) -> int | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+        raise lieflow.InputError(
+            f"diagnostics_every must be a non-negative integer (0: none), got {value!r}"
+        )
+    return int(value)
+
+
 def _time_default(self: Any) -> str:
     return "fluid" if self.hbar_scaled is None or self.hbar_scaled else "matrix"
 
@@ -163,6 +173,9 @@ class EulerZeitlin(lieflow.IsospectralSystem):
     lamb : float
         Lamb parameter ``F >= 0`` of the quasi-geostrophic model (``(a/L_d)²``); the state is
         the potential vorticity ``W = Q(Δψ - Fψ + f)``.
+    diagnostics_every : int, optional
+        Steps between the samples of :meth:`extra_diagnostics` that ``lieflow run`` writes
+        under ``/diagnostics/extra`` (default: every saved state; ``0``: none).
 
     Notes
     -----
@@ -185,6 +198,7 @@ class EulerZeitlin(lieflow.IsospectralSystem):
     )
     rotation: float = attrs.field(default=0.0, converter=_rotation, kw_only=True)
     lamb: float = attrs.field(default=0.0, converter=_lamb, kw_only=True)
+    diagnostics_every: int | None = attrs.field(default=None, converter=_every, kw_only=True)
     laplacian: HoppeYauLaplacian = attrs.field(init=False, repr=False)
     planetary: Array = attrs.field(init=False, repr=False)
 
@@ -307,6 +321,15 @@ class EulerZeitlin(lieflow.IsospectralSystem):
             for k in powers
         ]
         return np.stack(out, axis=-1)
+
+    def extra_diagnostics(self, W: ArrayLike) -> dict[str, Array]:
+        """The turbulence diagnostics of one state that ``lieflow run`` stores under
+        ``/diagnostics/extra`` (:func:`lieflow_zeitlin.diagnostics.snapshot`): energy and
+        enstrophy spectra of the relative vorticity, their sums, the vorticity levels
+        (eigenvalues of ``-iW``) and the Casimirs ``tr((iW)^k)``, k = 2, 3, 4, 5, 6, 8."""
+        from .diagnostics import snapshot
+
+        return snapshot(self, W)
 
     def enstrophy(self, W: ArrayLike) -> Array:
         """``||W||_F² = tr((iW)²)`` (the ``k = 2`` Casimir)."""
