@@ -264,7 +264,7 @@ def _checked_map(
     if not (isinstance(got, tuple) and len(got) == 2):
         return f"{what} must return (function, params), got {got!r}"
     fn, params = got
-    params = np.ascontiguousarray(params, dtype=np.float64).reshape(-1)
+    params = np.array(params, dtype=np.float64, order="C").reshape(-1)  # a writable copy
     try:
         if hasattr(fn, "compile") and not any(
             sig == k.MAP_SIGNATURE.args for sig in getattr(fn, "signatures", ())

@@ -219,12 +219,21 @@ def test_compiled_refuses_systems_without_a_faithful_hadamard_factor() -> None:
 
 
 @pytest.mark.usefixtures("numba")
-def test_compiled_refuses_systems_without_a_hadamard_factor() -> None:
-    vortices = pytest.importorskip("lieflow_vortices")
-    system = vortices.PointVortices()
-    with pytest.raises(lf.InputError, match="hadamard_factor is None"):
-        lf.integrate(system, lf.schemes.get("midpoint"), system.random_state(seed=0), 0.01,
-                     steps=2, engine="compiled")  # fmt: skip
+def test_compiled_refuses_systems_without_a_compiled_B() -> None:
+    class Cubic(lf.IsospectralSystem):
+        algebra = lf.SO(3)
+
+        def B(self, W: np.ndarray) -> np.ndarray:
+            return -(W**3)
+
+        def hamiltonian(self, W: np.ndarray) -> np.ndarray:
+            return 0.25 * np.sum(W**4, axis=(-2, -1))
+
+    system = Cubic()
+    assert system.compiled_B() is None
+    with pytest.raises(lf.InputError, match="has no compiled B"):
+        lf.integrate(system, lf.schemes.get("midpoint"), 0.5 * system.random_state(seed=0),
+                     0.01, steps=2, engine="compiled")  # fmt: skip
 
 
 def test_engine_is_validated_and_numba_is_optional(monkeypatch: pytest.MonkeyPatch) -> None:

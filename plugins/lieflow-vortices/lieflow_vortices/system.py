@@ -252,6 +252,20 @@ class PointVortices(lieflow.IsospectralSystem):
         """Orthogonal projection onto so(3)^K, the linear span of the phase space."""
         return self.algebra.project(W)
 
+    def compiled_B(self) -> tuple[Any, Array] | None:
+        """``B`` compiled with numba for lieflow's compiled engine (``engine="compiled"``):
+        ``(vortex_B, strengths)``, see :meth:`lieflow.IsospectralSystem.compiled_B`."""
+        from ._compiled import vortex_B
+
+        return vortex_B, np.ascontiguousarray(self.strengths, dtype=np.float64)
+
+    def compiled_project(self) -> tuple[Any, Array] | None:
+        """:meth:`project` compiled: the compiled engine puts every vortex back on its
+        sphere after each step, as the numpy path does."""
+        from ._compiled import vortex_project
+
+        return vortex_project, np.ascontiguousarray(self.strengths, dtype=np.float64)
+
     # ---------------------------------------------------------------- dynamics
     def _pair_terms(self, m: Array) -> tuple[Array, Array]:
         """``d_ij = 1 - m_i·m_j/(Γ_iΓ_j)`` (1 on the diagonal) and ``w_ij = 1/d_ij`` (0 on it)."""

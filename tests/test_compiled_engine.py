@@ -1,0 +1,286 @@
+"""The single-source compiled engine (issue 12.4): the system's B and projection as compiled
+functions (a plugin's included), eligibility asked of the scheme and solver, one stopping
+rule, deterministic chunks and bit-for-bit resume of ``lieflow run`` on the compiled engine."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import attrs
+import numpy as np
+import pytest
+
+import lieflow as lf
+from lieflow import compiled, driver, io
+from lieflow.cli import main
+
+numba = pytest.importorskip("numba")
+
+
+def _both(*args: Any, **kwargs: Any) -> tuple[lf.Solution, lf.Solution]:
+    return (
+        lf.integrate(*args, **kwargs, engine="numpy"),
+        lf.integrate(*args, **kwargs, engine="compiled"),
+    )
+
+
+def _agree(ref: lf.Solution, fast: lf.Solution, atol: float = 1e-12) -> None:
+    assert fast.status is ref.status and fast.n_steps == ref.n_steps
+    np.testing.assert_allclose(fast.W, ref.W, rtol=0, atol=atol * max(1.0, np.abs(ref.W).max()))
+    assert np.max(np.abs(fast.iterations - ref.iterations), initial=0) <= 1
+
+
+# ------------------------------------------------------------------ B from the system
+
+
+@pytest.mark.parametrize("scheme", ["midpoint", "gauss2", "sydirk7"])
+def test_a_plugin_system_runs_compiled(scheme: str) -> None:
+    """The point vortices' nonlinear B lives in the plugin (lieflow_vortices._compiled)."""
+    vortices = pytest.importorskip("lieflow_vortices")
+    system = vortices.PointVortices()
+    W0 = system.random_state(seed=1)
+    plan = compiled.plan(system, lf.schemes.get(scheme), lf.solvers.FixedPoint(), W0)
+    assert isinstance(plan, compiled.CompiledPlan)
+    assert plan.B.function is vortices._compiled.vortex_B
+    assert plan.project.function is vortices._compiled.vortex_project
+    ref, fast = _both(system, lf.schemes.get(scheme), W0, 0.05, steps=60)
+    _agree(ref, fast)
+    # each new state is put back on the spheres |m_i| = |Γ_i| inside the loops
+    assert float(system.phase_space_distance(fast.W).max()) < 1e-15
+
+
+def _cubic_B(W: np.ndarray, params: np.ndarray, out: np.ndarray) -> None:
+    """``B(W) = S ⊙ W (1 + c |W|²)`` of the skew part of ``W``: a nonlinear B."""
+    n = W.shape[0]
+    norm2 = 0.0
+    for i in range(n):
+        for j in range(n):
+            a = 0.5 * (W[i, j] - W[j, i])
+            norm2 += a * a
+    f = 1.0 + params[n * n] * norm2
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = params[i * n + j] * (0.5 * (W[i, j] - W[j, i])) * f
+
+
+cubic_B = numba.njit(_cubic_B)
+
+
+@attrs.frozen(eq=False)
+class CubicBody(lf.IsospectralSystem):
+    """A system defined here, with its own compiled B (not of the form S ⊙ W)."""
+
+    S: np.ndarray = attrs.field(
+        factory=lambda: -1.0 / np.add.outer(np.arange(1.0, 5.0), np.arange(1.0, 5.0))
+    )
+    c: float = 0.3
+
+    @property
+    def algebra(self) -> lf.SO:
+        return lf.SO(4)
+
+    def B(self, W: np.ndarray) -> np.ndarray:
+        return self.S * W * (1.0 + self.c * np.sum(W * W, axis=(-2, -1)))[..., None, None]
+
+    def hamiltonian(self, W: np.ndarray) -> np.ndarray:
+        q = np.sum(-self.S * W * W, axis=(-2, -1))
+        return q  # not the exact energy of this B; only used for diagnostics
+
+    def compiled_B(self) -> tuple[Any, np.ndarray]:
+        return cubic_B, np.append(self.S.ravel(), self.c)
+
+
+@pytest.mark.parametrize("scheme", ["midpoint", "gauss3"])
+def test_a_system_with_its_own_compiled_B(scheme: str) -> None:
+    system = CubicBody()
+    W0 = 0.7 * system.random_state(seed=2)
+    ref, fast = _both(system, lf.schemes.get(scheme), W0, 0.05, steps=80)
+    _agree(ref, fast)
+    assert system.hadamard_factor is None
+
+
+def test_a_wrong_compiled_B_is_refused() -> None:
+    @attrs.frozen(eq=False)
+    class Liar(CubicBody):
+        def compiled_B(self) -> tuple[Any, np.ndarray]:
+            return cubic_B, np.append(self.S.ravel(), 2 * self.c)  # not B
+
+    system = Liar()
+    with pytest.raises(lf.InputError, match="does not reproduce"):
+        lf.integrate(system, lf.schemes.get("midpoint"), system.random_state(seed=0), 0.05,
+                     steps=2, engine="compiled")  # fmt: skip
+    auto = lf.integrate(system, lf.schemes.get("midpoint"), system.random_state(seed=0), 0.05,
+                        steps=2)  # fmt: skip
+    assert auto.success
+
+
+def test_toda_is_symmetrized_every_step_inside_the_loops() -> None:
+    toda = lf.systems.PeriodicToda(5)
+    W0 = toda.random_state(seed=0)
+    plan = compiled.plan(toda, lf.schemes.get("gauss3"), lf.solvers.FixedPoint(), W0)
+    assert isinstance(plan, compiled.CompiledPlan) and plan.project is not None
+    ref, fast = _both(toda, lf.schemes.get("gauss3"), W0, 0.05, steps=300)
+    _agree(ref, fast, atol=1e-12)
+    long = lf.integrate(toda, lf.schemes.get("gauss3"), W0, 0.05, steps=3000, engine="compiled")
+    for sol in (fast, long):
+        assert float(np.max(np.abs(sol.W - np.swapaxes(sol.W, -1, -2)))) == 0.0
+
+
+def test_compiled_B_defaults() -> None:
+    from lieflow import _kernels
+
+    body = lf.systems.RigidBody()
+    got = body.compiled_B()
+    assert got is not None
+    fn, params = got
+    assert fn is _kernels.hadamard_B_skew
+    np.testing.assert_array_equal(params, body.hadamard_factor.ravel())
+    assert body.compiled_project() is None
+    assert lf.systems.PeriodicToda(gl_gradient=True).compiled_B() is None
+    assert CubicBody().compiled_project() is None
+
+
+# ------------------------------------------------------------------ eligibility
+
+
+def test_eligibility_is_asked_of_the_scheme_and_the_solver() -> None:
+    @attrs.frozen
+    class MySyDIRK(lf.schemes.SyDIRK):
+        pass
+
+    @attrs.frozen
+    class MyFixedPoint(lf.solvers.FixedPoint):
+        pass
+
+    body = lf.systems.RigidBody()
+    W0 = body.random_state(seed=0)
+    assert lf.schemes.get("gauss2", form="block").compiled_form() is None
+    form = lf.schemes.get("gauss2").compiled_form()
+    assert form is not None
+    kind, A, b = form
+    assert kind == "reduced" and A.shape == (2, 2) and b.shape == (2,)
+    for solver in (MyFixedPoint(), lf.solvers.Auto(first=MyFixedPoint())):
+        plan = compiled.plan(body, MySyDIRK(), solver, W0)
+        assert isinstance(plan, compiled.CompiledPlan) and plan.kind == "sydirk"
+    assert isinstance(compiled.plan(body, MySyDIRK(), lf.solvers.FrozenB(), W0), str)
+    ref, fast = _both(body, MySyDIRK(), W0, 0.1, steps=50, solver=MyFixedPoint())
+    _agree(ref, fast, atol=1e-13)
+
+
+# ------------------------------------------------------------------ one driver, chunks
+
+
+@attrs.frozen(eq=False)
+class _Recorder:
+    """A multi-step flow that records the chunk sizes asked of it (steps do nothing)."""
+
+    asked: list[int] = attrs.field(factory=list)
+    name = "recorder"
+
+    def init(self, W0: np.ndarray) -> None:
+        return None
+
+    def step(self, W: np.ndarray, t: float, h: float, state: Any) -> Any:
+        return W, state, lf.StepStats()
+
+    def step_many(self, W: np.ndarray, start: int, h: float, steps: int, state: Any) -> Any:
+        self.asked.append(steps)
+        n = np.zeros(steps, dtype=np.int64)
+        return driver.Chunk(start, h, np.repeat(W[None], steps, 0), n, n * 0.0,
+                            ("",) * steps, state)  # fmt: skip
+
+
+def test_chunks_end_at_multiples_of_the_chunk_size_wherever_the_run_starts() -> None:
+    W0 = np.zeros((3, 3))
+    size = driver.chunk_steps(W0)
+    flow = _Recorder()
+    ends = [c.stop for c in driver.advance(flow, W0, 0.1, 2 * size + 100, start=23)]
+    assert ends == [size, 2 * size, 2 * size + 100]
+    assert flow.asked == [size - 23, size, 100]
+
+
+def test_a_complete_chunk_is_not_followed_by_a_numpy_step() -> None:
+    from lieflow.integrate import scheme_flow
+
+    body = lf.systems.RigidBody()
+    W0 = body.random_state(0)
+    flow = scheme_flow(body, lf.schemes.get("midpoint"), lf.solvers.FixedPoint(), W0, 2500,
+                       engine="compiled")  # fmt: skip
+    chunks = list(driver.advance(flow, W0, 0.1, 2500))
+    assert [c.size for c in chunks] == [1024, 1024, 452]
+    assert all(np.isnan(c.residuals).all() for c in chunks)  # every step compiled
+
+
+def test_compiled_run_interrupted_and_resumed_is_bit_for_bit(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    config = tmp_path / "run.toml"
+    config.write_text(
+        textwrap.dedent(
+            """
+            [system]
+            name = "rigid_body"
+            params = { inertia = [1.0, 2.0, 3.0] }
+            [initial]
+            random = true
+            seed = 0
+            [scheme]
+            name = "midpoint"
+            [run]
+            h = 0.1
+            steps = 2500
+            save_every = 250
+            engine = "compiled"
+            output = "a.h5"
+            """
+        ),
+        encoding="utf-8",
+    )
+    assert main(["run", str(config), "--no-progress", "--out", str(tmp_path / "ref.h5")]) == 0
+    real_advance = io.driver.advance
+
+    def interrupted(*args: Any, **kwargs: Any) -> Iterator[driver.Chunk]:
+        for chunk in real_advance(*args, **kwargs):
+            yield chunk
+            if chunk.stop == 1024:
+                raise KeyboardInterrupt
+
+    monkeypatch.setattr(io.driver, "advance", interrupted)
+    assert main(["run", str(config), "--no-progress"]) == 130
+    assert io.read_checkpoint(tmp_path / "a.h5").step == 1024
+    monkeypatch.setattr(io.driver, "advance", real_advance)
+    assert main(["run", str(config), "--no-progress", "--resume"]) == 0
+    a, ref = io.read_trajectory(tmp_path / "a.h5"), io.read_trajectory(tmp_path / "ref.h5")
+    assert a.completed_steps == ref.completed_steps == 2500
+    assert np.array_equal(a.checkpoint.W, ref.checkpoint.W)  # bit for bit
+    assert np.array_equal(a.W, ref.W)
+    assert np.array_equal(a.iterations, ref.iterations)
+
+
+# ------------------------------------------------------------------ the disk cache
+
+
+def test_the_loops_load_from_the_disk_cache_in_a_new_process() -> None:
+    """A typed function argument keeps numba's cache valid: a second process loads the
+    loops instead of compiling them (an untyped dispatcher argument would recompile)."""
+    code = textwrap.dedent(
+        """
+        import lieflow as lf
+        from lieflow import _kernels
+        body = lf.systems.RigidBody()
+        lf.integrate(body, lf.schemes.get("midpoint"), body.random_state(0), 0.1, steps=5,
+                     engine="compiled")
+        print(sum(_kernels.sydirk_advance.stats.cache_hits.values()),
+              sum(_kernels.sydirk_advance.stats.cache_misses.values()))
+        """
+    )
+    for _ in range(2):  # the first may compile (a fresh checkout); the second must not
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             check=True, timeout=600)  # fmt: skip
+    hits, misses = (int(v) for v in out.stdout.split()[-2:])
+    assert (hits, misses) == (1, 0)
