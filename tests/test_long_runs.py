@@ -1,8 +1,9 @@
 """Long runs (>= 10^4 steps) of every registered scheme's default on every registered system,
 and the failures of issue 14 (Toda lattice, point vortices, solver stopping rules).
 
-Default run: the combinations the compiled engine supports (rigid bodies, the Toda lattice;
-SyDIRK and reduced-form Gauss) at 10^4 steps, and the issue's cases. ``-m slow``: every
+Default run: the combinations the compiled engine supports (``lieflow.compiled.plan``:
+rigid bodies, the Toda lattice, point vortices; SyDIRK and reduced-form Gauss) at 10^4
+steps, and the issue's cases. ``-m slow``: every
 other combination at 10^4 steps (numpy engine) and 10^5-step studies of all of them.
 
 What a long run must keep (issue 14, "done when"): it finishes where the exact flow is
@@ -22,18 +23,21 @@ import lieflow as lf
 
 #: the scheme each registered name builds by default, once ("block", "gauss" = "gauss2")
 DEFAULTS = sorted({lf.schemes.get(n).name: n for n in SCHEMES}.values())
-HADAMARD = [s for s in SYSTEMS if lf.systems.get(s).hadamard_factor is not None]
-
-NEEDS_WIRING = pytest.mark.xfail(
-    strict=False, reason="needs projection wiring (system.project on each new state)"
-)
 
 
 @functools.cache
 def _compiled_supports(system_name: str, scheme_name: str) -> bool:
-    scheme = lf.schemes.get(scheme_name)
-    ok = system_name in HADAMARD and type(scheme).__name__ in ("SyDIRK", "BlockGauss")
-    return ok and getattr(scheme, "form", "reduced") == "reduced"
+    """Whether the compiled engine runs this pair (numba installed, the scheme compiled,
+    the system's compiled ``B`` and projection checked): ``lieflow.compiled.plan``."""
+    from lieflow import compiled
+
+    if not compiled.available():
+        return False
+    system = lf.systems.get(system_name)
+    plan = compiled.plan(
+        system, lf.schemes.get(scheme_name), lf.solvers.get("auto"), system.random_state(1)
+    )
+    return not isinstance(plan, str)
 
 
 def _check_long_run(
@@ -69,12 +73,7 @@ def _long_run(system_name: str, scheme_name: str, steps: int, engine: str) -> No
 
 @pytest.mark.parametrize(
     ("system_name", "scheme_name"),
-    [
-        pytest.param(sy, sc, marks=[NEEDS_WIRING] if sy == "periodic_toda" else [])
-        for sy in SYSTEMS
-        for sc in DEFAULTS
-        if _compiled_supports(sy, sc)
-    ],
+    [(sy, sc) for sy in SYSTEMS for sc in DEFAULTS if _compiled_supports(sy, sc)],
 )
 def test_ten_thousand_steps_compiled(system_name: str, scheme_name: str) -> None:
     _long_run(system_name, scheme_name, 10_000, "compiled")
@@ -83,9 +82,7 @@ def test_ten_thousand_steps_compiled(system_name: str, scheme_name: str) -> None
 @pytest.mark.parametrize(
     ("system_name", "scheme_name"),
     [
-        pytest.param(
-            sy, sc, marks=[pytest.mark.slow] + ([NEEDS_WIRING] if sy == "periodic_toda" else [])
-        )
+        pytest.param(sy, sc, marks=pytest.mark.slow)
         for sy in SYSTEMS
         for sc in DEFAULTS
         if not _compiled_supports(sy, sc)
@@ -97,13 +94,7 @@ def test_ten_thousand_steps_numpy(system_name: str, scheme_name: str) -> None:
 
 @pytest.mark.parametrize(
     ("system_name", "scheme_name"),
-    [
-        pytest.param(
-            sy, sc, marks=[pytest.mark.slow] + ([NEEDS_WIRING] if sy == "periodic_toda" else [])
-        )
-        for sy in SYSTEMS
-        for sc in DEFAULTS
-    ],
+    [pytest.param(sy, sc, marks=pytest.mark.slow) for sy in SYSTEMS for sc in DEFAULTS],
 )
 def test_hundred_thousand_steps(system_name: str, scheme_name: str) -> None:
     engine = "compiled" if _compiled_supports(system_name, scheme_name) else "numpy"
@@ -115,7 +106,6 @@ def test_hundred_thousand_steps(system_name: str, scheme_name: str) -> None:
 TODA = lf.systems.get("periodic_toda")
 
 
-@NEEDS_WIRING
 @pytest.mark.parametrize(
     ("seed", "scale", "engine", "t_final"),
     [
@@ -126,6 +116,10 @@ TODA = lf.systems.get("periodic_toda")
     ],
 )
 def test_toda_gauss3_long_runs(seed: int, scale: float, engine: str, t_final: float) -> None:
+    from lieflow import compiled
+
+    if engine == "compiled" and not compiled.available():
+        pytest.skip("numba is not installed")
     W0 = scale * TODA.random_state(seed)
     scheme = lf.schemes.get("gauss3")
     sol = lf.integrate(
@@ -140,7 +134,6 @@ def test_toda_gauss3_long_runs(seed: int, scale: float, engine: str, t_final: fl
     _check_long_run(TODA, scheme, sol, 0.05)
 
 
-@NEEDS_WIRING
 def test_toda_block_form_long_run() -> None:
     """The block form is no better on its own: it failed at t = 133 (3x the state)."""
     scheme = lf.schemes.get("gauss2", form="block")
@@ -150,7 +143,6 @@ def test_toda_block_form_long_run() -> None:
     _check_long_run(TODA, scheme, sol, 0.05)
 
 
-@NEEDS_WIRING
 def test_toda_midpoint_long_run() -> None:
     """Midpoint, seed 0, failed at t = 456."""
     scheme = lf.schemes.get("midpoint")
