@@ -8,7 +8,8 @@ Subcommands::
     lieflow reproduce [--out DIR]     the paper's experiments: figures, report.md, results.csv
             [--quick] [--seed N]
     lieflow plot FILE.h5 [--out DIR]  energy error, Casimir drift and iterations per step,
-                                      plus the figures a plugin registered for the system
+            [--movie OUT.mp4|OUT.gif] plus the figures a plugin registered for the system
+                                      (and its movie of the saved states)
     lieflow sweep GRID.toml           every run of a grid (a product of parameter lists),
             [--executor local|dask] [--scheduler ADDRESS] [--workers N] [--out DIR]
             [--dry-run] [--no-progress]
@@ -181,7 +182,36 @@ def _cmd_plot(args: argparse.Namespace) -> int:
         ) from None
     for path in written:
         print(path)
+    if args.movie is not None:
+        print(_plot_movie(args.file, args.movie, sys.stderr.isatty()))
     return EXIT_OK
+
+
+def _plot_movie(file: Path, out: Path, live: bool) -> Path:
+    """``lieflow plot FILE --movie OUT``: the ``movie(trajectory, path, progress)`` attribute
+    of the plotter a plugin registered for the file's system, with a progress bar."""
+    from .io import read_trajectory
+    from .plugins import default_registry
+
+    traj = read_trajectory(file)
+    system = str(traj.meta["system"])
+    plotter = default_registry().plotters.get(system)
+    movie = getattr(plotter.function, "movie", None) if plotter is not None else None
+    if movie is None:
+        raise InputError(
+            f"lieflow plot --movie: no plugin draws movies of {system!r} runs ({str(file)!r}); "
+            "movies come from a plotter with a 'movie' function (euler_zeitlin's: pip install "
+            "lieflow-zeitlin[movie]). To fix: drop --movie."
+        )
+    if not live:
+        return Path(movie(traj, out))
+    from rich.console import Console
+    from rich.progress import Progress
+
+    with Progress(console=Console(stderr=True)) as bar:
+        task = bar.add_task("movie frames", total=None)
+        return Path(movie(traj, out, lambda done, total: bar.update(task, completed=done,
+                                                                    total=total)))  # fmt: skip
 
 
 EXIT_RUNS_FAILED = 1  # lieflow sweep: it finished, but some runs failed (see the manifest)
@@ -282,6 +312,12 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument("file", type=Path, metavar="FILE.h5")
     p.add_argument("--out", type=Path, metavar="DIR", help="output directory (default: FILE's)")
+    p.add_argument(
+        "--movie",
+        type=Path,
+        metavar="OUT.mp4|OUT.gif",
+        help="also render the saved states as a movie (systems whose plugin draws movies)",
+    )
     p.set_defaults(func=_cmd_plot)
 
     p = sub.add_parser(

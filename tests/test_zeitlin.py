@@ -489,6 +489,9 @@ def test_lieflow_run_and_plot_on_a_small_copy_of_the_example(
         "euler_n128_vorticity_map.png",
         "euler_n128_vorticity_final.png",
         "euler_n128_drift.png",
+        "euler_n128_spectra.png",
+        "euler_n128_distribution.png",
+        "euler_n128_statistics.png",
     ]
     for p in written:
         assert p.read_bytes()[:8] == PNG_SIGNATURE and imread(p).ndim == 3

@@ -41,14 +41,19 @@ Array = NDArray[Any]
 Projection = Literal["equirectangular", "orthographic"]
 
 __all__ = [
+    "distribution_figure",
     "drift_figure",
     "orthographic_image",
     "plot_grid",
     "plot_run",
     "plot_vorticity",
+    "run_samples",
     "save_figures",
+    "save_turbulence_figures",
     "save_vorticity_png",
     "snapshots_figure",
+    "spectra_figure",
+    "statistics_figure",
     "vorticity_on_grid",
 ]
 
@@ -413,15 +418,170 @@ def save_figures(
     return written
 
 
+def _guide(ax: Axes, l: Array, spectrum: Array, slope: float, label: str, style: str) -> None:
+    """A power law ``l^slope`` through the spectrum's value at the geometric middle of the
+    plotted degrees (a guide to the eye)."""
+    good = (l > 0) & (spectrum > 0)
+    if good.sum() < 2:
+        return
+    lg, sg = l[good], spectrum[good]
+    j = len(lg) // 2
+    x = np.array([lg[0], lg[-1]], dtype=float)
+    ax.loglog(x, sg[j] * (x / lg[j]) ** slope, style, color="0.35", lw=1.0, label=label)
+
+
+def spectra_figure(
+    samples: dict[str, Array], *, t_start: float | None = None, curves: int = 6
+) -> Figure:
+    """Energy and enstrophy spectra by degree (log–log): ``curves`` samples coloured by time,
+    the time average over ``t >= t_start`` (default: the second half of the samples) in
+    black, and ``l^{-3}`` and ``l^{-5/3}`` guide lines (the enstrophy- and energy-cascade
+    ranges of 2D turbulence; ``l^{-1}`` and ``l^{1/3}`` in the enstrophy spectrum).
+
+    ``samples``: ``t``, ``energy_spectrum``, ``enstrophy_spectrum`` (rows per sample), as
+    :func:`lieflow.io.read_extra` returns them.
+    """
+    from .diagnostics import time_mean
+
+    t = np.asarray(samples["t"], dtype=float)
+    if t_start is None:
+        t_start = float(t[len(t) // 2]) if len(t) > 1 else float(t[0])
+    fig = _figure(11.0, 4.4)
+    axes = fig.subplots(1, 2)
+    cmap = _colormap("viridis")
+    for ax, key, name, slopes in (
+        (axes[0], "energy_spectrum", "energy E(l)", (-3.0, -5.0 / 3.0)),
+        (axes[1], "enstrophy_spectrum", "enstrophy Z(l)", (-1.0, 1.0 / 3.0)),
+    ):
+        S = np.asarray(samples[key], dtype=float)
+        l = np.arange(S.shape[-1])
+        for j in _pick(len(t), curves):
+            positive = np.where(S[j, 1:] > 0, S[j, 1:], np.nan)
+            ax.loglog(l[1:], positive, color=cmap(j / max(len(t) - 1, 1)), lw=0.8, alpha=0.8,
+                      label=f"t = {t[j]:.3g}")  # fmt: skip
+        mean = time_mean(t, S, t_start)
+        ax.loglog(l[1:], np.where(mean[1:] > 0, mean[1:], np.nan), "k-", lw=2.0,
+                  label=f"mean over t ≥ {t_start:.3g}")  # fmt: skip
+        _guide(ax, l, mean, slopes[0], f"l^{slopes[0]:.3g}", "--")
+        _guide(ax, l, mean, slopes[1], f"l^{slopes[1]:.3g}", ":")
+        ax.set_xlabel("degree l")
+        ax.set_ylabel(name)
+        ax.grid(True, which="both", alpha=0.2)
+        ax.legend(fontsize=7, loc="best")
+    return fig
+
+
+def _colormap(name: str) -> Any:
+    from matplotlib import colormaps
+
+    return colormaps[name]
+
+
+def distribution_figure(samples: dict[str, Array]) -> Figure:
+    """The vorticity distribution: the levels (eigenvalues of ``-iW``) against the area
+    fraction they stand for, and their histogram, first and last sample."""
+    t = np.asarray(samples["t"], dtype=float)
+    levels = np.asarray(samples["vorticity_levels"], dtype=float)
+    N = levels.shape[-1]
+    fig = _figure(10.0, 4.0)
+    ax0, ax1 = fig.subplots(1, 2)
+    area = (np.arange(N) + 0.5) / N
+    bins = np.linspace(levels.min(), levels.max(), max(10, min(60, N // 2)) + 1)
+    for j, style in ((0, "C0"), (len(t) - 1, "C3")):
+        ax0.plot(area, levels[j], color=style, lw=1.2, label=f"t = {t[j]:.3g}")
+        ax1.hist(levels[j], bins=bins, density=True, histtype="step", color=style,
+                 lw=1.2, label=f"t = {t[j]:.3g}")  # fmt: skip
+    ax0.set_xlabel("area fraction (level j ↔ (j + ½)/N)")
+    ax0.set_ylabel("level λ_j of -iW (≈ values of q)")
+    ax1.set_xlabel("vorticity level")
+    ax1.set_ylabel("density")
+    for ax in (ax0, ax1):
+        ax.grid(True, alpha=0.2)
+        ax.legend(fontsize=8)
+    return fig
+
+
+def statistics_figure(samples: dict[str, Array]) -> Figure:
+    """Energy and enstrophy of the relative vorticity against time, with their running
+    means (the approach to a statistically steady state)."""
+    from .diagnostics import running_mean
+
+    t = np.asarray(samples["t"], dtype=float)
+    fig = _figure(10.0, 3.8)
+    axes = fig.subplots(1, 2)
+    for ax, key in zip(axes, ("energy", "enstrophy"), strict=True):
+        v = np.asarray(samples[key], dtype=float)
+        ax.plot(t, v, "C0-", lw=1.0, label=key)
+        ax.plot(t, running_mean(v), "k--", lw=1.2, label="running mean")
+        ax.set_xlabel("t")
+        ax.set_ylabel(key)
+        ax.grid(True, alpha=0.2)
+        ax.legend(fontsize=8)
+    return fig
+
+
+def run_samples(trajectory: Any) -> dict[str, Array]:
+    """The diagnostics samples of a run: the file's ``/diagnostics/extra`` rows
+    (:func:`lieflow.io.read_extra`) or, for files without them, the diagnostics of its
+    saved states (:func:`lieflow_zeitlin.diagnostics.snapshot`)."""
+    from lieflow.io import read_extra
+
+    from .diagnostics import snapshot
+
+    path = getattr(trajectory, "path", None)
+    extra = read_extra(path) if path is not None else {}
+    if extra:
+        return extra
+    system = _file_system(trajectory)
+    W = np.asarray(trajectory.W)
+    rows = [snapshot(system, w) for w in W]
+    out = {name: np.stack([r[name] for r in rows]) for name in rows[0]}
+    out["t"] = np.asarray(trajectory.t, dtype=float)
+    out["step"] = np.asarray(getattr(trajectory, "step", np.arange(len(W))))
+    return out
+
+
+def save_turbulence_figures(
+    samples: dict[str, Array], out_dir: Path | str, prefix: str, dpi: int = 120
+) -> list[Path]:
+    """``<prefix>_spectra.png``, ``<prefix>_distribution.png``, ``<prefix>_statistics.png``."""
+    out = Path(out_dir)
+    return [
+        _save(spectra_figure(samples), out / f"{prefix}_spectra.png", dpi),
+        _save(distribution_figure(samples), out / f"{prefix}_distribution.png", dpi),
+        _save(statistics_figure(samples), out / f"{prefix}_statistics.png", dpi),
+    ]
+
+
 def plot_run(trajectory: Any, out_dir: Path, stem: str) -> list[Path]:
     """The ``lieflow plot`` figures of an ``euler_zeitlin`` trajectory file.
 
     Registered with ``registry.add_plotter`` (:mod:`lieflow_zeitlin.plugin`): ``lieflow plot
     run.h5`` writes, after lieflow's generic figures, the four PNGs of :func:`save_figures`
     named ``<stem>_vorticity.png``, ``<stem>_vorticity_map.png``,
-    ``<stem>_vorticity_final.png`` and ``<stem>_drift.png``.
+    ``<stem>_vorticity_final.png`` and ``<stem>_drift.png``, then the turbulence figures of
+    :func:`save_turbulence_figures` (``<stem>_spectra.png``, ``<stem>_distribution.png``,
+    ``<stem>_statistics.png``) from the diagnostics sampled during the run. ``lieflow plot
+    run.h5 --movie out.mp4`` calls this function's ``movie`` attribute
+    (:func:`lieflow_zeitlin.movie.save_movie`).
     """
-    return save_figures(_relative(trajectory), out_dir, prefix=stem)
+    written = save_figures(_relative(trajectory), out_dir, prefix=stem)
+    return written + save_turbulence_figures(run_samples(trajectory), out_dir, stem)
+
+
+def _file_system(trajectory: Any) -> Any:
+    """The :class:`~lieflow_zeitlin.EulerZeitlin` of a trajectory file (size, rotation and
+    Lamb parameter from its configuration identity; defaults otherwise)."""
+    import json
+
+    from .system import EulerZeitlin
+
+    N = np.asarray(trajectory.W).shape[-1]
+    try:
+        params = dict(json.loads(str(trajectory.meta["identity"]))["system"]["params"])
+    except (AttributeError, KeyError, TypeError, ValueError):
+        params = {}
+    return EulerZeitlin(N, rotation=params.get("rotation", 0.0), lamb=params.get("lamb", 0.0))
 
 
 class _RelativeView:

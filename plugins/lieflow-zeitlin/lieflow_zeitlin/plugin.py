@@ -14,11 +14,24 @@ from .system import EulerZeitlin
 
 
 def plot_run(trajectory: Any, out_dir: Path, stem: str) -> list[Path]:
-    """Vorticity snapshots and drift of an ``euler_zeitlin`` run (imports matplotlib lazily:
-    :func:`lieflow_zeitlin.plotting.plot_run`)."""
+    """Vorticity snapshots, drift, spectra, vorticity distribution and statistics of an
+    ``euler_zeitlin`` run (imports matplotlib lazily: :func:`lieflow_zeitlin.plotting.plot_run`)."""
     from .plotting import plot_run as plot
 
     return plot(trajectory, out_dir, stem)
+
+
+def movie(trajectory: Any, path: Path, progress: Any = None) -> Path:
+    """The vorticity of every saved state as a movie (``.mp4`` or ``.gif``):
+    :func:`lieflow_zeitlin.movie.save_movie`, for ``lieflow plot FILE --movie OUT``."""
+    from .movie import save_movie
+
+    return save_movie(trajectory, path, progress=progress)
+
+
+#: ``lieflow plot --movie`` looks for a ``movie(trajectory, path, progress)`` attribute on a
+#: system's plotter function.
+plot_run.movie = movie  # type: ignore[attr-defined]
 
 
 def viscosity(system: EulerZeitlin, nu: float, method: str = "exact") -> Viscosity:
