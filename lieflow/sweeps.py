@@ -1073,7 +1073,8 @@ class _Coordinator:
         self.last_write = 0.0
         self.dirty = False
         self.skipped = 0
-        self.worked = False  # some task returned (the pool's workers can start)
+        self.worked = False  # a task started or returned (the pool's workers can start)
+        self.t0 = time.time() - 1.0
 
     def _record(
         self, spec: RunSpec, state: Mapping[str, Any] | None, previous: Mapping[str, Any]
@@ -1144,6 +1145,13 @@ class _Coordinator:
             "id": spec.id,
         }
 
+    def _started_any(self) -> bool:
+        """Whether a worker of this sweep has reported progress (so workers can start)."""
+        try:
+            return any(p.stat().st_mtime >= self.t0 for p in self.progress_dir.glob("*.json"))
+        except OSError:
+            return False
+
     def _steps_now(self, in_flight: Sequence[int]) -> int:
         """Steps done in all runs, those of in-flight runs as their workers report them; an
         in-flight run is "running" once its worker has reported, "pending" (queued) before."""
@@ -1159,7 +1167,7 @@ class _Coordinator:
             else:
                 if rec["status"] == "pending":
                     rec["status"] = "running"
-                    self.dirty = True
+                    self.dirty = self.worked = True
         return steps
 
     def run(self) -> bool:
@@ -1205,7 +1213,22 @@ class _Coordinator:
                     rec["status"], rec["error"] = "pending", ""  # queued: "running" once started
                     with contextlib.suppress(OSError):  # a lost attempt's
                         (self.progress_dir / f"{grid.runs[i].id}.json").unlink()
-                    in_flight[self.pool.submit(run_task, self._task(i))] = i
+                    try:
+                        in_flight[self.pool.submit(run_task, self._task(i))] = i
+                    except Exception as exc:  # a broken pool, a closed client, a lost scheduler
+                        rec["attempts"] -= 1
+                        if self.local is not None:  # our pool broke: its futures tell which
+                            todo.appendleft((0.0, i))
+                            if not in_flight:
+                                self.local.renew()
+                                self.pool = self.local.pool
+                            break
+                        raise LieflowError(
+                            f"the executor refused to run more runs ({type(exc).__name__}: "
+                            f"{exc}); the manifest records where the sweep stands. To fix: "
+                            "restart the executor (the Dask scheduler and workers) and run "
+                            "the sweep again: it continues where it stopped."
+                        ) from None
                     self.dirty = True
                 done, _ = cf.wait(list(in_flight), timeout=0.5, return_when=cf.FIRST_COMPLETED)
                 broken = False
@@ -1252,7 +1275,7 @@ class _Coordinator:
             from concurrent.futures.process import BrokenProcessPool
 
             broken = isinstance(exc, BrokenProcessPool)
-            if broken and self.local is not None and not self.worked:
+            if broken and self.local is not None and not (self.worked or self._started_any()):
                 raise LieflowError(
                     "the sweep's worker processes could not start (they died before running "
                     f"any run: {exc}). If lieflow.sweep is called from a script, protect the "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import json
 import os
 import threading
@@ -347,7 +348,7 @@ def test_cli_sweep_summary_exit_codes_and_dry_run(
     assert main(["sweep", str(grid), "--dry-run"]) == 0
     out = capsys.readouterr().out
     assert "4 runs (2 x 2)" in out and not (tmp_path / "grid").exists()
-    assert main(["sweep", str(grid), "--workers", "2", "--no-progress", "--out",
+    assert main(["sweep", str(grid), "--workers", "1", "--no-progress", "--out",
                  str(tmp_path / "d")]) == 1  # fmt: skip
     captured = capsys.readouterr()
     assert "4 runs: 2 complete (0 already), 2 failed" in captured.out
@@ -398,7 +399,7 @@ def test_ctrl_c_stops_the_sweep_resumably_and_rerunning_finishes_it(tmp_path: Pa
     import subprocess
     import sys
 
-    base = BASE.replace("steps = 40", "steps = 1200").replace("save_every = 10", "save_every = 20")
+    base = BASE.replace("steps = 40", "steps = 600").replace("save_every = 10", "save_every = 20")
     grid = write_grid(
         tmp_path, '"initial.seed" = [0, 1, 2, 3]', base.replace("h = 0.1", "h = 0.01")
     )
@@ -410,7 +411,6 @@ def test_ctrl_c_stops_the_sweep_resumably_and_rerunning_finishes_it(tmp_path: Pa
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline and len(list(progress.glob("*.json"))) < 2:
             time.sleep(0.05)
-        time.sleep(0.3)
         os.killpg(proc.pid, signal.SIGINT)
         _, err = proc.communicate(timeout=60)
     finally:
@@ -433,6 +433,7 @@ def test_ctrl_c_stops_the_sweep_resumably_and_rerunning_finishes_it(tmp_path: Pa
     _files_equal(spec.output, tmp_path / "ref.h5")
 
 
+@pytest.mark.slow
 def test_a_script_without_a_main_guard_gets_a_clear_error(tmp_path: Path) -> None:
     """The local pool spawns its workers, which import the calling script: unguarded, they
     die at once; the sweep says why instead of failing every run."""
@@ -472,3 +473,50 @@ def test_a_file_created_by_another_attempt_meanwhile_is_retried_not_failed(
             "output": str(spec.output)}  # fmt: skip
     out = run_task(task)
     assert out["status"] == "busy" and "already exists" in out["error"]
+
+
+def test_an_executor_that_refuses_work_stops_the_sweep_with_the_manifest_written(
+    tmp_path: Path,
+) -> None:
+    grid = write_grid(tmp_path, '"initial.seed" = [0, 1]')
+    pool = threads()
+    pool.shutdown()
+    with pytest.raises(lf.LieflowError, match="the executor refused to run more runs"):
+        sweep(grid, pool)
+    manifest = json.loads((tmp_path / "grid" / "manifest.json").read_text())
+    assert [r["status"] for r in manifest["runs"]] == ["pending", "pending"]
+    assert sweep(grid, threads()).ok  # and it continues later
+
+
+@pytest.mark.slow
+def test_a_killed_worker_of_the_local_pool_is_replaced_and_its_run_resumed(
+    tmp_path: Path,
+) -> None:
+    import signal
+
+    base = BASE.replace("steps = 40", "steps = 400").replace("h = 0.1", "h = 0.01")
+    grid = write_grid(tmp_path, '"initial.seed" = [0, 1, 2]', base)
+    g = load_sweep(grid)
+    result: dict[str, Any] = {}
+    thread = threading.Thread(target=lambda: result.update(res=sweep(g, workers=2)))
+    thread.start()
+    victim = None
+    deadline = time.monotonic() + 120
+    while victim is None and thread.is_alive() and time.monotonic() < deadline:
+        for p in (g.directory / ".progress").glob("*.json"):
+            with contextlib.suppress(OSError, ValueError):
+                info = json.loads(p.read_text())
+                if info["done"] < info["total"]:
+                    victim = (info["pid"], p.stem)
+                    os.kill(info["pid"], signal.SIGKILL)
+                    break
+        time.sleep(0.02)
+    thread.join(timeout=180)
+    assert victim is not None and not thread.is_alive()
+    res = result["res"]
+    assert res.ok, [r["error"] for r in res.runs]
+    rec = next(r for r in res.runs if r["id"] == victim[1])
+    assert rec["attempts"] == 2 and rec["pid"] != victim[0]
+    spec = next(s for s in g.runs if s.id == victim[1])
+    io.run(build(spec.config, output=tmp_path / "ref.h5"))
+    _files_equal(spec.output, tmp_path / "ref.h5")
