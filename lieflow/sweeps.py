@@ -1005,6 +1005,11 @@ def sweep(
         raise InputError(f"workers must be a positive integer, got {workers!r}")
     if scheduler is not None and executor != "dask":
         raise InputError("scheduler= is the address of a Dask scheduler: pass executor='dask'")
+    if scheduler is not None and workers is not None:
+        raise InputError(
+            "workers= sizes a new local pool or LocalCluster; the cluster at scheduler= has "
+            "its own workers (start more with `dask worker`)"
+        )
     t0 = time.perf_counter()
     root = grid.directory
     try:

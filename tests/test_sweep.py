@@ -335,6 +335,8 @@ def test_executor_arguments_are_checked(tmp_path: Path) -> None:
         sweep(grid, workers=0)
     with pytest.raises(lf.InputError, match="executor='dask'"):
         sweep(grid, scheduler="tcp://127.0.0.1:1")
+    with pytest.raises(lf.InputError, match="has its own workers"):
+        sweep(grid, "dask", scheduler="tcp://127.0.0.1:1", workers=2)
 
 
 # -- command line ----------------------------------------------------------------------------
