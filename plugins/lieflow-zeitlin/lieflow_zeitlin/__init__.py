@@ -55,6 +55,7 @@ from .quantization import (
     sh_to_grid,
     sh_to_matrix,
 )
+from .quflow import import_quflow, read_quflow
 from .system import EulerZeitlin, VorticityAlgebra
 
 __all__ = [
@@ -75,12 +76,14 @@ __all__ = [
     "grid_to_sh",
     "harmonics",
     "hbar",
+    "import_quflow",
     "kappa",
     "lm_index",
     "matrix_to_grid",
     "matrix_to_sh",
     "random_sh",
     "random_vorticity",
+    "read_quflow",
     "running_mean",
     "sh_to_grid",
     "sh_to_matrix",
