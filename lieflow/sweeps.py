@@ -1109,7 +1109,8 @@ class _Coordinator:
 
     def write_manifest(self, force: bool = False) -> None:
         now = time.monotonic()
-        if not force and (not self.dirty or now - self.last_write < 0.5):
+        every = 0.5 + len(self.records) / 4000  # 3 s for 10,000 runs: writes stay cheap
+        if not force and (not self.dirty or now - self.last_write < every):
             return
         g = self.grid
         from . import __version__
@@ -1149,6 +1150,22 @@ class _Coordinator:
             "progress": str(self.progress_dir / f"{spec.id}.json"),
             "id": spec.id,
         }
+
+    def _capacity(self, runs: int) -> int:
+        """How many runs to keep submitted: two per worker where the pool's size is known
+        (the default pool, a ProcessPoolExecutor, a Dask cluster: its threads now), so that
+        an interrupt has little to cancel and progress is read from few files; else all."""
+        if self.local is not None:
+            return 2 * self.local.workers
+        client = getattr(self.pool, "_client", None)  # a Dask ClientExecutor
+        if client is not None:
+            try:
+                threads = sum(client.nthreads().values())
+            except Exception:
+                threads = 0
+            return max(2 * threads, 8)
+        size = getattr(self.pool, "_max_workers", 0)
+        return 2 * size if isinstance(size, int) and size > 0 else runs
 
     def _started_any(self) -> bool:
         """Whether a worker of this sweep has reported progress (so workers can start)."""
@@ -1196,16 +1213,13 @@ class _Coordinator:
             self.monitor.start(len(grid.runs), skipped)
         in_flight: dict[cf.Future[Any], int] = {}
         busy_since: dict[int, float] = {}
-        # at most two runs per worker queued in a pool we know the size of (so that an
-        # interrupt has little to cancel); a Dask scheduler queues everything itself
-        size = (
-            self.local.workers if self.local is not None else getattr(self.pool, "_max_workers", 0)
-        )
-        cap = 2 * size if size else len(grid.runs)
         interrupted = False
+        cap, cap_checked, scanned = self._capacity(len(grid.runs)), time.monotonic(), 0.0
         try:
             while todo or in_flight:
                 now = time.monotonic()
+                if now - cap_checked > 5.0:  # a Dask cluster may grow or shrink
+                    cap, cap_checked = self._capacity(len(grid.runs)), now
                 for _ in range(len(todo)):
                     if len(in_flight) >= cap:
                         break
@@ -1246,9 +1260,11 @@ class _Coordinator:
                         self._collect(fut, i, todo, busy_since)
                     self.local.renew()
                     self.pool = self.local.pool
-                steps = self._steps_now(list(in_flight.values()))
-                if self.monitor is not None:
-                    self.monitor.update(self.counts(), steps, total_steps)
+                if time.monotonic() - scanned >= 0.5 or not in_flight:
+                    scanned = time.monotonic()
+                    steps = self._steps_now(list(in_flight.values()))
+                    if self.monitor is not None:
+                        self.monitor.update(self.counts(), steps, total_steps)
                 self.write_manifest()
         except KeyboardInterrupt:
             interrupted = True
