@@ -109,14 +109,11 @@ def _inner(func: F, name: str | None = None) -> F:
 
 
 def compiled_map(func: F) -> F:
-    """Compile ``func(W, params, out)`` for :data:`MAP_SIGNATURE`, cached on disk (what a
-    system's :meth:`~lieflow.IsospectralSystem.compiled_B` may return)."""
-    if numba is None:  # pragma: no cover
-        return func
-    try:
-        return cast(F, numba.njit(MAP_SIGNATURE, cache=True, error_model="numpy")(func))
-    except RuntimeError:  # pragma: no cover - no writable cache location
-        return cast(F, numba.njit(MAP_SIGNATURE, error_model="numpy")(func))
+    """``func(W, params, out)`` as a system's compiled map (what
+    :meth:`~lieflow.IsospectralSystem.compiled_B` may return): jitted with a disk cache,
+    compiled for :data:`MAP_SIGNATURE` when :func:`lieflow.compiled.plan` first asks for it
+    (not at import, so that importing this module stays cheap)."""
+    return _jit(func)
 
 
 # ------------------------------------------------------------------ the stopping rule
@@ -241,20 +238,6 @@ def symmetric_part(W: Any, params: Any, out: Any) -> None:
             a = 0.5 * (W[i, j] + W[j, i])
             out[i, j] = a
             out[j, i] = a
-
-
-def _call_map(f: Any, W: Any, params: Any, out: Any) -> None:
-    """Call a system's compiled map through its first-class function type, as the loops
-    do (:func:`lieflow.compiled.plan` checks a map with it)."""
-    f(W, params, out)
-
-
-if numba is not None:
-    call_map: Any = numba.njit(
-        numba.types.void(MAP_TYPE, _MAT, numba.types.float64[::1], _MAT), cache=True
-    )(_call_map)
-else:  # pragma: no cover
-    call_map = _call_map
 
 
 _Protocol: Any = object if numba is None else numba.core.types.WrapperAddressProtocol
@@ -682,8 +665,13 @@ def _entry_points(key: str) -> tuple[Any, Any]:
         return _advance_reduced(W, hA, hb, skew, B, params, P, pparams, project, rule,
                                 irule, last, prev, flags, states, iters)  # fmt: skip
 
+    return sydirk_advance, reduced_advance
+
+
+def _compile_entry(func: F) -> F:
+    """An entry point compiled for its one signature (loaded from the disk cache if there)."""
     if numba is None:  # pragma: no cover
-        return sydirk_advance, reduced_advance
+        return func
     t = numba.types
     f8, i8 = t.float64, t.int64
     sig = t.int64(
@@ -692,13 +680,23 @@ def _entry_points(key: str) -> tuple[Any, Any]:
         i8[::1],
     )  # fmt: skip
 
-    def jit(func: F) -> F:
-        try:
-            return cast(F, numba.njit(sig, cache=True, error_model="numpy")(func))
-        except RuntimeError:  # pragma: no cover - no writable cache location
-            return cast(F, numba.njit(sig, error_model="numpy")(func))
-
-    return jit(sydirk_advance), jit(reduced_advance)
+    try:
+        return cast(F, numba.njit(sig, cache=True, error_model="numpy")(func))
+    except RuntimeError:  # pragma: no cover - no writable cache location
+        return cast(F, numba.njit(sig, error_model="numpy")(func))
 
 
-sydirk_advance, reduced_advance = _entry_points(RULE_KEY)
+_SYDIRK, _REDUCED = _entry_points(RULE_KEY)
+_ENTRY_SOURCES = {"sydirk_advance": _SYDIRK, "reduced_advance": _REDUCED}
+_ENTRIES: dict[str, Any] = {}
+
+
+def __getattr__(name: str) -> Any:
+    """``sydirk_advance`` and ``reduced_advance``, compiled (or loaded from the disk cache)
+    on first use, so that importing this module (as :func:`lieflow.compiled.plan` does to
+    check a system's maps) does not load both loops."""
+    if name in _ENTRY_SOURCES:
+        if name not in _ENTRIES:
+            _ENTRIES[name] = _compile_entry(_ENTRY_SOURCES[name])
+        return _ENTRIES[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

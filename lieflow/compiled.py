@@ -270,9 +270,9 @@ def _checked_map(
             sig == k.MAP_SIGNATURE.args for sig in getattr(fn, "signatures", ())
         ):
             fn.compile(k.MAP_SIGNATURE)
-        fn = k.function_pointer(fn)
         out = np.zeros_like(W)
-        k.call_map(fn, np.ascontiguousarray(W), params, out)
+        fn(np.array(W, dtype=np.float64, order="C"), params, out)
+        fn = k.function_pointer(fn)
     except Exception as exc:
         return f"{what} does not compile for (W, params, out): {type(exc).__name__}: {exc}"
     if want is not None:
