@@ -173,3 +173,14 @@ def test_diagnostics_every_zero_writes_none_and_is_validated(tmp_path: Path) -> 
     assert io.read_extra(path) == {}
     with pytest.raises(lf.InputError, match="diagnostics_every"):
         lz.EulerZeitlin(8, diagnostics_every=-1)
+
+
+def test_docs_page_shows_the_example_configuration() -> None:
+    """docs/turbulence.md quotes plugins/lieflow-zeitlin/examples/turbulence_n24.toml (its
+    python blocks run the file): the quoted TOML is the file without its comments."""
+    root = Path(__file__).resolve().parents[1]
+    page = (root / "docs" / "turbulence.md").read_text()
+    quoted = page.split("```toml\n", 1)[1].split("```", 1)[0]
+    example = (root / "plugins/lieflow-zeitlin/examples/turbulence_n24.toml").read_text()
+    body = "\n".join(line for line in example.splitlines() if not line.startswith("#"))
+    assert quoted.strip() == body.strip()

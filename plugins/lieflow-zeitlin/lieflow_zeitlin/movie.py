@@ -27,7 +27,7 @@ from .quantization import matrix_to_grid
 
 Progress = Callable[[int, int], None]
 
-__all__ = ["ffmpeg_path", "save_movie"]
+__all__ = ["ffmpeg_path", "save_movie", "save_still"]
 
 
 def ffmpeg_path() -> str | None:
@@ -60,6 +60,66 @@ def _writer(path: Path, fps: int) -> tuple[Any, Path]:
         )
         path = gif
     return animation.PillowWriter(fps=fps), path
+
+
+class _Frames:
+    """The movie's figure (orthographic and equirectangular panels, one colour scale) and
+    a way to draw saved state ``j`` into it."""
+
+    def __init__(self, source: Any, resolution: int | None, center: tuple[float, float]) -> None:
+        src = _relative(source) if not isinstance(source, tuple) else None
+        t, W = (np.asarray(source[0]), np.asarray(source[1])) if src is None else (
+            np.asarray(src.t), np.asarray(src.W))  # fmt: skip
+        self.t = t
+        self.W = W.reshape(W.shape[0], -1, *W.shape[-2:])[:, 0]  # first member of an ensemble
+        self.grid = grid = plot_grid(self.W.shape[-1], resolution)
+        self.center = center
+        sample = _pick(len(t), 5)
+        vmax = max(float(np.abs(matrix_to_grid(self.W[j], grid)).max()) for j in sample)
+        vmax = vmax if vmax > 0 else 1.0
+        self.fig = fig = _figure(11.0, 4.2)
+        ax0, ax1 = fig.subplots(1, 2, width_ratios=[1.0, 2.0])
+        f0 = np.zeros((grid.nlat, grid.nlon))
+        kw: dict[str, Any] = {"cmap": "RdBu_r", "vmin": -vmax, "vmax": vmax, "origin": "upper"}
+        self.ortho = ax0.imshow(orthographic_image(grid, f0, center), extent=(-1, 1, -1, 1), **kw)
+        circle = np.linspace(0, 2 * np.pi, 361)
+        ax0.plot(np.cos(circle), np.sin(circle), "k-", lw=0.8)
+        _draw_graticule(ax0, center)
+        ax0.set_aspect("equal")
+        ax0.set_axis_off()
+        self.shift = grid.nlon // 2
+        self.equi = ax1.imshow(f0, extent=(-180, 180, -90, 90), interpolation="bilinear", **kw)
+        ax1.set_xticks(np.arange(-180, 181, 60))
+        ax1.set_yticks(np.arange(-90, 91, 30))
+        ax1.set_xlabel("longitude (°)")
+        ax1.set_ylabel("latitude (°)")
+        fig.colorbar(self.equi, ax=[ax0, ax1], shrink=0.8, label="vorticity ω")
+        self.title = fig.suptitle("")
+
+    def draw(self, j: int) -> None:
+        f = matrix_to_grid(self.W[j], self.grid)
+        self.ortho.set_data(orthographic_image(self.grid, f, self.center))
+        self.equi.set_data(np.roll(f, self.shift, axis=-1))
+        self.title.set_text(f"t = {float(self.t[j]):.4g}")
+
+
+def save_still(
+    source: Any,
+    path: Path | str,
+    index: int = -1,
+    *,
+    resolution: int | None = None,
+    center: tuple[float, float] = (30.0, 0.0),
+    dpi: int = 100,
+) -> Path:
+    """Frame ``index`` of the movie of :func:`save_movie` (same layout and colour scale) as
+    a PNG."""
+    frames = _Frames(source, resolution, center)
+    frames.draw(int(np.arange(len(frames.t))[index]))
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    frames.fig.savefig(out, dpi=dpi)
+    return out
 
 
 def save_movie(
@@ -98,44 +158,14 @@ def save_movie(
         The file written (a ``.gif`` beside ``path`` if an ``.mp4`` was asked for and no
         ffmpeg was found).
     """
-    out = Path(path)
-    src = _relative(source) if not isinstance(source, tuple) else None
-    t, W = (np.asarray(source[0]), np.asarray(source[1])) if src is None else (
-        np.asarray(src.t), np.asarray(src.W))  # fmt: skip
-    W = W.reshape(W.shape[0], -1, *W.shape[-2:])[:, 0]  # first member of an ensemble
-    frames = np.arange(len(t)) if max_frames is None else _pick(len(t), max_frames)
-    grid = plot_grid(W.shape[-1], resolution)
-    vmax = max(float(np.abs(matrix_to_grid(W[j], grid)).max()) for j in _pick(len(frames), 5))
-    vmax = vmax if vmax > 0 else 1.0
-    writer, out = _writer(out, fps)
+    writer, out = _writer(Path(path), fps)
+    frames = _Frames(source, resolution, center)
+    chosen = np.arange(len(frames.t)) if max_frames is None else _pick(len(frames.t), max_frames)
     out.parent.mkdir(parents=True, exist_ok=True)
-
-    fig = _figure(11.0, 4.2)
-    ax0, ax1 = fig.subplots(1, 2, width_ratios=[1.0, 2.0])
-    f0 = matrix_to_grid(W[frames[0]], grid)
-    kw: dict[str, Any] = {"cmap": "RdBu_r", "vmin": -vmax, "vmax": vmax, "origin": "upper"}
-    ortho = ax0.imshow(orthographic_image(grid, f0, center), extent=(-1, 1, -1, 1), **kw)
-    circle = np.linspace(0, 2 * np.pi, 361)
-    ax0.plot(np.cos(circle), np.sin(circle), "k-", lw=0.8)
-    _draw_graticule(ax0, center)
-    ax0.set_aspect("equal")
-    ax0.set_axis_off()
-    shift = grid.nlon // 2
-    equi = ax1.imshow(np.roll(f0, shift, axis=-1), extent=(-180, 180, -90, 90),
-                      interpolation="bilinear", **kw)  # fmt: skip
-    ax1.set_xticks(np.arange(-180, 181, 60))
-    ax1.set_yticks(np.arange(-90, 91, 30))
-    ax1.set_xlabel("longitude (°)")
-    ax1.set_ylabel("latitude (°)")
-    fig.colorbar(equi, ax=[ax0, ax1], shrink=0.8, label="vorticity ω")
-    title = fig.suptitle("")
-    with writer.saving(fig, str(out), dpi):
-        for done, j in enumerate(frames, start=1):
-            f = matrix_to_grid(W[j], grid)
-            ortho.set_data(orthographic_image(grid, f, center))
-            equi.set_data(np.roll(f, shift, axis=-1))
-            title.set_text(f"t = {float(t[j]):.4g}")
+    with writer.saving(frames.fig, str(out), dpi):
+        for done, j in enumerate(chosen, start=1):
+            frames.draw(int(j))
             writer.grab_frame()
             if progress is not None:
-                progress(done, len(frames))
+                progress(done, len(chosen))
     return out

@@ -464,6 +464,8 @@ def spectra_figure(
                   label=f"mean over t ≥ {t_start:.3g}")  # fmt: skip
         _guide(ax, l, mean, slopes[0], f"l^{slopes[0]:.3g}", "--")
         _guide(ax, l, mean, slopes[1], f"l^{slopes[1]:.3g}", ":")
+        top = float(np.nanmax(np.where(mean > 0, mean, np.nan))) if np.any(mean > 0) else 1.0
+        ax.set_ylim(top * 1e-7, top * 10)  # seven decades below the mean's peak
         ax.set_xlabel("degree l")
         ax.set_ylabel(name)
         ax.grid(True, which="both", alpha=0.2)
