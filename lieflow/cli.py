@@ -226,11 +226,12 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     grid = load_sweep(args.grid, directory=args.out)
     if args.dry_run:
         from .config import build
+        from .sweeps import file_status
 
         for spec in grid.runs:
             build(spec.config, output=spec.output)
             shown = ", ".join(f"{k} = {v!r}" for k, v in spec.params.items())
-            print(f"{spec.id}  {shown}")
+            print(f"{file_status(spec):<18} {spec.id}  {shown}")
         print(f"{len(grid.runs)} runs ({' x '.join(map(str, grid.shape)) or '1'}) -> "
               f"{grid.directory}")  # fmt: skip
         return EXIT_OK

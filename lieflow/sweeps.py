@@ -665,6 +665,20 @@ def _file_state(spec: RunSpec) -> dict[str, Any] | None:
         return None
 
 
+def file_status(spec: RunSpec) -> str:
+    """What a run's file says: ``"complete"``, ``"to run"`` (no file yet), or its status
+    and steps (``"interrupted 120/400"``; ``"other config"`` when it is the file of another
+    configuration); nothing is written."""
+    state = _file_state(spec)
+    if state is None:
+        return "unreadable" if spec.output.exists() else "to run"
+    if _is_complete(spec, state):
+        return "complete"
+    if state["identity"] != spec.config.identity():
+        return "other config"
+    return f"{state['status']} {state['completed_steps']}/{spec.config.run.steps}"
+
+
 def _max_energy_error(path: Path) -> float | None:
     try:
         import h5py

@@ -357,9 +357,13 @@ def test_cli_sweep_summary_exit_codes_and_dry_run(
     assert captured.err.count("failed: runs/") == 2 and "did not converge" in captured.err
     assert "[4/4]" in captured.err  # one line per finished run when not on a terminal
     ok = write_grid(tmp_path, '"initial.seed" = [0, 1]', name="ok")
+    assert main(["sweep", str(ok), "--dry-run"]) == 0
+    assert capsys.readouterr().out.count("to run ") == 2
     assert main(["sweep", str(ok), "--no-progress"]) == 0
     assert main(["sweep", str(ok), "--no-progress"]) == 0
     assert "2 complete (2 already)" in capsys.readouterr().out
+    assert main(["sweep", str(ok), "--dry-run"]) == 0
+    assert capsys.readouterr().out.count("complete ") == 2
     assert main(["sweep", str(ok), "--scheduler", "tcp://127.0.0.1:1"]) == 2
     assert "--executor dask" in capsys.readouterr().err
     assert main(["sweep", str(ok), "--workers", "0"]) == 2
