@@ -159,3 +159,25 @@ def test_run_samples_of_a_file_without_extra_diagnostics(tmp_path: Path) -> None
     np.testing.assert_allclose(
         samples["enstrophy"][-1], lz.diagnostics.snapshot(system, traj.W[-1])["enstrophy"]
     )
+
+
+def test_ensemble_run_plots_ensemble_mean_spectra(tmp_path: Path) -> None:
+    (tmp_path / "run.toml").write_text(
+        CONFIG.replace("seed = 3", "seeds = [3, 4]").replace("steps = 13", "steps = 6")
+    )
+    assert main(["run", str(tmp_path / "run.toml"), "--no-progress"]) == 0
+    extra = io.read_extra(tmp_path / "run.h5")
+    assert extra["energy_spectrum"].shape == (4, 2, 12)
+    samples = plotting.run_samples(io.read_trajectory(tmp_path / "run.h5"))
+    np.testing.assert_allclose(samples["energy_spectrum"], extra["energy_spectrum"].mean(1))
+    np.testing.assert_array_equal(samples["vorticity_levels"], extra["vorticity_levels"][:, 0])
+    assert main(["plot", str(tmp_path / "run.h5"), "--movie", str(tmp_path / "m.gif")]) == 0
+    assert (tmp_path / "run_spectra.png").exists() and (tmp_path / "m.gif").exists()
+
+
+def test_movie_still_is_a_png_frame(run_file: Path, tmp_path: Path) -> None:
+    from matplotlib.image import imread
+
+    out = zmovie.save_still(io.read_trajectory(run_file), tmp_path / "still.png", index=1)
+    image = imread(out)
+    assert image.ndim == 3 and image.shape[1] > 2 * image.shape[0]

@@ -210,3 +210,17 @@ def test_spin_matrices_helper_agrees() -> None:
     S1, S2, S3 = spin_matrices(6)
     s3, sp = _sparse_S(6)
     assert np.allclose(np.diag(S3), s3) and np.allclose(np.diagonal(S1 + 1j * S2, -1), sp)
+
+
+def test_transforms_without_numba(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without numba the same recurrences run as numpy row operations (basis, then BLAS)."""
+    monkeypatch.setattr(rec, "numba", None)
+    N = 40
+    c = np.stack([lz.random_sh(N, N - 1, seed=s) for s in range(2)])
+    grid = lz.SphereGrid.for_size(N)
+    W = lz.sh_to_matrix(c)
+    assert np.abs(W - lz.sh_to_matrix(c, method="reference")).max() < 1e-13
+    assert np.abs(lz.matrix_to_sh(W) - c).max() < 1e-13
+    f = lz.sh_to_grid(c, grid)
+    assert np.abs(f - lz.sh_to_grid(c, grid, method="reference")).max() < 1e-12
+    assert np.abs(lz.grid_to_sh(f, grid, N) - c).max() < 1e-13

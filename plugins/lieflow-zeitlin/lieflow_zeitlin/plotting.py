@@ -525,21 +525,35 @@ def statistics_figure(samples: dict[str, Array]) -> Figure:
 def run_samples(trajectory: Any) -> dict[str, Array]:
     """The diagnostics samples of a run: the file's ``/diagnostics/extra`` rows
     (:func:`lieflow.io.read_extra`) or, for files without them, the diagnostics of its
-    saved states (:func:`lieflow_zeitlin.diagnostics.snapshot`)."""
+    saved states (:func:`lieflow_zeitlin.diagnostics.snapshot`). For an ensemble run the
+    spectra, energy and enstrophy are ensemble means, the levels and Casimirs the first
+    member's."""
     from lieflow.io import read_extra
 
     from .diagnostics import snapshot
 
     path = getattr(trajectory, "path", None)
-    extra = read_extra(path) if path is not None else {}
-    if extra:
-        return extra
-    system = _file_system(trajectory)
-    W = np.asarray(trajectory.W)
-    rows = [snapshot(system, w) for w in W]
-    out = {name: np.stack([r[name] for r in rows]) for name in rows[0]}
-    out["t"] = np.asarray(trajectory.t, dtype=float)
-    out["step"] = np.asarray(getattr(trajectory, "step", np.arange(len(W))))
+    out = read_extra(path) if path is not None else {}
+    if not out:
+        system = _file_system(trajectory)
+        W = np.asarray(trajectory.W)
+        rows = [snapshot(system, w) for w in W]
+        out = {name: np.stack([r[name] for r in rows]) for name in rows[0]}
+        out["t"] = np.asarray(trajectory.t, dtype=float)
+        out["step"] = np.asarray(getattr(trajectory, "step", np.arange(len(W))))
+    return _ensemble_view(out)
+
+
+def _ensemble_view(samples: dict[str, Array]) -> dict[str, Array]:
+    """For an ensemble run (samples with a member axis after the time axis): spectra, energy
+    and enstrophy averaged over the members, levels and Casimirs of the first member."""
+    if np.ndim(samples["energy"]) < 2:
+        return samples
+    out = dict(samples)
+    for name in ("energy_spectrum", "enstrophy_spectrum", "energy", "enstrophy"):
+        out[name] = np.asarray(samples[name]).mean(axis=1)
+    for name in ("vorticity_levels", "casimirs"):
+        out[name] = np.asarray(samples[name])[:, 0]
     return out
 
 
