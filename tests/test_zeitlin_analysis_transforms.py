@@ -224,3 +224,20 @@ def test_transforms_without_numba(monkeypatch: pytest.MonkeyPatch) -> None:
     f = lz.sh_to_grid(c, grid)
     assert np.abs(f - lz.sh_to_grid(c, grid, method="reference")).max() < 1e-12
     assert np.abs(lz.grid_to_sh(f, grid, N) - c).max() < 1e-13
+
+
+@pytest.mark.parametrize("cache_max_n", [512, 8])
+def test_degree_multiplier_cached_and_generated(
+    cache_max_n: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The exact dissipative sub-steps multiply degree l by g[l]: with the cached eigenbasis
+    (N <= 512) and with the basis generated per call (larger N, O(N²) memory)."""
+    from lieflow_zeitlin import dissipation
+
+    monkeypatch.setattr(dissipation, "CACHE_MAX_N", cache_max_n)
+    N = 16
+    c = lz.random_sh(N, N - 1, seed=6)
+    g = np.exp(-0.3 * np.arange(N))
+    out = lz.degree_multiplier(lz.sh_to_matrix(c), g)
+    l, _ = lz.degrees_and_orders(N)
+    assert np.abs(lz.matrix_to_sh(out) - g[l] * c).max() < 1e-15

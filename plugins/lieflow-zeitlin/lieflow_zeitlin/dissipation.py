@@ -22,7 +22,10 @@ flow                                   equation (fluid time)            sub-step
 (:func:`~lieflow_zeitlin.laplacian.harmonics`), so ``exp(τ ν Δ_N)`` multiplies the degree-``l``
 part by ``exp(-ν l(l+1) τ)``; applied diagonal by diagonal (``x -> V_m (g ⊙ V_m^T x)``)
 this costs O(N³) flops, about two thirds of one complex ``N × N`` product, with the
-``≈ N³/3`` eigenvector entries computed once per ``N`` and cached. Crank–Nicolson
+``≈ N³/3`` eigenvector entries computed once per ``N`` (by the recurrence of
+:mod:`lieflow_zeitlin._recurrences`, 0.1 s at N = 512) and cached up to N = 512 (360 MB);
+above, they are generated diagonal by diagonal at every sub-step (O(N²) memory, about
+0.4 s more per sub-step at N = 1024). Crank–Nicolson
 (``method="crank_nicolson"``) solves ``(I - τνΔ_N/2) X_1 = (I + τνΔ_N/2) X_0`` with the
 shifted O(N²) tridiagonal solver (:class:`~lieflow_zeitlin.HoppeYauLaplacian` with
 ``shift = 2/(τν)``): degree ``l`` is multiplied by ``(1 - τνλ/2)/(1 + τνλ/2)``,
@@ -60,6 +63,7 @@ except ImportError:  # pragma: no cover - lieflow before flows: the same value o
         residual: float = 0.0
 
 
+from . import _recurrences as _rec
 from .laplacian import HoppeYauLaplacian, harmonics
 from .quantization import kappa
 from .system import EulerZeitlin
@@ -75,15 +79,36 @@ __all__ = [
 ]
 
 
+#: Above this N the eigenbasis is not cached (it would hold N³/3 numbers: 360 MB at 512)
+#: but generated diagonal by diagonal at every call by the recurrence (O(N²) memory).
+CACHE_MAX_N = 512
+
+
+def _basis_generator(N: int) -> Any:
+    """``(m, V_m)`` of :func:`harmonics`: by the recurrence where it applies (about 20x
+    faster than the eigensolver), else by the eigensolver."""
+    if N <= _rec.MAX_N:
+        return _rec.harmonics_by_recurrence(N)
+    return harmonics(N)
+
+
 @functools.lru_cache(maxsize=4)
 def _eigenbasis(N: int) -> tuple[Array, ...]:
     """``V_m`` for ``m = 0..N-1`` (:func:`harmonics`), read-only: O(N³/3) memory."""
     out: list[Array] = [np.empty(0)] * N
-    for m, V in harmonics(N):
+    for m, V in _basis_generator(N):
         V = np.ascontiguousarray(V)
         V.setflags(write=False)
         out[m] = V
     return tuple(out)
+
+
+def _bases(N: int) -> Any:
+    """The ``V_m`` in order ``m = 0..N-1``: cached up to :data:`CACHE_MAX_N`, else generated
+    (``m = N-1..0``, paired with their ``m``)."""
+    if N <= CACHE_MAX_N:
+        return enumerate(_eigenbasis(N))
+    return _basis_generator(N)
 
 
 @functools.lru_cache(maxsize=4)
@@ -116,8 +141,9 @@ def degree_multiplier(X: Array, g: Array) -> Array:
     batch = X.shape[:-2]
     flat = X.reshape(-1, N * N)
     out = np.empty(flat.shape, dtype=np.result_type(X.dtype, np.complex64))
-    for V, idx in zip(_eigenbasis(N), _diagonal_indices(N), strict=True):
-        m = N - V.shape[0]
+    indices = _diagonal_indices(N)
+    for m, V in _bases(N):
+        idx = indices[m]
         coefficients = flat[:, idx] @ V  # (K, 1 or 2, N-m): coefficients of degrees m..N-1
         coefficients *= g[m:]
         out[:, idx] = coefficients @ V.T
