@@ -972,6 +972,8 @@ def _write_slot(
     ``None`` as ``"none"``), then its step, time and :func:`checkpoint_digest`."""
     for key, value in items.items():
         if isinstance(value, np.ndarray):
+            if key in slot.attrs:  # it was None (an attribute) at this slot's last write
+                del slot.attrs[key]
             _put(slot, key, value, cache)
             continue
         if key in slot:
