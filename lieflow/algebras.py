@@ -144,6 +144,14 @@ class LieAlgebra(ABC):
                 f"seed must be None, a non-negative integer or a numpy Generator, got {seed!r}. "
                 "To fix: pass e.g. seed=0"
             )
+        if (
+            isinstance(scale, bool)
+            or not isinstance(scale, (int, float, np.integer, np.floating))
+            or not np.isfinite(scale)
+        ):
+            raise InputError(
+                f"scale must be a finite real number, got {scale!r}. To fix: pass e.g. scale=1.0"
+            )
         rng = np.random.default_rng(seed)
         X = rng.standard_normal(self.shape)
         if self.dtype.kind == "c":

@@ -83,3 +83,9 @@ def test_su_projection_removes_the_trace_that_u_keeps() -> None:
     assert float(lf.U(4).distance(X)) == 0.0
     assert float(lf.SU(4).distance(X)) == pytest.approx(2e-6 / np.linalg.norm(X), rel=1e-6)
     assert abs(np.trace(lf.SU(4).project(X))) <= 4e-16
+
+
+@pytest.mark.parametrize("scale", ["1", float("nan"), float("inf"), True, None])
+def test_random_refuses_a_scale_that_is_not_a_finite_number(scale: object) -> None:
+    with pytest.raises(lf.InputError, match="scale must be a finite real number"):
+        lf.SO(3).random(seed=0, scale=scale)  # type: ignore[arg-type]
