@@ -108,6 +108,16 @@ def _inner(func: F, name: str | None = None) -> F:
     return cast(F, numba.njit(error_model="numpy", inline="always")(func))
 
 
+def _helper(func: F) -> F:
+    """``numba.njit`` without a cache, for the helpers of the loops: numba links a function
+    loaded from its own cache as machine code, which cannot be inlined into a caller, so the
+    loops would call ``_matmul`` and friends instead of inlining them whenever they are
+    recompiled (a new stopping rule) while the helpers' cache is still valid."""
+    if numba is None:  # pragma: no cover
+        return func
+    return cast(F, numba.njit(error_model="numpy")(func))
+
+
 def compiled_map(func: F) -> F:
     """``func(W, params, out)`` as a system's compiled map (what
     :meth:`~lieflow.IsospectralSystem.compiled_B` may return): jitted with a disk cache,
@@ -118,8 +128,10 @@ def compiled_map(func: F) -> F:
 
 # ------------------------------------------------------------------ the stopping rule
 
-#: :func:`lieflow.solvers.fixed_point.stopping_verdict`, compiled (the same function).
+#: :func:`lieflow.solvers.fixed_point.stopping_verdict`, compiled (the same function object):
+#: cached, for calls from Python; the loops inline their own compilation of it (``_rule``).
 verdict = _jit(fixed_point.stopping_verdict)
+_rule = _inner(fixed_point.stopping_verdict)
 
 
 @_inner
@@ -141,7 +153,7 @@ def _judge(
         size0 = max(size0, size, _TINY)
     res[k - 1] = step / max(size, _TINY)
     met = step <= rule[1] + rule[0] * size
-    code = verdict(
+    code = _rule(
         res, k, met, size / size0, rule[0], rule[2], rule[3], irule[0], irule[1], irule[2],
         irule[3] != 0,
     )  # fmt: skip
@@ -151,7 +163,7 @@ def _judge(
 # ------------------------------------------------------------------ products
 
 
-@_jit
+@_helper
 def _matmul(A: Any, B: Any, out: Any) -> None:
     """``out = A @ B``: unrolled for ``n = 3``, in ``i, k, j`` order (vectorisable) up to
     ``_SMALL``, else BLAS."""
@@ -175,19 +187,19 @@ def _matmul(A: Any, B: Any, out: Any) -> None:
                 out[i, j] += a * B[k, j]
 
 
-@_jit
+@_helper
 def _matmul_tn(A: Any, B: Any, out: Any) -> None:
     """``out = A^T @ B`` (:func:`_matmul` on the transposed view)."""
     _matmul(A.T, B, out)
 
 
-@_jit
+@_helper
 def _matmul_nt(A: Any, B: Any, out: Any) -> None:
     """``out = A @ B^T`` (:func:`_matmul` on the transposed view)."""
     _matmul(A, B.T, out)
 
 
-@_jit
+@_helper
 def _norm(xf: Any) -> float:
     """Euclidean norm of a 1-D array."""
     acc = 0.0
@@ -540,14 +552,14 @@ def _reduced_step(
     return its
 
 
-@_jit
+@_helper
 def _predict(last: Any, prev: Any, has_prev: bool, out: Any) -> None:
     """The warm-start prediction ``2 last - prev`` (``last`` alone after one step), 1-D."""
     for i in range(out.size):
         out[i] = 2.0 * last[i] - prev[i] if has_prev else last[i]
 
 
-@_jit
+@_helper
 def _commit(solved: Any, last: Any, prev: Any, flags: Any, diff2: float, norm2: float) -> None:
     """:meth:`WarmStart.advance` for the whole stack (warm arrays flattened to ``(K, m)``)."""
     flags[2] = 1 if flags[0] == 0 or math.sqrt(diff2) < math.sqrt(norm2) else 0
@@ -562,7 +574,7 @@ def _commit(solved: Any, last: Any, prev: Any, flags: Any, diff2: float, norm2: 
     flags[0] = 1
 
 
-@_jit
+@_helper
 def _distance2(a: Any, b: Any) -> tuple[float, float]:
     """``||a - b||^2`` and ``||a||^2`` of 1-D arrays."""
     d2 = 0.0
