@@ -46,7 +46,7 @@ import sys
 from collections.abc import Mapping
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any, Literal, cast
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 import attrs
 import numpy as np
@@ -59,6 +59,9 @@ from .plugins import Kind, Registry, default_registry
 from .schemes.base import Scheme
 from .solvers.base import Solver
 from .systems.base import IsospectralSystem
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .io import TrajectoryHeader
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -337,6 +340,27 @@ class RunSetup:
         if self.config.splitting is None:
             return inner
         return Splitting.named(self.config.splitting.method, *self.flows, inner)
+
+    def header(self) -> TrajectoryHeader:
+        """The trajectory file's header for this run (:class:`lieflow.io.TrajectoryHeader`)."""
+        from .io import TrajectoryHeader
+
+        cfg = self.config
+        return TrajectoryHeader(
+            system=self.system,
+            system_name=cfg.system.name,
+            scheme=cfg.scheme.name,
+            solver=cfg.solver.name,
+            h=cfg.run.h,
+            save_every=cfg.run.save_every,
+            requested_steps=cfg.run.steps,
+            identity=cfg.identity(),
+            W0=self.W0,
+            output=self.output,
+            replace=self.replace,
+            config_text=cfg.text,
+            config_source=cfg.source,
+        )
 
 
 def _flatten(value: Any, prefix: str, out: dict[str, Any]) -> dict[str, Any]:

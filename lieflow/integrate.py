@@ -4,11 +4,14 @@ command line's HDF5 runner, :func:`lieflow.io.run`, drives too)."""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import os
 import sys
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any, Literal
 
 import attrs
@@ -209,9 +212,10 @@ def _check_memory(nbytes: int, steps: int, save_every: int) -> None:
     fit = max(1, math.ceil(nbytes / (MEMORY_FRACTION * available) * save_every))
     raise InputError(
         f"the saved states of this run need {nbytes / 2**30:.1f} GiB, more than half of the "
-        f"{available / 2**30:.1f} GiB of memory available. To fix: save fewer states "
-        f"(save_every={fit} or more), or stream the run to a trajectory file with "
-        "`lieflow run` (which keeps only one chunk of steps in memory)"
+        f"{available / 2**30:.1f} GiB of memory available. To fix: stream the run to a "
+        'trajectory file with integrate(..., out="run.h5") (it keeps only one chunk of '
+        "steps in memory; read the file with lieflow.io.read_trajectory), or save fewer "
+        f"states (save_every={fit} or more)"
     )
 
 
@@ -238,6 +242,114 @@ def _progress_monitor(progress: bool | Monitor) -> Monitor | None:
     return progress
 
 
+def _describe(obj: Any, depth: int = 0) -> Any:
+    """A JSON-able description of ``obj`` for a trajectory file's identity: attrs classes
+    field by field, arrays by dtype, shape and SHA-256 of their bytes, others by ``repr``."""
+    if depth > 6:
+        return repr(obj)
+    if isinstance(obj, np.ndarray):
+        a = np.ascontiguousarray(obj)
+        digest = hashlib.sha256(a.tobytes()).hexdigest()[:16]
+        return f"array {a.dtype.str} {a.shape} sha256:{digest}"
+    if isinstance(obj, (bool, int, float, str)) or obj is None:
+        return obj
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, (tuple, list)):
+        return [_describe(x, depth + 1) for x in obj]
+    if attrs.has(type(obj)):
+        fields = {f.name: _describe(getattr(obj, f.name), depth + 1)
+                  for f in attrs.fields(type(obj)) if f.init}  # fmt: skip
+        return {"type": type(obj).__qualname__, **fields}
+    return repr(obj)
+
+
+def _system_name(system: IsospectralSystem) -> str:
+    """The registry name of ``system``'s class (what ``lieflow plot`` looks up), else the
+    class name."""
+    from .plugins import default_registry
+
+    for name, entry in default_registry().systems.items():
+        if getattr(entry, "factory", None) is type(system):
+            return str(name)
+    return type(system).__name__
+
+
+def _stream(
+    system: IsospectralSystem,
+    scheme: Scheme | Flow,
+    flow: Flow,
+    solver: Solver | None,
+    W0: Array,
+    h: float,
+    n_steps: int,
+    *,
+    save_every: int,
+    warm_start: bool,
+    out: Any,
+    resume: bool,
+    replace: bool,
+    on_failure: str,
+    monitor: Monitor | None,
+) -> Solution:
+    """``integrate(..., out=path)``: run through :func:`lieflow.io.run_flow` into a
+    trajectory file; the :class:`Solution` holds the initial and last states and the
+    per-step diagnostics read back from the file."""
+    from . import io
+
+    path = Path(io._as_path(out, "out")).absolute()
+    identity = json.dumps(
+        {
+            "system": _describe(system),
+            "scheme": _describe(scheme),
+            "solver": _describe(solver),
+            "warm_start": warm_start,
+            "h": h,
+            "save_every": save_every,
+        },
+        sort_keys=True,
+        default=str,
+    )
+    header = io.TrajectoryHeader(
+        system=system,
+        system_name=_system_name(system),
+        scheme=flow.name,
+        solver="" if solver is None else str(getattr(solver, "name", type(solver).__name__)),
+        h=h,
+        save_every=save_every,
+        requested_steps=n_steps,
+        identity=identity,
+        W0=W0,
+        output=path,
+        replace=replace,
+    )
+    summary, error = io.run_flow(header, flow, resume=resume, monitor=monitor)
+    if summary.status == "interrupted":
+        raise KeyboardInterrupt
+    if error is not None and on_failure == "raise":
+        raise error
+    run = io.read_diagnostics(path)
+    k = run.completed_steps
+    first = np.asarray(run.W0)
+    W = np.stack([first, run.W]) if k else first[None]
+    steps_kept = np.array([0, k] if k else [0], dtype=np.int64)
+    return Solution(
+        system=system,
+        scheme=flow.name,
+        h=h,
+        t=steps_kept * h,
+        W=W,
+        saved_steps=steps_kept,
+        iterations=run.iterations,
+        solvers=(header.solver or flow.name,) * k,
+        energy_error=run.energy_error,
+        casimir_drift=run.casimir_drift,
+        status=Status.SUCCESS if error is None else Status.FAILED,
+        failure=error,
+        wall_time=summary.wall_time,
+    )
+
+
 def integrate(
     system: IsospectralSystem,
     scheme: Scheme | Flow,
@@ -253,6 +365,9 @@ def integrate(
     on_failure: Literal["raise", "truncate"] = "raise",
     progress: bool | Monitor = False,
     engine: Engine = "auto",
+    out: str | os.PathLike[str] | None = None,
+    resume: bool = False,
+    replace: bool = False,
 ) -> Solution:
     """Integrate ``dW/dt = [B(W), W]`` from ``W0`` with a fixed step ``h``.
 
@@ -301,6 +416,26 @@ def integrate(
         (default): compiled where supported, numba is installed, and it is faster
         (``n <= 128`` and at least 1000 trajectory-steps, see
         :func:`lieflow.compiled.wins`), else numpy.
+    out : str or path, optional
+        Stream the run into this trajectory file — the format ``lieflow run`` writes
+        (:mod:`lieflow.io`; read it with :func:`lieflow.io.read_trajectory`, plot it with
+        ``lieflow plot``) — instead of keeping the states in memory: every
+        ``save_every``-th state (and the last) goes to the file as the run proceeds, with a
+        checkpoint at each, and memory holds one chunk of steps (a few states) whatever the
+        run's length. The returned :class:`Solution` then holds the initial and the last
+        state only (``W``, ``t`` and ``saved_steps`` of length 2), and the per-step
+        diagnostics and iterations (a few numbers per step, read back from the file; they
+        are recorded even with ``diagnostics=False``); ``solvers`` names the requested
+        solver for every step. Cost: one HDF5 write and flush per save point.
+    resume : bool
+        With ``out``: continue the file from its last checkpoint (bit-for-bit the same as
+        an uninterrupted run; ``steps`` may have grown) — it must have been written by the
+        same system, scheme, solver, ``h``, ``save_every`` and ``W0``, else
+        :class:`~lieflow.config.ConfigError` names what changed. Without an existing file
+        the run starts afresh.
+    replace : bool
+        With ``out`` and no ``resume``: replace an existing file (otherwise an existing
+        file is refused, so that a finished run is never overwritten by accident).
 
     Returns
     -------
@@ -336,6 +471,8 @@ def integrate(
         raise InputError(f"save_every must be a positive integer, got {save_every!r}")
     if on_failure not in ("raise", "truncate"):
         raise InputError(f"on_failure must be 'raise' or 'truncate', got {on_failure!r}")
+    if out is None and (resume or replace):
+        raise InputError("resume and replace apply to a run streamed to a file: pass out=PATH")
     if isinstance(scheme, Flow) and not isinstance(scheme, Scheme):
         if solver is not None or not warm_start or engine != "auto":
             raise InputError(
@@ -351,6 +488,11 @@ def integrate(
         W0a = _validated(system, W0)
         flow = scheme_flow(system, scheme, solver, W0a, n_steps, engine=engine,
                            warm_start=warm_start)  # fmt: skip
+
+    if out is not None:
+        return _stream(system, scheme, flow, solver, W0a, h, n_steps, save_every=save_every,
+                       warm_start=warm_start, out=out, resume=resume, replace=replace,
+                       on_failure=on_failure, monitor=_progress_monitor(progress))  # fmt: skip
 
     n_saved = 1 + n_steps // save_every + (1 if n_steps % save_every else 0)
     _check_memory(n_saved * W0a.nbytes, n_steps, save_every)

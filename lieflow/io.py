@@ -68,15 +68,19 @@ __all__ = [
     "Checkpoint",
     "Monitor",
     "OutputBusyError",
+    "RunDiagnostics",
     "RunSummary",
     "Trajectory",
+    "TrajectoryHeader",
     "TrajectoryWriter",
     "checkpoint_digest",
     "environment",
     "read_checkpoint",
+    "read_diagnostics",
     "read_extra",
     "read_trajectory",
     "run",
+    "run_flow",
 ]
 
 FORMAT = "lieflow-trajectory"
@@ -97,6 +101,58 @@ _DAMAGE = (OSError, KeyError, RuntimeError, ValueError, TypeError, IndexError, A
 
 class OutputBusyError(LieflowError):
     """Another process is writing the output file (or holds its lock)."""
+
+
+@attrs.frozen(eq=False)
+class TrajectoryHeader:
+    """What a :class:`TrajectoryWriter` needs to know about a run: the file's header.
+
+    ``lieflow run`` builds it from its configuration (:meth:`lieflow.config.RunSetup.header`),
+    :func:`lieflow.integrate` with ``out=`` from its arguments.
+
+    Attributes
+    ----------
+    system : IsospectralSystem
+        The system (diagnostics, extra diagnostics, the resume checks).
+    system_name, scheme, solver : str
+        Registry names recorded in the file (``scheme``: the scheme's or flow's name).
+    h : float
+        Step size.
+    save_every : int
+        Save every ``save_every``-th state (and the last).
+    requested_steps : int
+        Steps asked for.
+    identity : str
+        JSON of everything that defines the trajectory except its length and location; a
+        resume is refused unless the file's identity is the same.
+    W0 : ndarray
+        The initial condition.
+    output : Path
+        The trajectory file.
+    replace : bool
+        Whether a new run may replace an existing ``output``.
+    config_text, config_source : str
+        The configuration's text and where it came from (empty for ``integrate``).
+    """
+
+    system: Any = attrs.field(repr=False)
+    system_name: str
+    scheme: str
+    solver: str
+    h: float
+    save_every: int
+    requested_steps: int
+    identity: str = attrs.field(repr=False)
+    W0: Array = attrs.field(repr=False)
+    output: Path
+    replace: bool = False
+    config_text: str = attrs.field(default="", repr=False)
+    config_source: str = ""
+
+
+def _header(run: TrajectoryHeader | RunSetup) -> TrajectoryHeader:
+    """``run`` as a :class:`TrajectoryHeader` (a :class:`RunSetup` builds its own)."""
+    return run if isinstance(run, TrajectoryHeader) else run.header()
 
 
 def _h5py() -> Any:
@@ -410,9 +466,9 @@ def _check_lengths(f: h5py.File, k: int, path: Path) -> None:
         )
 
 
-def _check_invariants(f: h5py.File, ck: Checkpoint, setup: RunSetup, path: Path) -> None:
+def _check_invariants(f: h5py.File, ck: Checkpoint, system: Any, path: Path) -> None:
     """The checkpointed state reproduces the energy and Casimirs recorded for its step."""
-    system, k = setup.system, ck.step
+    k = ck.step
     d = f["diagnostics"]
     H, C = system.hamiltonian(ck.W), system.casimirs(ck.W)
     H_rec, C_rec, H0 = d["energy"][k], d["casimirs"][k], d["energy"][0]
@@ -480,6 +536,56 @@ def read_trajectory(path: Path | str) -> Trajectory:
             iterations=d["iterations"][:k],
             residual=d["residual"][:k],
             checkpoint=ck,
+        )
+
+
+@attrs.frozen(eq=False)
+class RunDiagnostics:
+    """A trajectory file without its saved states (:func:`read_diagnostics`).
+
+    Attributes
+    ----------
+    completed_steps : int
+        The checkpoint's step index ``K``.
+    W0, W : ndarray
+        The initial state and the checkpointed state after step ``K``.
+    energy_error, casimir_drift : ndarray
+        Per-step diagnostics, steps ``0..K``.
+    iterations : ndarray
+        Solver updates of steps ``1..K``.
+    """
+
+    completed_steps: int
+    W0: Array = attrs.field(repr=False)
+    W: Array = attrs.field(repr=False)
+    energy_error: Array = attrs.field(repr=False)
+    casimir_drift: Array = attrs.field(repr=False)
+    iterations: Array = attrs.field(repr=False)
+
+
+def read_diagnostics(path: Path | str) -> RunDiagnostics:
+    """The per-step diagnostics, the initial and the last checkpointed state of a trajectory
+    file — everything but the saved states, so it fits in memory whatever the run's length.
+
+    Raises
+    ------
+    LieflowError
+        The file is missing, not HDF5, not a lieflow trajectory, or damaged.
+    """
+    p = _as_path(path)
+    with _open(p, "r") as f, _Reading(p):
+        _check_format(f, p)
+        ck = _read_checkpoint(f, p)
+        k = ck.step
+        _check_lengths(f, k, p)
+        d = f["diagnostics"]
+        return RunDiagnostics(
+            completed_steps=k,
+            W0=f["initial/W0"][()],
+            W=np.asarray(ck.W),
+            energy_error=d["energy_error"][: k + 1],
+            casimir_drift=d["casimir_drift"][: k + 1],
+            iterations=d["iterations"][:k],
         )
 
 
@@ -675,37 +781,45 @@ def _publish(tmp: Path, out: Path, replace: bool) -> None:
         tmp.unlink()
 
 
-def _verify_for_resume(setup: RunSetup) -> Checkpoint:
+def _verify_for_resume(header: TrajectoryHeader) -> Checkpoint:
     """Every check of a resume, on the file opened read-only: a refused file is not touched."""
-    path = setup.output
-    cfg = setup.config
+    path = header.output
+    from_config = bool(header.config_source)
     with _open(path, "r", _RESUME_FIX) as f, _Reading(path):
         _check_format(f, path)
-        stored, now = str(_plain(f.attrs["identity"])), cfg.identity()
+        stored, now = str(_plain(f.attrs["identity"])), header.identity
         if stored != now:
             changed = "; ".join(identity_changes(stored, now)) or f"{stored} -> {now}"
             raise ConfigError(
                 f"--resume: {_where(path)} was written by a different configuration; changed: "
-                f"{changed}. To fix: restore the configuration it was started with (only "
-                "[run] steps or t_final and output may change), or write to a new output file.",
+                f"{changed}. To fix: "
+                + (
+                    "restore the configuration it was started with (only [run] steps or "
+                    "t_final and output may change)"
+                    if from_config
+                    else "call integrate with the arguments it was started with (only steps "
+                    "or t_final may change)"
+                )
+                + ", or write to a new output file.",
                 "--resume",
             )
-        if not np.array_equal(f["initial/W0"][()], setup.W0):
+        if not np.array_equal(f["initial/W0"][()], header.W0):
+            given = f"[initial] in {header.config_source}" if from_config else "W0"
             raise ConfigError(
                 f"--resume: {_where(path)} starts from a different initial condition than "
-                f"[initial] in {cfg.source}. To fix: restore the [initial] section it was "
-                "started with, or write to a new output file.",
+                f"{given}. To fix: restore the initial condition it was started with, or "
+                "write to a new output file.",
                 "--resume",
             )
         ck = _read_checkpoint(f, path)
         _check_lengths(f, ck.step, path)
-        _check_invariants(f, ck, setup, path)
-        if ck.step > cfg.run.steps:
+        _check_invariants(f, ck, header.system, path)
+        if ck.step > header.requested_steps:
             raise ConfigError(
                 f"--resume: {_where(path)} already holds {ck.step} steps, more than the "
-                f"{cfg.run.steps} asked for ([run] steps / t_final); resuming never shortens a "
-                f"file. To fix: ask for at least {ck.step} steps to continue it, or read its "
-                f"first {cfg.run.steps} steps from the file as it is.",
+                f"{header.requested_steps} asked for ([run] steps / t_final); resuming never "
+                f"shortens a file. To fix: ask for at least {ck.step} steps to continue it, or "
+                f"read its first {header.requested_steps} steps from the file as it is.",
                 "[run] steps",
             )
     return ck
@@ -726,17 +840,20 @@ class TrajectoryWriter:
     it wrote (deleted or replaced by another program meanwhile).
     """
 
-    def __init__(self, f: h5py.File, setup: RunSetup, lock: _OutputLock | None = None) -> None:
+    def __init__(
+        self, f: h5py.File, header: TrajectoryHeader | RunSetup, lock: _OutputLock | None = None
+    ) -> None:
+        header = _header(header)
         self._f = f
         self._lock = lock
         self._path = Path(f.filename)
         self._file_id = _file_id(f)
         diag = f["diagnostics"]
         self._diagnostics = Diagnostics(
-            setup.system,
+            header.system,
             diag["energy"][0],
             diag["casimirs"][0],
-            setup.system.casimir_scale(f["initial/W0"][()]),
+            header.system.casimir_scale(f["initial/W0"][()]),
         )
         # h5py path lookups cost tens of microseconds each: keep the handles
         self._diag = {name: diag[name] for name in (*_PER_STEP, *_PER_UPDATE)}
@@ -746,11 +863,14 @@ class TrajectoryWriter:
         self._slot_data: list[dict[str, Any]] = [{}, {}]
         self._n_diag = self._diag["iterations"].shape[0] + 1  # rows committed (steps 0..K)
         self._n_saved = self._traj["step"].shape[0]
-        self._buffer: list[tuple[Chunk, Array, Array, Array, list[Any]]] = []
+        # per buffered chunk: (step indices kept, states kept, iterations, residuals, H, C,
+        # extra rows); only the kept states, never a whole chunk (memory stays bounded)
+        self._buffer: list[tuple[Array, Array, Array, Array, Array, Array, list[Any]]] = []
+        self._last: tuple[int, float, Array, Any] | None = None  # (step, h, W, flow state)
         self._slot = int(self._ck.attrs["current"])
         self._step = int(self._slots[self._slot].attrs["step"])  # the checkpoint's step
         self._max_error = float(np.max(self._diag["energy_error"][: self._n_diag]))
-        self._extra, self._extra_every = _extra_hook(setup.system, setup.config.run.save_every)
+        self._extra, self._extra_every = _extra_hook(header.system, header.save_every)
 
     @property
     def path(self) -> Path:
@@ -765,8 +885,9 @@ class TrajectoryWriter:
     # -- creation --------------------------------------------------------------------------
 
     @classmethod
-    def create(cls, setup: RunSetup) -> TrajectoryWriter:
-        """Create ``setup.output`` holding the header and step 0, and lock it.
+    def create(cls, run: TrajectoryHeader | RunSetup) -> TrajectoryWriter:
+        """Create ``run.output`` holding the header and step 0, and lock it (``run``: a
+        :class:`TrajectoryHeader`, or a :class:`~lieflow.config.RunSetup` for its header).
 
         The file is written under a temporary name in the same directory and then given its
         name, so a failure leaves no partial file. An existing file is replaced only if
@@ -783,6 +904,7 @@ class TrajectoryWriter:
             The file cannot be created there.
         """
         h5py = _h5py()
+        setup = _header(run)
         out = setup.output
         try:
             out.parent.mkdir(parents=True, exist_ok=True)
@@ -807,9 +929,10 @@ class TrajectoryWriter:
             raise
 
     @classmethod
-    def reopen(cls, setup: RunSetup) -> tuple[TrajectoryWriter, Checkpoint]:
-        """Open ``setup.output`` to resume, lock it, and return the writer and the last
-        checkpoint; everything written after that checkpoint is dropped.
+    def reopen(cls, run: TrajectoryHeader | RunSetup) -> tuple[TrajectoryWriter, Checkpoint]:
+        """Open ``run.output`` to resume, lock it, and return the writer and the last
+        checkpoint; everything written after that checkpoint is dropped (``run``: a
+        :class:`TrajectoryHeader`, or a :class:`~lieflow.config.RunSetup` for its header).
 
         Every check runs before the file is opened for writing, so a refused file is left
         byte for byte as it was: it must be a lieflow trajectory of the same configuration
@@ -826,6 +949,7 @@ class TrajectoryWriter:
         LieflowError
             The file is empty, not HDF5, not a trajectory, or damaged.
         """
+        setup = _header(run)
         path = setup.output
         lock = _OutputLock.acquire(path)
         try:
@@ -835,7 +959,7 @@ class TrajectoryWriter:
                 with _Reading(path):
                     _truncate(f, ck.step)
                     f.attrs["resumes"] = int(f.attrs.get("resumes", 0)) + 1
-                    f.attrs["requested_steps"] = setup.config.run.steps
+                    f.attrs["requested_steps"] = setup.requested_steps
                     f.attrs["status"] = "running"
                     f.flush()
                 writer = cls(f, setup, lock)
@@ -860,8 +984,13 @@ class TrajectoryWriter:
         if self._extra is not None:
             for j in np.flatnonzero(chunk.index % self._extra_every == 0):
                 extra.append((int(chunk.index[j]), float(chunk.t[j]), self._extra(chunk.W[j])))
-        # one append: recorded entirely or not at all
-        self._buffer.append((chunk, keep, H, C, extra))
+        keep = np.asarray(keep, dtype=bool)
+        entry = (chunk.index[keep], chunk.W[keep], np.asarray(chunk.iterations),
+                 np.asarray(chunk.residuals), H, C, extra)  # fmt: skip
+        last = (chunk.stop, chunk.h, np.array(chunk.W[-1]), chunk.state)
+        # one append and one assignment: recorded entirely or not at all
+        self._buffer.append(entry)
+        self._last = last
         self._max_error = max(self._max_error, err)
         return err
 
@@ -879,37 +1008,38 @@ class TrajectoryWriter:
         """
         with _signals.deferred():
             buf = self._buffer
-            if not buf:
+            if not buf or self._last is None:
                 return
             n0, n_saved = self._n_diag, self._n_saved
-            last: Chunk = buf[-1][0]
-            H = np.concatenate([b[2] for b in buf])
-            C = np.concatenate([b[3] for b in buf])
+            stop, h, W_last, state = self._last
+            H = np.concatenate([b[4] for b in buf])
+            C = np.concatenate([b[5] for b in buf])
             columns = {
                 "energy": H,
                 "energy_error": self._diagnostics.energy_error(H),
                 "casimirs": C,
                 "casimir_drift": self._diagnostics.casimir_drift(C),
-                "iterations": np.concatenate([b[0].iterations for b in buf]).astype(np.int64),
-                "residual": np.concatenate([b[0].residuals for b in buf]).astype(float),
+                "iterations": np.concatenate([b[2] for b in buf]).astype(np.int64),
+                "residual": np.concatenate([b[3] for b in buf]).astype(float),
             }
             for name, values in columns.items():
                 start = n0 if name in _PER_STEP else n0 - 1
                 ds = self._diag[name]
                 ds.resize(start + len(values), axis=0)
                 ds[start:] = values
-            keep = [b[1].copy() for b in buf]
-            if keep_last:
-                keep[-1][-1] = True
-            steps = np.concatenate([b[0].index[k] for b, k in zip(buf, keep, strict=True)])
+            steps = np.concatenate([b[0] for b in buf]).astype(np.int64)
+            kept = [b[1] for b in buf]
+            if keep_last and (steps.size == 0 or steps[-1] != stop):
+                steps = np.append(steps, np.int64(stop))
+                kept.append(W_last[None])
             if steps.size:
-                states = np.concatenate([b[0].W[k] for b, k in zip(buf, keep, strict=True)])
-                for name, value in (("step", steps), ("t", steps * last.h), ("W", states)):
+                states = np.concatenate(kept)
+                for name, value in (("step", steps), ("t", steps * h), ("W", states)):
                     ds = self._traj[name]
                     ds.resize(n_saved + steps.size, axis=0)
                     ds[n_saved:] = value
-            _append_extra(self._f["diagnostics"], [e for b in buf for e in b[4]])
-            self._checkpoint(last.stop, last.stop * last.h, last.W[-1], last.state)
+            _append_extra(self._f["diagnostics"], [e for b in buf for e in b[6]])
+            self._checkpoint(stop, stop * h, W_last, state)
             self._f.flush()
             self._n_diag, self._n_saved = n0 + H.shape[0], n_saved + steps.size
             self._buffer = []
@@ -1007,20 +1137,20 @@ def _put(group: h5py.Group, name: str, value: Array, cache: dict[str, Any]) -> N
         ds[...] = value
 
 
-def _initialise(f: h5py.File, setup: RunSetup) -> None:
-    cfg, system, W0 = setup.config, setup.system, setup.W0
+def _initialise(f: h5py.File, header: TrajectoryHeader) -> None:
+    system, W0 = header.system, header.W0
     meta: dict[str, Any] = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
-        "config": cfg.text,
-        "config_source": cfg.source,
-        "identity": cfg.identity(),
-        "system": cfg.system.name,
-        "scheme": cfg.scheme.name,
-        "solver": cfg.solver.name,
-        "h": cfg.run.h,
-        "save_every": cfg.run.save_every,
-        "requested_steps": cfg.run.steps,
+        "config": header.config_text,
+        "config_source": header.config_source,
+        "identity": header.identity,
+        "system": header.system_name,
+        "scheme": header.scheme,
+        "solver": header.solver,
+        "h": header.h,
+        "save_every": header.save_every,
+        "requested_steps": header.requested_steps,
         "casimir_powers": [k for k in system.casimir_powers if k <= system.algebra.n],
         "completed_steps": 0,
         "status": "running",
@@ -1057,7 +1187,7 @@ def _initialise(f: h5py.File, setup: RunSetup) -> None:
     for name, value in (("step", 0), ("t", 0.0), ("W", W0)):
         tr[name].resize(1, axis=0)
         tr[name][0] = value
-    extra, _ = _extra_hook(system, cfg.run.save_every)
+    extra, _ = _extra_hook(system, header.save_every)
     if extra is not None:
         _append_extra(d, [(0, 0.0, extra(W0))])
     ck = f.create_group("checkpoint")
@@ -1154,37 +1284,66 @@ def run(
     LieflowError
         A step failed to converge (the file holds the steps before it, status "failed").
     """
-    cfg = setup.config.run
-    target = cfg.steps
-    flow = setup.flow()
-    if resume and setup.output.exists():
-        writer, ck = TrajectoryWriter.reopen(setup)
+    summary, _ = run_flow(setup.header(), setup.flow(), resume=resume, monitor=monitor)
+    if summary.status == "failed":
+        raise LieflowError(
+            f"{summary.failure} The {summary.completed_steps} steps before the failure are "
+            f"saved in {str(setup.output)!r} (status 'failed')."
+        )
+    return summary
+
+
+def run_flow(
+    header: TrajectoryHeader,
+    flow: Any,
+    *,
+    resume: bool = False,
+    monitor: Monitor | None = None,
+) -> tuple[RunSummary, ConvergenceError | None]:
+    """Advance ``flow`` and write the trajectory to ``header.output`` as it proceeds: the
+    loop of :func:`run` (``lieflow run``) and of :func:`lieflow.integrate` with ``out=``.
+
+    Memory: the writer buffers each chunk's diagnostics (a few numbers per step) and only
+    the states it will save; at every save point they are written and a checkpoint taken.
+
+    Returns
+    -------
+    (RunSummary, ConvergenceError or None)
+        How it ended (``"complete"``, ``"interrupted"`` after Ctrl-C, ``"failed"``), and
+        the error of a failed step (the file then holds the steps before it).
+    """
+    target = header.requested_steps
+    if resume and header.output.exists():
+        writer, ck = TrajectoryWriter.reopen(header)
         W, done = ck.W, ck.step
         state = ck.state(flow.init(W))
     else:
-        writer = TrajectoryWriter.create(setup)
-        W, state, done = setup.W0, None, 0
+        writer = TrajectoryWriter.create(header)
+        W, state, done = header.W0, None, 0
     if done >= target:
         writer.close("complete", 0.0)
-        return RunSummary(setup.output, "complete", done, target, 0, 0.0, writer.max_energy_error)
+        summary = RunSummary(header.output, "complete", done, target, 0, 0.0,
+                             writer.max_energy_error)  # fmt: skip
+        return summary, None
 
-    status, failure = "running", ""
+    status, failure, error = "running", "", None
     start = time.perf_counter()
     if monitor is not None:
         monitor.start(done, target)
     try:
-        for chunk in driver.advance(flow, W, cfg.h, target, start=done, state=state):
-            keep = (chunk.index % cfg.save_every == 0) | (chunk.index == target)
+        for chunk in driver.advance(flow, W, header.h, target, start=done, state=state):
+            keep = (chunk.index % header.save_every == 0) | (chunk.index == target)
             err = writer.record(chunk, keep)
             if keep.any():
                 writer.commit()
             if monitor is not None:
                 monitor.advance(chunk.size, int(chunk.iterations.sum()), err)
+            del chunk  # hold no chunk while the next one is computed
         status = "complete"
     except KeyboardInterrupt:
         status = "interrupted"
     except ConvergenceError as exc:
-        status, failure = "failed", str(exc)
+        status, failure, error = "failed", str(exc), exc
     finally:
         wall = time.perf_counter() - start
         try:
@@ -1200,7 +1359,7 @@ def run(
                     writer.close(status if status != "running" else "interrupted", wall, failure)
     completed = writer.completed_steps
     summary = RunSummary(
-        setup.output,
+        header.output,
         status,
         completed,
         target,
@@ -1209,9 +1368,4 @@ def run(
         writer.max_energy_error,
         failure,
     )
-    if status == "failed":
-        raise LieflowError(
-            f"{failure} The {completed} steps before the failure are saved in "
-            f"{str(setup.output)!r} (status 'failed')."
-        )
-    return summary
+    return summary, error
