@@ -526,12 +526,16 @@ def load_sweep(path: Path | str, *, directory: Path | str | None = None) -> Swee
 _BUSY = False
 #: Set by SIGTERM in a worker of the default pool: tasks it has not started return at once.
 _STOP = False
+#: True in the default pool's workers (which then report their OS threads: BLAS's included).
+_POOL_WORKER = False
 
 
 def _worker_init() -> None:
     """Initializer of the default pool's workers: one BLAS thread (the variables are also
     set before the workers start), Ctrl-C left to the coordinator, SIGTERM stops the run
     at its next step with its file marked "interrupted"."""
+    global _POOL_WORKER
+    _POOL_WORKER = True
     for var in _THREAD_VARS:
         os.environ[var] = "1"
     with contextlib.suppress(ImportError):
@@ -604,6 +608,8 @@ def run_task(task: Mapping[str, Any]) -> dict[str, Any]:
 
     started = time.time()
     out: dict[str, Any] = {"host": socket.gethostname(), "pid": os.getpid(), "started": started}
+    if _POOL_WORKER and os.path.isdir("/proc/self/task"):
+        out["threads"] = len(os.listdir("/proc/self/task"))  # 1: one BLAS thread, no pool
     if _STOP:  # this worker was told to stop (the sweep was interrupted)
         return {**out, "status": "interrupted", "error": "", "finished": started}
     _BUSY = True
@@ -1048,8 +1054,10 @@ def sweep(
         if isinstance(executor, str):
             if executor == "local":
                 n = workers or os.cpu_count() or 1
-                with _thread_env():
-                    local = _LocalPool(min(n, max(1, len(grid.runs))))
+                # workers start when runs are submitted (and again if one dies): the variables
+                # stay set while the pool lives (this process's BLAS is loaded already)
+                stack.enter_context(_thread_env())
+                local = _LocalPool(min(n, max(1, len(grid.runs))))
                 pool: cf.Executor = local.pool
                 stack.callback(lambda: local.pool.shutdown(wait=True, cancel_futures=True))
             elif executor == "dask":
@@ -1355,6 +1363,7 @@ class _Coordinator:
             "host",
             "pid",
             "traceback",
+            "threads",
         ):
             if key in out:
                 rec[key] = out[key]

@@ -6,6 +6,7 @@ import concurrent.futures as cf
 import contextlib
 import json
 import os
+import sys
 import threading
 import time
 from pathlib import Path
@@ -314,15 +315,11 @@ def test_default_local_pool_one_blas_thread(tmp_path: Path) -> None:
     assert {v: os.environ.get(v) for v in before} == before  # restored in this process
     with cf.ProcessPoolExecutor(1) as pool:  # any Executor works
         assert lf.sweep(grid, pool).skipped == 3
-    with lf.sweeps._thread_env():
-        local = lf.sweeps._LocalPool(1)
-    try:
-        env = {
-            v: local.pool.submit(os.getenv, v).result(timeout=60) for v in lf.sweeps._THREAD_VARS
-        }
-    finally:
-        local.pool.shutdown()
-    assert set(env.values()) == {"1"}
+    if sys.platform.startswith("linux"):
+        # OpenBLAS starts its threads when numpy is imported, before any initializer runs,
+        # so the variables must be in each worker's environment from its start: a worker
+        # then has its main thread only
+        assert {r["threads"] for r in res.runs} == {1}
 
 
 def test_executor_arguments_are_checked(tmp_path: Path) -> None:
