@@ -208,6 +208,9 @@ def test_open_sweep_stacked_ragged_and_failed_runs(tmp_path: Path) -> None:
     assert failed.status.item() == "failed" and "did not converge" in failed.error.item()
     assert failed.completed_steps.item() == 0
     assert np.isnan(failed.energy_error.values[1:]).all()
+    lazy = lf.open_sweep(res.directory, chunks={"step": 10})  # dask arrays
+    assert lazy.energy_error.chunks is not None
+    np.testing.assert_array_equal(lazy.energy_error.values, ds.energy_error.values)
     stacked = lf.open_sweep(res.directory, stack=True)
     assert stacked.W.dims == ("run", "time", "row", "col")
     assert list(stacked.steps.values) == [10, 10, 25, 25]
