@@ -354,10 +354,15 @@ def plan(
     )
 
 
-def wins(compiled: CompiledPlan, steps: int, trajectories: int = 1) -> bool:
+def wins(n: int, steps: int, trajectories: int = 1) -> bool:
     """Whether ``engine="auto"`` should pick the compiled engine for ``steps`` steps of
-    ``trajectories`` trajectories: ``n <= AUTO_MAX_N`` and
+    ``trajectories`` trajectories of ``n x n`` matrices: ``n <= AUTO_MAX_N`` and
     ``steps * trajectories >= AUTO_MIN_WORK``.
+
+    A function of the run alone — not of what the process ran before — so that the same
+    run gives the same bits wherever it runs (resume in another process, a sweep worker).
+    For a short run in a process that has the loops loaded already, pass
+    ``engine="compiled"``.
 
     Measured on the generalized rigid body (fixed point at rtol 1e-14, h = 0.01), numpy
     time / compiled time per step for midpoint, Gauss-3, 7-stage SyDIRK: n = 10: 42, 18,
@@ -367,4 +372,5 @@ def wins(compiled: CompiledPlan, steps: int, trajectories: int = 1) -> bool:
     temporaries; it fades from n ~ 128 on, hence the cut there. Ensembles gain less (numpy
     batches their products): 1.2-1.7 for n = 10-64, 2-5 at n = 3.
     """
-    return compiled.n <= AUTO_MAX_N and steps * trajectories >= AUTO_MIN_WORK
+    return n <= AUTO_MAX_N and steps * trajectories >= AUTO_MIN_WORK
+

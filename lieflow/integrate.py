@@ -166,12 +166,13 @@ def scheme_flow(
 
     if engine == "auto" and not compiled.available():
         return flow
+    n = W0.shape[-1]
+    if engine == "auto" and not compiled.wins(n, steps, W0.size // max(n * n, 1)):
+        return flow  # judged before plan(), which loads the system's compiled B
     plan = compiled.plan(system, scheme, solver, W0)
     if isinstance(plan, str):
         if engine == "compiled":
             raise InputError(f"engine='compiled' cannot run this case: {plan}; use engine='auto'")
-        return flow
-    if engine == "auto" and not compiled.wins(plan, steps, W0.size // plan.n**2):
         return flow
     try:
         compiled.kernels()
@@ -413,14 +414,17 @@ def integrate(
         How a scheme's steps are computed. ``"numpy"``: one vectorised numpy step at a time
         (any system, scheme, solver, dtype). ``"compiled"``: loops compiled with numba
         (``pip install 'lieflow[fast]'``) that advance many steps per call, for systems
-        with ``B(W) = S ⊙ W`` (rigid bodies, periodic Toda), SyDIRK or reduced-form
-        BlockGauss schemes, real data, and ``FixedPoint`` (or ``Auto``) solvers; same
+        that supply a compiled ``B`` (:meth:`~lieflow.IsospectralSystem.compiled_B`: the
+        rigid bodies, the periodic Toda lattice, point vortices, and any system with
+        ``B(W) = S ⊙ W``), schemes with a compiled form (SyDIRK, reduced-form BlockGauss),
+        real float64 data, and ``FixedPoint`` (or ``Auto``) solvers; same
         iterations and stopping rule, results equal to roundoff, and a step it cannot
         finish is handed to the numpy path (see :mod:`lieflow.compiled`); raises
         :class:`InputError` if numba is missing or the case is not supported. ``"auto"``
         (default): compiled where supported, numba is installed, and it is faster
         (``n <= 128`` and at least 1000 trajectory-steps, see
-        :func:`lieflow.compiled.wins`), else numpy.
+        :func:`lieflow.compiled.wins`: a function of the run alone, so the same run gives
+        the same bits in any process), else numpy.
     out : str or path, optional
         Stream the run into this trajectory file — the format ``lieflow run`` writes
         (:mod:`lieflow.io`; read it with :func:`lieflow.io.read_trajectory`, plot it with

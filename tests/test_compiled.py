@@ -268,7 +268,7 @@ def test_auto_picks_compiled_only_for_small_n() -> None:
     ):
         plan = compiled.plan(system, mid, fp, system.random_state(seed=0))
         assert isinstance(plan, compiled.CompiledPlan)
-        assert compiled.wins(plan, steps, K) is wins
+        assert compiled.wins(plan.n, steps, K) is wins
 
 
 @pytest.mark.usefixtures("numba")
