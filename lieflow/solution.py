@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import enum
+from typing import Any
 
 import attrs
 import numpy as np
@@ -82,6 +83,14 @@ class Solution:
     def success(self) -> bool:
         """Whether every requested step was computed."""
         return self.status is Status.SUCCESS
+
+    def to_xarray(self) -> Any:
+        """This solution as an :class:`xarray.Dataset`, with the dimensions and names of
+        :func:`lieflow.open_run` (:func:`lieflow.datasets.solution_dataset`; needs the
+        ``sweep`` extra: ``pip install 'lieflow[sweep]'``)."""
+        from .datasets import solution_dataset
+
+        return solution_dataset(self)
 
     def spectrum_drift(self) -> Array:
         """``max_i |lambda_i(W_k) - lambda_i(W_0)| / max_i |lambda_i(W_0)|`` per saved state.

@@ -272,3 +272,11 @@ def test_every_checkpoint_reads_back_whatever_the_save_cadence(tmp_path: Path) -
         path = res.directory / rec["output"]
         assert io.read_trajectory(path).completed_steps == rec["params"]["run.steps"]
         assert lf.open_run(path).W_final.shape == (3, 3)
+
+
+def test_solution_to_xarray_is_solution_dataset() -> None:
+    body = lf.systems.get("rigid_body", inertia=(1.0, 2.0, 3.0))
+    sol = lf.integrate(body, lf.schemes.get("midpoint"), body.random_state(0), 0.1, steps=10)
+    ds = sol.to_xarray()
+    assert np.array_equal(ds["W"].values, sol.W)
+    assert np.array_equal(ds["energy_error"].values, sol.energy_error)
