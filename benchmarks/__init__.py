@@ -6,7 +6,7 @@ Run it with one command from the repository root::
     python -m benchmarks --quick    # tiny sizes, well under a minute
 
 Every speed figure is a ratio of two timings taken in the same process on the same input,
-interleaved and best-of-k, because shared machines are noisy. The baselines are
+interleaved, medians of the rounds, because shared machines are noisy. The baselines are
 
 * the paper's block algorithm *as published* (:mod:`benchmarks.paper_baseline`): dense
   ``sn×sn`` block matrices built every iteration, fixed-point iteration from a cold start,

@@ -18,7 +18,7 @@ class BenchConfig:
     quick : bool
         Tiny sizes (the test suite's mode).
     repeats : int
-        Rounds of interleaved timing (best round kept) for small and medium cases.
+        Rounds of interleaved timing (median round reported) for small and medium cases.
     large_repeats : int
         Rounds for large cases (n >= 256).
     reproduce_step_divisor : int

@@ -16,7 +16,7 @@ import numpy as np
 import lieflow as lf
 from lieflow import IsospectralSystem
 
-from .paper_baseline import PaperScheme, paper_integrate
+from .paper_baseline import PaperScheme, PlainScheme, paper_integrate
 
 #: The schemes of the paper as lieflow names.
 PAPER_SCHEMES: tuple[str, ...] = ("midpoint", "gauss2", "gauss3", "sydirk7")
@@ -183,3 +183,37 @@ class AsPublished:
             states.append(step.W)
             its[k] = step.iterations
         return RunStats(steps, its, np.stack(states))
+
+
+@attrs.frozen
+class PlainReduced:
+    """The reduced stage form as a plain numpy prototype (:class:`benchmarks.paper_baseline.
+    PlainScheme`): lieflow's algorithm without lieflow's implementation."""
+
+    scheme: str
+    rtol: float = 1e-14
+
+    @property
+    def label(self) -> str:
+        """``<scheme> plain numpy reduced``."""
+        return f"{self.scheme} plain numpy reduced"
+
+    def plain_scheme(self) -> PlainScheme:
+        """Gauss tableaus as one stage system, SyDIRKs composed of midpoint steps."""
+        tableau = lf.schemes.get(self.scheme).tableau
+        return PlainScheme(tableau, composition=not self.scheme.startswith("gauss"), rtol=self.rtol)
+
+    def run(
+        self, system: IsospectralSystem, W0: np.ndarray, h: float, steps: int, keep: bool = False
+    ) -> RunStats:
+        """Integrate with the plain prototype (``keep``: every state)."""
+        scheme = self.plain_scheme()
+        states = [np.array(W0)]
+        its = np.zeros(steps, dtype=np.int64)
+        for k in range(steps):
+            step = scheme.step(system, states[-1], h)
+            states.append(step.W)
+            if not keep:
+                del states[0]
+            its[k] = step.iterations
+        return RunStats(steps, its, np.stack(states) if keep else states[-1])

@@ -1,4 +1,4 @@
-"""Timing contenders on one case: warm-up, interleaved best-of-k, peak memory."""
+"""Timing contenders on one case: warm-up, interleaved rounds (medians), peak memory."""
 
 from __future__ import annotations
 
@@ -30,7 +30,8 @@ def time_contenders(
     repeats: int,
     keep: bool = False,
 ) -> dict[str, Timing[RunStats]]:
-    """Interleaved best-of-``repeats`` timings of every contender on the same input."""
+    """Interleaved timings of every contender on the same input, ``repeats`` rounds (the
+    page reports their medians)."""
     fns = {c.label: functools.partial(c.run, system, W0, h, steps, keep) for c in contenders}
     return compare(fns, repeats)
 

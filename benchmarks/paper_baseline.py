@@ -196,7 +196,11 @@ def _update(
 
 
 def paper_integrate(
-    system: IsospectralSystem, scheme: PaperScheme, W0: np.ndarray, h: float, steps: int
+    system: IsospectralSystem,
+    scheme: PaperScheme | PlainScheme,
+    W0: np.ndarray,
+    h: float,
+    steps: int,
 ) -> PaperRun:
     """Take ``steps`` steps of ``scheme`` from ``W0`` (no diagnostics, no saving).
 
@@ -212,3 +216,86 @@ def paper_integrate(
         res = scheme.step(system, W, h)
         W, iterations[k] = res.W, res.iterations
     return PaperRun(W, iterations, time.perf_counter() - start)
+
+
+# -- the plain-numpy reduced stage form -----------------------------------------------------
+
+
+def plain_reduced_step(
+    system: IsospectralSystem,
+    W0: np.ndarray,
+    h: float,
+    A: np.ndarray,
+    b: np.ndarray,
+    rtol: float = 1e-14,
+    max_iter: int = 100,
+    patience: int = 6,
+) -> PaperStep:
+    """One step of the *reduced stage form* written as a plain numpy prototype.
+
+    The same algorithm as lieflow's default evaluation (SPEC §4.5: ``3s`` products of
+    ``n×n`` matrices per iteration) with none of lieflow's machinery: stages
+    ``G_i = I + h Σ_j a_ij G_j B_j^†``, ``P_i = W0 − h Σ_j a_ij P_j B_j`` with
+    ``B_j = B(G_j^† P_j)``, iterated from the cold start ``(I, W0)`` under the module's
+    stopping rule; ``W1 = W0 + h Σ_i b_i [B_i, W_i]`` with ``W_i = G_i^† P_i``. Beside the
+    dense as-published algorithm it separates what the algorithm change is worth from what
+    lieflow's implementation adds.
+    """
+    s, n = A.shape[0], W0.shape[-1]
+    eye = np.eye(n, dtype=W0.dtype)
+    hA = h * np.asarray(A, dtype=float)
+    G = np.broadcast_to(eye, (s, n, n)).copy()
+    P = np.broadcast_to(W0, (s, n, n)).copy()
+    best, since_best = np.inf, 0
+    for k in range(1, max_iter + 1):
+        B = system.B(np.conj(np.swapaxes(G, -1, -2)) @ P)
+        GB = G @ np.conj(np.swapaxes(B, -1, -2))
+        PB = P @ B
+        G_new = eye + np.einsum("ij,jab->iab", hA, GB)
+        P_new = W0 - np.einsum("ij,jab->iab", hA, PB)
+        num = np.sqrt(np.linalg.norm(G_new - G) ** 2 + np.linalg.norm(P_new - P) ** 2)
+        den = np.sqrt(np.linalg.norm(G_new) ** 2 + np.linalg.norm(P_new) ** 2)
+        rel = float(num / max(den, np.finfo(float).tiny))
+        G, P = G_new, P_new
+        if not np.isfinite(rel):
+            break
+        done = rel <= rtol
+        if not done:
+            if rel < best:
+                best, since_best = rel, 0
+            else:
+                since_best += 1
+            done = since_best >= patience and best <= _ROUNDOFF
+            if since_best >= patience and not done:
+                break
+        if done:
+            Ws = np.conj(np.swapaxes(G, -1, -2)) @ P
+            Bs = system.B(Ws)
+            W1 = W0 + h * np.einsum("i,iab->ab", np.asarray(b, dtype=float), Bs @ Ws - Ws @ Bs)
+            return PaperStep(W1, k)
+    raise BaselineDivergedError(f"plain reduced iteration failed to converge (h = {h}, s = {s})")
+
+
+@attrs.frozen
+class PlainScheme:
+    """A scheme of the paper as a plain numpy prototype of the reduced stage form (Gauss
+    tableaus as one system of ``s`` stages; SyDIRKs as compositions of midpoint steps)."""
+
+    tableau: ButcherTableau
+    composition: bool = False
+    rtol: float = 1e-14
+    max_iter: int = 100
+    patience: int = 6
+
+    def step(self, system: IsospectralSystem, W0: np.ndarray, h: float) -> PaperStep:
+        """Advance ``W0`` by one step of size ``h``."""
+        if not self.composition:
+            return plain_reduced_step(system, W0, h, self.tableau.A, self.tableau.b,
+                                      self.rtol, self.max_iter, self.patience)  # fmt: skip
+        W, total = W0, 0
+        half, one = np.array([[0.5]]), np.array([1.0])
+        for bi in self.tableau.b:
+            sub = plain_reduced_step(system, W, bi * h, half, one, self.rtol, self.max_iter,
+                                     self.patience)  # fmt: skip
+            W, total = sub.W, total + sub.iterations
+        return PaperStep(W, total)

@@ -1,9 +1,9 @@
-"""Timing and memory measurement: best-of-k, interleaved, in one process.
+"""Timing and memory measurement: medians of interleaved rounds, in one process.
 
 Shared machines are noisy, so absolute seconds drift from run to run; the *ratio* of two
 codes timed alternately in the same process on the same input is stable. :func:`compare`
-runs every contender once per round, for ``repeats`` rounds, and keeps each one's fastest
-round (the least-disturbed measurement).
+runs every contender once per round, for ``repeats`` rounds; the page reports each one's
+median round (:attr:`Timing.median`), not its fastest.
 """
 
 from __future__ import annotations
@@ -45,6 +45,12 @@ class Timing(Generic[T]):
         return min(self.runs, default=math.inf)
 
     @property
+    def median(self) -> float:
+        """The median run, seconds (``inf`` if none completed): what the page reports, so
+        that one lucky round does not set a figure."""
+        return float(np.median(self.runs)) if self.runs else math.inf
+
+    @property
     def value(self) -> T:
         """The last result; raises if the callable failed."""
         if self.result is None:
@@ -73,7 +79,7 @@ def compare(contenders: Mapping[str, Callable[[], T]], repeats: int) -> dict[str
     """Time every contender once per round, ``repeats`` rounds, interleaved.
 
     Interleaving puts every contender under the same background load, so ratios of the
-    best rounds are robust to noise that comes and goes.
+    median rounds are robust to noise that comes and goes.
     """
     runs: dict[str, list[float]] = {name: [] for name in contenders}
     results: dict[str, T] = {}

@@ -13,10 +13,12 @@ import pytest
 import lieflow as lf
 from benchmarks import cli
 from benchmarks.config import BenchContext, quick
-from benchmarks.contenders import AsPublished, LieflowRun
-from benchmarks.paper_baseline import PaperScheme, dense_block_step
+from benchmarks.contenders import AsPublished, LieflowRun, PlainReduced
+from benchmarks.paper_baseline import PaperScheme, dense_block_step, plain_reduced_step
 from benchmarks.report import Table, TargetCheck, ratio
 from benchmarks.suites import rigid_body_scaling
+from benchmarks.suites.scipy_work_precision import Point, levels, time_to_reach
+from benchmarks.timing import Timing
 from lieflow.reproduce import Case
 from lieflow.schemes import BlockGauss
 from lieflow.tableaus import gauss
@@ -36,6 +38,41 @@ def test_dense_baseline_matches_block_gauss(stages: int, form: Literal["reduced"
     theirs = dense_block_step(system, W0, 0.05, tableau.A, tableau.b)
     np.testing.assert_allclose(theirs.W, ours.W, rtol=0, atol=1e-12)
     assert theirs.iterations >= 2
+
+
+@pytest.mark.parametrize("stages", [1, 2, 3])
+def test_plain_reduced_baseline_matches_block_gauss(stages: int) -> None:
+    """The plain-numpy reduced stage form takes the same step as lieflow."""
+    system, W0 = _grb(7)
+    tableau = gauss(stages)
+    ours = BlockGauss(tableau).step(system, W0, 0.05, lf.solvers.FixedPoint())
+    theirs = plain_reduced_step(system, W0, 0.05, tableau.A, tableau.b)
+    np.testing.assert_allclose(theirs.W, ours.W, rtol=0, atol=1e-12)
+    for name in ("midpoint", "sydirk7"):
+        sol = lf.integrate(system, lf.schemes.get(name), W0, 0.05, steps=2, diagnostics=False)
+        np.testing.assert_allclose(PlainReduced(name).run(system, W0, 0.05, 2).W, sol.W[-1],
+                                   rtol=0, atol=1e-12)  # fmt: skip
+
+
+def test_timings_report_the_median_round() -> None:
+    assert Timing((3.0, 1.0, 2.0), None).median == 2.0
+    assert Timing((), None, "x").median == float("inf")
+
+
+def _pt(side: str, t: float, e: float) -> Point:
+    return Point(side, side, "", t, e, 1e-16, "")
+
+
+def test_scipy_comparison_frontier_and_levels() -> None:
+    ours = [_pt("lieflow", 1.0, 1e-7), _pt("lieflow", 2.0, 1e-11), _pt("lieflow", 5.0, 1e-10)]
+    theirs = [_pt("scipy", 4.0, 1e-9)]
+    hit = time_to_reach(ours, 1e-9)  # between (1 s, 1e-7) and (2 s, 1e-11) in log–log
+    assert hit is not None and hit[0] == pytest.approx(2**0.5)
+    assert time_to_reach(theirs, 1e-10) is None
+    res = {r.error: r.ratio for r in levels(ours + theirs)}
+    assert res[1e-9] == pytest.approx(4.0 / 2**0.5)
+    assert res[1e-10] == float("inf")  # scipy does not reach it
+    assert 1e-12 not in res  # nobody reaches it
 
 
 def test_dense_baseline_rigid_body_and_composition() -> None:
@@ -93,10 +130,14 @@ def test_quick_run_writes_every_table(tmp_path: Path) -> None:
         "so(3) rigid body",
         "Large n: cost of one iteration",
         "Euler–Zeitlin",
+        "Work–precision against scipy",
+        "Bounded memory",
         "Targets at a glance",
     ):
         assert title in page
     assert (tmp_path / "img" / "work_precision.png").stat().st_size > 1000
+    assert (tmp_path / "img" / "scipy_wp_rigid_body.png").stat().st_size > 1000
+    assert "× vs plain numpy reduced" in page and "median" in page
     rows = _table_rows(page)
     assert len(rows) > 30
     headers = [r for r in rows if r[0] in ("system", "n", "scheme", "run", "N")]

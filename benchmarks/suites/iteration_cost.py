@@ -104,7 +104,7 @@ def measure(ctx: BenchContext, n: int, form: Formulation) -> IterationRow:
     timed = compare(fns, repeats)
     solve = timed["solve"]
     its = stats_of(solve).iterations
-    products_seconds = timed["products"].best
+    products_seconds = timed["products"].median
     working = peak_memory(lambda: solver.solve(problem)) / (W0.itemsize * n * n)
     fresh = not np.shares_memory(problem.map(problem.x0), problem.map(problem.x0))
     engines = []
@@ -112,12 +112,12 @@ def measure(ctx: BenchContext, n: int, form: Formulation) -> IterationRow:
         for run in ctx.engine_runs(form.scheme, n):
             e = run.engine or ""
             t = best_of(functools.partial(run.run, system, W0, H, 1), repeats)
-            engines.append((e, t.best / int(stats(t).iterations.sum())))
+            engines.append((e, t.median / int(stats(t).iterations.sum())))
     return IterationRow(
         n,
         form.label,
         its,
-        solve.best / its,
+        solve.median / its,
         products_seconds,
         working,
         form.unknowns,
@@ -196,7 +196,7 @@ def run(ctx: BenchContext) -> Section:
     notes = [
         "s/iteration: one cold FixedPoint.solve divided by its updates; the products: the "
         "same number of n×n matmuls into a preallocated output; the two timed alternately, "
-        f"best of {max(5, ctx.config.large_repeats)} each.",
+        f"median of {max(5, ctx.config.large_repeats)} each.",
         "Peak working set: tracemalloc peak of the solve over the size of one n×n matrix; "
         "the number in brackets is the size of the unknown itself.",
     ]
