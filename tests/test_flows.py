@@ -279,4 +279,4 @@ def test_a_run_that_cannot_fit_in_memory_is_refused_before_it_starts() -> None:
     steps = int(available / W0.nbytes) + 1  # the saved states alone exceed the memory
     with pytest.raises(lf.InputError, match="save_every=") as info:
         lf.integrate(zeitlin_like, lf.schemes.get("midpoint"), W0, 0.01, steps=steps)
-    assert "lieflow run" in str(info.value)
+    assert "out=" in str(info.value) and "lieflow run" in str(info.value)
