@@ -86,7 +86,7 @@ def run(ctx: BenchContext) -> Section:
         return Section(title, "Skipped: the `lieflow-zeitlin` plugin is not installed.")
     quick = ctx.config.quick
     N = 16 if quick else 512
-    lengths = (4, 12) if quick else (50, 400)
+    lengths = (4, 12) if quick else (40, 200)
     scheme = "midpoint"
     rows, results = [], []
     for steps in lengths:
