@@ -169,11 +169,17 @@ def _check_out_dir(out: Path | None, what: str) -> None:
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:
-    from .plotting import plot_trajectory
+    from .plotting import plot_sweep, plot_trajectory
 
     _check_out_dir(args.out, "lieflow plot")
+    sweep = args.file.is_dir() or args.file.name == "manifest.json"
+    if sweep and args.movie is not None:
+        raise InputError("lieflow plot: --movie needs a trajectory file, not a sweep directory")
     try:
-        written = plot_trajectory(args.file, args.out)
+        if sweep:
+            written = plot_sweep(args.file if args.file.is_dir() else args.file.parent, args.out)
+        else:
+            written = plot_trajectory(args.file, args.out)
     except OSError as exc:  # reading errors are LieflowErrors already: this is writing
         where = args.out if args.out is not None else args.file.parent
         raise InputError(
@@ -304,14 +310,16 @@ def _parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "plot",
-        help="plot the diagnostics of a trajectory file",
+        help="plot the diagnostics of a trajectory file, or a sweep's convergence",
         description=(
             "Write PNGs of a trajectory file's energy error, Casimir drift and solver updates "
             "per step, then the figures a plugin registered for its system (for example "
-            "vorticity snapshots of euler_zeitlin runs), and print their paths."
+            "vorticity snapshots of euler_zeitlin runs), and print their paths. Given a sweep "
+            "directory (lieflow sweep), write its convergence (energy error against h, with "
+            "the observed order) and work-precision figures."
         ),
     )
-    p.add_argument("file", type=Path, metavar="FILE.h5")
+    p.add_argument("file", type=Path, metavar="FILE.h5|SWEEP_DIR")
     p.add_argument("--out", type=Path, metavar="DIR", help="output directory (default: FILE's)")
     p.add_argument(
         "--movie",

@@ -8,6 +8,7 @@ the Agg canvas: no pyplot, no global backend switch, no figure registry to leak.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -23,7 +24,16 @@ if TYPE_CHECKING:  # pragma: no cover
 
     from .plugins import Registry
 
-__all__ = ["FLOOR", "Curve", "Panel", "energy_figure", "plot_trajectory"]
+__all__ = [
+    "FLOOR",
+    "Curve",
+    "Panel",
+    "SweepGroup",
+    "energy_figure",
+    "plot_sweep",
+    "plot_trajectory",
+    "sweep_groups",
+]
 
 #: Values below this (exact zeros: the energy at roundoff) are drawn at it on log axes.
 FLOOR = 1e-17
@@ -192,4 +202,105 @@ def plot_trajectory(
                 f"failed: {type(exc).__name__}: {exc}. The generic figures were written; "
                 "fix or update that plugin for the rest"
             ) from exc
+    return written
+
+
+@attrs.frozen
+class SweepGroup:
+    """The complete runs of a sweep that differ only in their step size: a label, and per
+    run its step size, largest relative energy error and seconds of stepping."""
+
+    label: str
+    h: Array = attrs.field(repr=False)
+    error: Array = attrs.field(repr=False)
+    seconds: Array = attrs.field(repr=False)
+
+    def order(self) -> float | None:
+        r"""The observed order: the least-squares slope of :math:`\log` error against
+        :math:`\log h` over runs above the roundoff floor (``None`` with fewer than two)."""
+        ok = (self.error > 1e3 * np.finfo(float).eps) & np.isfinite(self.error)
+        if np.unique(self.h[ok]).size < 2:
+            return None
+        return float(np.polyfit(np.log(self.h[ok]), np.log(self.error[ok]), 1)[0])
+
+
+def sweep_groups(directory: Path | str) -> list[SweepGroup]:
+    """The complete runs of the sweep in ``directory`` (:func:`lieflow.open_sweep`),
+    grouped by every swept key except the step size ``run.h``."""
+    from .datasets import open_sweep
+
+    ds = open_sweep(directory, stack=True)
+    axes = json.loads(ds.attrs.get("sweep_axes", "{}"))
+    names = [name for name, keys in axes.items() if "run.h" not in keys]
+    done = ds["status"].values == "complete"
+    labels = np.array(
+        [
+            ", ".join(f"{n} = {ds[n].values[j]}" for n in names) or "all runs"
+            for j in range(ds.sizes["run"])
+        ]
+    )
+    groups = []
+    for label in dict.fromkeys(labels[done]):
+        pick = done & (labels == label)
+        h = ds["step_size"].values[pick]
+        order = np.argsort(h)
+        groups.append(
+            SweepGroup(
+                str(label),
+                h[order],
+                ds["max_energy_error"].values[pick][order],
+                ds["wall_time"].values[pick][order],
+            )
+        )
+    return groups
+
+
+def plot_sweep(directory: Path | str, out_dir: Path | str | None = None) -> list[Path]:
+    """Convergence and work–precision figures of a sweep (``lieflow plot SWEEP_DIR``).
+
+    For each group of complete runs that differ only in their step size
+    (:func:`sweep_groups`): the largest relative energy error against ``h`` on log–log axes,
+    with the observed order (least-squares slope) in the legend, and the seconds of
+    stepping against that error (work–precision).
+
+    Returns
+    -------
+    list of Path
+        ``<dir>/convergence.png`` and ``<dir>/work_precision.png`` (or in ``out_dir``).
+
+    Raises
+    ------
+    LieflowError
+        Not a sweep directory, or no run is complete yet.
+    """
+    src = Path(directory)
+    out = src if out_dir is None else Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise LieflowError(f"{str(out)!r} is a file, not a directory. To fix: give a directory.")
+    groups = sweep_groups(src)
+    if not groups:
+        raise LieflowError(
+            f"no run of the sweep in {str(src)!r} is complete yet. To fix: run "
+            "`lieflow sweep GRID.toml` to completion first."
+        )
+    fig, (ax,) = _figure(1, width=6.5, height=4.5)
+    for g in groups:
+        p = g.order()
+        suffix = "" if p is None else f" (order {p:.2f})"
+        ax.loglog(g.h, _log_values(g.error), "o-", label=g.label + suffix)
+    ax.set_xlabel("step size h")
+    ax.set_ylabel("largest relative energy error")
+    ax.set_title("Convergence")
+    ax.grid(True, which="major", alpha=0.3)
+    ax.legend(loc="best", fontsize="small")
+    written = [_save(fig, out / "convergence.png")]
+    fig, (ax,) = _figure(1, width=6.5, height=4.5)
+    for g in groups:
+        ax.loglog(_log_values(g.error), np.maximum(g.seconds, 1e-6), "o-", label=g.label)
+    ax.set_xlabel("largest relative energy error")
+    ax.set_ylabel("seconds of stepping")
+    ax.set_title("Work–precision")
+    ax.grid(True, which="major", alpha=0.3)
+    ax.legend(loc="best", fontsize="small")
+    written.append(_save(fig, out / "work_precision.png"))
     return written
