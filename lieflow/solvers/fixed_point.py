@@ -155,12 +155,15 @@ class IterationMonitor:
         self.core = core_ndim
         self.residuals: list[float] = []
         self._size0 = batch_norm(x0, core_ndim)
+        self._single = x0.ndim == core_ndim  # one problem: the lean check in floats
 
     def check(self, new: Array, old: Array) -> str | None:
         """Record the update ``old -> new``; ``None`` to go on, else the reason to stop.
 
         Growth is measured against ``max(||x0||, ||F(x0)||)`` so a zero initial guess works.
         """
+        if self._single:
+            return self._check_single(new, old)
         rule = self.rule
         with np.errstate(invalid="ignore", over="ignore"):
             step = batch_norm(new - old, self.core)
@@ -174,6 +177,34 @@ class IterationMonitor:
         self.residuals.append(rel)
         met = bool(np.all(step <= rule.atol + rule.rtol * size))
         return rule.verdict(self.residuals, met, float(np.max(size / self._size0)))
+
+    def _check_single(self, new: Array, old: Array) -> str | None:
+        """:meth:`check` for one problem (no batch): the same numbers, as Python floats
+        (a few numpy calls instead of a dozen array reductions per update)."""
+        rule = self.rule
+        with np.errstate(invalid="ignore", over="ignore"):
+            step = math.sqrt(_sum_of_squares(new - old))
+            size = math.sqrt(_sum_of_squares(new))
+        if not (math.isfinite(step) and math.isfinite(size)):
+            self.residuals.append(float("nan"))
+            return "non_finite"
+        tiny = _TINY
+        if not self.residuals:
+            self._size0 = max(float(self._size0), size, tiny)
+        self.residuals.append(step / max(size, tiny))
+        met = step <= rule.atol + rule.rtol * size
+        return rule.verdict(self.residuals, met, size / float(self._size0))
+
+
+_TINY = float(np.finfo(float).tiny)
+
+
+def _sum_of_squares(x: Array) -> float:
+    """``||x||_F^2`` as a float, without BLAS (its threading costs more than small sums)."""
+    flat = np.ascontiguousarray(x).reshape(-1)
+    if flat.dtype.kind == "c":
+        flat = flat.view(flat.real.dtype)
+    return float(np.einsum("i,i->", flat, flat))
 
 
 def _anderson_step(
