@@ -373,4 +373,3 @@ def wins(n: int, steps: int, trajectories: int = 1) -> bool:
     batches their products): 1.2-1.7 for n = 10-64, 2-5 at n = 3.
     """
     return n <= AUTO_MAX_N and steps * trajectories >= AUTO_MIN_WORK
-

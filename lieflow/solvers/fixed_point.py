@@ -190,7 +190,7 @@ class IterationMonitor:
             return "non_finite"
         tiny = _TINY
         if not self.residuals:
-            self._size0 = max(float(self._size0), size, tiny)
+            self._size0 = np.asarray(max(float(self._size0), size, tiny))
         self.residuals.append(step / max(size, tiny))
         met = step <= rule.atol + rule.rtol * size
         return rule.verdict(self.residuals, met, size / float(self._size0))
