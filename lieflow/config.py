@@ -774,26 +774,32 @@ def parse_config(
     )
 
 
-def load_config(path: Path | str) -> Config:
-    """Read and parse the configuration file ``path`` (relative paths inside it are relative
-    to its directory)."""
+def read_toml_file(path: Path | str, what: str = "configuration") -> tuple[Path, str]:
+    """The path and UTF-8 text of a TOML file (a run ``configuration``, a sweep's ``grid``),
+    or :class:`ConfigError` naming what is wrong with it."""
     if not isinstance(path, (str, os.PathLike)) or not str(path):
         raise ConfigError(
-            f"the configuration path must be a file path (str or pathlib.Path), got {path!r}. "
+            f"the {what} path must be a file path (str or pathlib.Path), got {path!r}. "
             "To fix: pass the path of a .toml file."
         )
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        return p, p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(
-            f"cannot read configuration {str(p)!r}: {exc.strerror or exc}. To fix: check the "
+            f"cannot read the {what} {str(p)!r}: {exc.strerror or exc}. To fix: check the "
             "path and its permissions."
         ) from None
     except UnicodeDecodeError:
         raise ConfigError(
-            f"configuration {str(p)!r} is not UTF-8 text. To fix: save it as UTF-8 TOML."
+            f"the {what} {str(p)!r} is not UTF-8 text. To fix: save it as UTF-8 TOML."
         ) from None
+
+
+def load_config(path: Path | str) -> Config:
+    """Read and parse the configuration file ``path`` (relative paths inside it are relative
+    to its directory)."""
+    p, text = read_toml_file(path)
     return parse_config(text, source=str(p), base_dir=p.resolve().parent)
 
 

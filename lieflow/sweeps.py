@@ -53,7 +53,15 @@ from typing import Any
 import attrs
 import numpy as np
 
-from .config import _SECTIONS, Config, ConfigError, _fail, _Section, parse_config
+from .config import (
+    _SECTIONS,
+    Config,
+    ConfigError,
+    _fail,
+    _Section,
+    parse_config,
+    read_toml_file,
+)
 from .errors import InputError, LieflowError
 
 if sys.version_info >= (3, 11):
@@ -499,23 +507,7 @@ def parse_sweep(
 def load_sweep(path: Path | str, *, directory: Path | str | None = None) -> Sweep:
     """Read and parse the grid file ``path`` (:func:`parse_sweep`); relative paths in it
     are relative to its directory, and so is the default sweep directory (its stem)."""
-    if not isinstance(path, (str, os.PathLike)) or not str(path):
-        raise ConfigError(
-            f"the grid path must be a file path, got {path!r}. To fix: pass the "
-            "path of a .toml file."
-        )
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(
-            f"cannot read the grid {str(p)!r}: {exc.strerror or exc}. To fix: "
-            "check the path and its permissions."
-        ) from None
-    except UnicodeDecodeError:
-        raise ConfigError(
-            f"the grid {str(p)!r} is not UTF-8 text. To fix: save it as UTF-8 TOML."
-        ) from None
+    p, text = read_toml_file(path, "grid")
     return parse_sweep(text, source=str(p), base_dir=p.resolve().parent, directory=directory)
 
 

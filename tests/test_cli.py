@@ -214,7 +214,7 @@ def test_unwritable_output_path(
 
 def test_missing_config_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["run", str(tmp_path / "nope.toml")]) == 2
-    assert "cannot read configuration" in capsys.readouterr().err
+    assert "cannot read the configuration" in capsys.readouterr().err
 
 
 def test_initial_condition_from_a_file(dirs: tuple[Path, Path]) -> None:
