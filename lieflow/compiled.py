@@ -345,7 +345,7 @@ def plan(
         A=np.ascontiguousarray(A, dtype=np.float64),
         b=np.ascontiguousarray(b, dtype=np.float64),
         B=Bw[0],
-        params=Bw[1],
+        params=np.concatenate([[float(kernels().inline_code(got_B[0]))], Bw[1]]),
         project=None if P is None else P[0],
         pparams=np.zeros(0) if P is None else P[1],
         rule=np.array([r.rtol, r.atol, r.roundoff_floor, r.divergence_factor], dtype=float),
