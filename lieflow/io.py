@@ -39,7 +39,8 @@ import platform
 import socket
 import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, Literal
@@ -488,6 +489,18 @@ def _check_invariants(f: h5py.File, ck: Checkpoint, system: Any, path: Path) -> 
         )
 
 
+@contextmanager
+def _opened(path: Path | str) -> Iterator[tuple[h5py.File, Checkpoint]]:
+    """A trajectory file open for reading, with its verified checkpoint; every reader's
+    checks (format, checksum, diagnostics reaching the checkpoint) done once here."""
+    p = _as_path(path)
+    with _open(p, "r") as f, _Reading(p):
+        _check_format(f, p)
+        ck = _read_checkpoint(f, p)
+        _check_lengths(f, ck.step, p)
+        yield f, ck
+
+
 def read_checkpoint(path: Path | str) -> Checkpoint:
     """The last checkpoint of a trajectory file (its SHA-256 checksum verified).
 
@@ -514,17 +527,13 @@ def read_trajectory(path: Path | str) -> Trajectory:
     LieflowError
         The file is missing, not HDF5, not a lieflow trajectory, or damaged.
     """
-    p = _as_path(path)
-    with _open(p, "r") as f, _Reading(p):
-        _check_format(f, p)
-        ck = _read_checkpoint(f, p)
+    with _opened(path) as (f, ck):
         k = ck.step
-        _check_lengths(f, k, p)
         saved = f["trajectory/step"][()]
         n_saved = int(np.searchsorted(saved, k, side="right"))
         d = f["diagnostics"]
         return Trajectory(
-            path=p,
+            path=_as_path(path),
             meta=MappingProxyType({key: _plain(v) for key, v in f.attrs.items()}),
             step=saved[:n_saved],
             t=f["trajectory/t"][:n_saved],
@@ -572,12 +581,8 @@ def read_diagnostics(path: Path | str) -> RunDiagnostics:
     LieflowError
         The file is missing, not HDF5, not a lieflow trajectory, or damaged.
     """
-    p = _as_path(path)
-    with _open(p, "r") as f, _Reading(p):
-        _check_format(f, p)
-        ck = _read_checkpoint(f, p)
+    with _opened(path) as (f, ck):
         k = ck.step
-        _check_lengths(f, k, p)
         d = f["diagnostics"]
         return RunDiagnostics(
             completed_steps=k,
