@@ -569,22 +569,27 @@ def _time_table(recs: Sequence[RunRecord]) -> str:
     return _md_table(header, rows)
 
 
+def _count(r: RunRecord) -> str:
+    """An iteration count as the paper counts it (updates in brackets)."""
+    return f"{r.max_iterations - 1} ({r.max_iterations} updates)"
+
+
+def _beside_paper(recs: Sequence[RunRecord], label: str) -> list[str]:
+    """Each scheme's count for case ``label`` beside the published one."""
+    cells = []
+    for scheme in ITERATION_SCHEMES:
+        r = _lookup(recs, label, scheme)
+        paper = _paper_numbers(r)[1]
+        cells += [_count(r), "n/a" if paper is None else str(paper)]
+    return cells
+
+
 def _iteration_table(recs: Sequence[RunRecord]) -> str:
     header = ["case"]
     for scheme in ITERATION_SCHEMES:
         name = _scheme_label(scheme)
         header += [f"{name} lieflow", f"{name} paper"]
-    rows = []
-    for label in _case_labels(recs):
-        row = [label]
-        for scheme in ITERATION_SCHEMES:
-            r = _lookup(recs, label, scheme)
-            paper = _paper_numbers(r)[1]
-            row += [
-                f"{r.max_iterations - 1} ({r.max_iterations} updates)",
-                "n/a" if paper is None else str(paper),
-            ]
-        rows.append(row)
+    rows = [[label, *_beside_paper(recs, label)] for label in _case_labels(recs)]
     return _md_table(header, rows)
 
 
@@ -595,20 +600,14 @@ def _like_with_like_table(recs: Sequence[RunRecord], paper_algorithm: Sequence[R
     for scheme in ITERATION_SCHEMES:
         header += [f"{_scheme_label(scheme)} paper's algorithm", "paper"]
     header += [f"{_scheme_label(s)} lieflow defaults" for s in ITERATION_SCHEMES]
-    rows = []
-    for label in _case_labels(recs):
-        row = [label]
-        for scheme in ITERATION_SCHEMES:
-            r = _lookup(paper_algorithm, label, scheme)
-            paper = _paper_numbers(r)[1]
-            row += [
-                f"{r.max_iterations - 1} ({r.max_iterations} updates)",
-                "n/a" if paper is None else str(paper),
-            ]
-        for scheme in ITERATION_SCHEMES:
-            r = _lookup(recs, label, scheme)
-            row.append(f"{r.max_iterations - 1} ({r.max_iterations} updates)")
-        rows.append(row)
+    rows = [
+        [
+            label,
+            *_beside_paper(paper_algorithm, label),
+            *(_count(_lookup(recs, label, s)) for s in ITERATION_SCHEMES),
+        ]
+        for label in _case_labels(recs)
+    ]
     return _md_table(header, rows)
 
 
