@@ -98,8 +98,7 @@ def iterate(
     not finite raises it too (reason ``"non_finite"``).
     """
     flow = SchemeFlow(system, scheme, solver, warm_start)
-    state = warm if warm is not None or not warm_start else None
-    for chunk in driver.advance(flow, W0, h, sys.maxsize, start=start, state=state):
+    for chunk in driver.advance(flow, W0, h, sys.maxsize, start=start, state=warm):
         yield Step(
             chunk.stop,
             chunk.stop * h,

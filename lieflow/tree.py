@@ -16,6 +16,8 @@ from typing import Any
 import attrs
 import numpy as np
 
+from .solvers.base import squared_norm
+
 __all__ = ["leaves", "map_leaves", "paths", "rebuild", "sum_of_squares"]
 
 
@@ -84,15 +86,10 @@ def rebuild(template: Any, values: dict[str, Any]) -> Any:
 
 
 def sum_of_squares(tree: Any) -> float:
-    """``sum ||leaf||_F^2`` over the array leaves (the squared norm of the whole tree).
-
-    A plain dot product per leaf (no BLAS call, whose threading overhead dominates for
-    small matrices)."""
-    total = 0.0
-    for leaf in leaves(tree):
-        if isinstance(leaf, np.ndarray) and leaf.dtype.kind in "fc":
-            flat = np.ascontiguousarray(leaf).reshape(-1)
-            if flat.dtype.kind == "c":
-                flat = flat.view(flat.real.dtype)
-            total += float(np.einsum("i,i->", flat, flat))
-    return total
+    """``sum ||leaf||_F^2`` over the floating-point array leaves (the squared norm of the
+    whole tree)."""
+    return sum(
+        squared_norm(leaf)
+        for leaf in leaves(tree)
+        if isinstance(leaf, np.ndarray) and leaf.dtype.kind in "fc"
+    )

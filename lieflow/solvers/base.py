@@ -87,6 +87,15 @@ class Solver(Protocol):
     def solve(self, problem: ImplicitProblem) -> SolveResult: ...
 
 
+def squared_norm(x: Array) -> float:
+    """``||x||_F^2`` of a whole array as a float: a plain sum of squares (``einsum``, no
+    BLAS call, whose threading overhead dominates for small arrays)."""
+    flat = np.ascontiguousarray(x).reshape(-1)
+    if flat.dtype.kind == "c":
+        flat = flat.view(flat.real.dtype)
+    return float(np.einsum("i,i->", flat, flat))
+
+
 def batch_norm(x: Array, core_ndim: int) -> Array:
     """Frobenius norm over the trailing ``core_ndim`` axes (shape: the batch shape).
 

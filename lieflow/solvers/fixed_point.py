@@ -12,7 +12,7 @@ import numpy as np
 
 from ..algebras import Array
 from ..errors import InputError
-from .base import ImplicitProblem, SolveResult, batch_norm
+from .base import ImplicitProblem, SolveResult, batch_norm, squared_norm
 
 _EPS = float(np.finfo(float).eps)
 
@@ -183,8 +183,8 @@ class IterationMonitor:
         (a few numpy calls instead of a dozen array reductions per update)."""
         rule = self.rule
         with np.errstate(invalid="ignore", over="ignore"):
-            step = math.sqrt(_sum_of_squares(new - old))
-            size = math.sqrt(_sum_of_squares(new))
+            step = math.sqrt(squared_norm(new - old))
+            size = math.sqrt(squared_norm(new))
         if not (math.isfinite(step) and math.isfinite(size)):
             self.residuals.append(float("nan"))
             return "non_finite"
@@ -197,14 +197,6 @@ class IterationMonitor:
 
 
 _TINY = float(np.finfo(float).tiny)
-
-
-def _sum_of_squares(x: Array) -> float:
-    """``||x||_F^2`` as a float, without BLAS (its threading costs more than small sums)."""
-    flat = np.ascontiguousarray(x).reshape(-1)
-    if flat.dtype.kind == "c":
-        flat = flat.view(flat.real.dtype)
-    return float(np.einsum("i,i->", flat, flat))
 
 
 def _anderson_step(
