@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import lieflow as lf
-from lieflow.reproduce import machine_description
+from lieflow.app.reproduce import machine_description
 
 from . import config as presets
 from .config import BenchContext

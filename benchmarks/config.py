@@ -24,7 +24,7 @@ class BenchConfig:
     reproduce_step_divisor : int
         Divide the reproduction suite's step counts by this (1 = the paper's runs).
     reproduce_quick : bool
-        Use ``lieflow.reproduce.paper_cases(quick=True)``.
+        Use ``lieflow.app.reproduce.paper_cases(quick=True)``.
     reproduce_baseline_steps : int
         Steps of each reproduction cell rerun against the as-published baseline.
     grb_sizes : tuple of int
@@ -152,7 +152,7 @@ class BenchContext:
     img_prefix : str
         How the markdown page refers to ``img_dir`` (relative to the page).
     seed : int
-        Seed of the random initial conditions (``lieflow.reproduce.Case.build``).
+        Seed of the random initial conditions (``lieflow.app.reproduce.Case.build``).
     """
 
     config: BenchConfig

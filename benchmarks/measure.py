@@ -8,7 +8,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from lieflow import IsospectralSystem
-from lieflow.reproduce import Case
+from lieflow.app.reproduce import Case
 
 from .contenders import Contender, RunStats
 from .timing import Timing, compare, peak_memory

@@ -19,7 +19,8 @@ from importlib.metadata import PackageNotFoundError, version
 
 from . import algebras, driver, flows, schemes, solvers, systems, tableaus
 from .algebras import GL, SO, SU, LieAlgebra, U
-from .datasets import open_run, open_sweep
+from .app.datasets import open_run, open_sweep
+from .app.sweeps import load_sweep, parse_sweep, sweep
 from .errors import (
     AlgebraError,
     ConvergenceError,
@@ -35,7 +36,6 @@ from .plugins import Registry, RegistryBuilder, default_registry, hookimpl, load
 from .schemes import Scheme, StepResult
 from .solution import Solution, Status
 from .solvers import ImplicitProblem, Solver, SolveResult
-from .sweeps import load_sweep, parse_sweep, sweep
 from .systems import IsospectralSystem
 from .tableaus import ButcherTableau
 

@@ -1,10 +1,10 @@
-"""``python -m lieflow``: the ``lieflow`` command line (:func:`lieflow.cli.main`)."""
+"""``python -m lieflow``: the ``lieflow`` command line (:func:`lieflow.app.cli.main`)."""
 
 from __future__ import annotations
 
 import sys
 
-from .cli import main
+from .app.cli import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -2,7 +2,7 @@ r"""The one stepping loop: advance any :class:`~lieflow.flows.Flow` in chunks.
 
 :func:`advance` yields :class:`Chunk`\ s of consecutive completed steps; whoever consumes
 them — :func:`lieflow.integrate` (memory: a :class:`~lieflow.Solution`) or
-:func:`lieflow.io.run` (an HDF5 trajectory written as the run goes) — records them through
+:func:`lieflow.app.io.run` (an HDF5 trajectory written as the run goes) — records them through
 the same :class:`Diagnostics`. A flow may advance many steps per call
 (:class:`MultiStepFlow`, e.g. the compiled engine); a step it does not finish is then taken
 by its plain :meth:`~lieflow.flows.Flow.step` from the last good state, so failures read

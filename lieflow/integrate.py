@@ -1,6 +1,6 @@
 """The one entry point that runs many steps, :func:`integrate`, and the step stream
 :func:`iterate`: both over the one stepping loop, :func:`lieflow.driver.advance` (which the
-command line's HDF5 runner, :func:`lieflow.io.run`, drives too)."""
+command line's HDF5 runner, :func:`lieflow.app.io.run`, drives too)."""
 
 from __future__ import annotations
 
@@ -218,7 +218,7 @@ def _check_memory(nbytes: int, steps: int, save_every: int) -> None:
         f"the saved states of this run need {nbytes / 2**30:.1f} GiB, more than half of the "
         f"{available / 2**30:.1f} GiB of memory available. To fix: stream the run to a "
         'trajectory file with integrate(..., out="run.h5") or `lieflow run` (they keep '
-        "only one chunk of steps in memory; read the file with lieflow.io.read_trajectory), "
+        "only one chunk of steps in memory; read the file with lieflow.app.io.read_trajectory), "
         "or save fewer "
         f"states (save_every={fit} or more)"
     )
@@ -237,7 +237,7 @@ def _progress_monitor(progress: bool | Monitor) -> Monitor | None:
     if progress is False:
         return None
     if progress is True:
-        from .progress import ProgressBar
+        from .app.progress import ProgressBar
 
         return ProgressBar()
     if not all(callable(getattr(progress, m, None)) for m in ("start", "advance", "stop")):
@@ -297,10 +297,10 @@ def _stream(
     on_failure: str,
     monitor: Monitor | None,
 ) -> Solution:
-    """``integrate(..., out=path)``: run through :func:`lieflow.io.run_flow` into a
+    """``integrate(..., out=path)``: run through :func:`lieflow.app.io.run_flow` into a
     trajectory file; the :class:`Solution` holds the initial and last states and the
     per-step diagnostics read back from the file."""
-    from . import io
+    from .app import io
 
     path = Path(io._as_path(out, "out")).absolute()
     identity = json.dumps(
@@ -426,7 +426,7 @@ def integrate(
         the same bits in any process), else numpy.
     out : str or path, optional
         Stream the run into this trajectory file — the format ``lieflow run`` writes
-        (:mod:`lieflow.io`; read it with :func:`lieflow.io.read_trajectory`, plot it with
+        (:mod:`lieflow.app.io`; read it with :func:`lieflow.app.io.read_trajectory`, plot it with
         ``lieflow plot``) — instead of keeping the states in memory: every
         ``save_every``-th state (and the last) goes to the file as the run proceeds, with a
         checkpoint at each, and memory holds one chunk of steps (a few states) whatever the
@@ -439,7 +439,7 @@ def integrate(
         With ``out``: continue the file from its last checkpoint (bit-for-bit the same as
         an uninterrupted run; ``steps`` may have grown) — it must have been written by the
         same system, scheme, solver, ``h``, ``save_every`` and ``W0``, else
-        :class:`~lieflow.config.ConfigError` names what changed. Without an existing file
+        :class:`~lieflow.app.config.ConfigError` names what changed. Without an existing file
         the run starts afresh.
     replace : bool
         With ``out`` and no ``resume``: replace an existing file (otherwise an existing

@@ -160,7 +160,7 @@ class Plotter:
     """Extra figures that ``lieflow plot`` draws for trajectory files of one system.
 
     ``function(trajectory, out_dir, stem)`` receives the file's
-    :class:`~lieflow.io.Trajectory`, the output directory and the file's stem, writes PNGs
+    :class:`~lieflow.app.io.Trajectory`, the output directory and the file's stem, writes PNGs
     (conventionally ``out_dir / f"{stem}_<what>.png"``) and returns their paths.
     """
 

@@ -86,9 +86,9 @@ class Solution:
 
     def to_xarray(self) -> Any:
         """This solution as an :class:`xarray.Dataset`, with the dimensions and names of
-        :func:`lieflow.open_run` (:func:`lieflow.datasets.solution_dataset`; needs the
+        :func:`lieflow.open_run` (:func:`lieflow.app.datasets.solution_dataset`; needs the
         ``sweep`` extra: ``pip install 'lieflow[sweep]'``)."""
-        from .datasets import solution_dataset
+        from .app.datasets import solution_dataset
 
         return solution_dataset(self)
 

@@ -19,7 +19,7 @@ from benchmarks.report import Table, TargetCheck, ratio
 from benchmarks.suites import rigid_body_scaling
 from benchmarks.suites.scipy_work_precision import Point, levels, time_to_reach
 from benchmarks.timing import Timing
-from lieflow.reproduce import Case
+from lieflow.app.reproduce import Case
 from lieflow.schemes import BlockGauss
 from lieflow.tableaus import gauss
 

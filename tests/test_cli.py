@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import lieflow as lf
-from lieflow import io
-from lieflow.cli import main
+from lieflow.app import io
+from lieflow.app.cli import main
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -237,7 +237,7 @@ def test_initial_condition_from_a_file(dirs: tuple[Path, Path]) -> None:
 
 @pytest.mark.parametrize("example", sorted(EXAMPLES.glob("*.toml")), ids=lambda p: p.stem)
 def test_examples_are_valid(example: Path, tmp_path: Path) -> None:
-    from lieflow.config import build, load_config
+    from lieflow.app.config import build, load_config
 
     setup = build(load_config(example), output=tmp_path / "x.h5")
     assert setup.config.run.steps >= 1000
@@ -272,8 +272,8 @@ def test_heavy_dependencies_are_imported_lazily() -> None:
     import sys
 
     code = (
-        "import sys, lieflow, lieflow.cli, lieflow.config, lieflow.io, lieflow.plotting, "
-        "lieflow.reproduce; "
+        "import sys, lieflow, lieflow.app.cli, lieflow.app.config, lieflow.app.io, "
+        "lieflow.app.plotting, lieflow.app.reproduce; "
         "print([m for m in ('h5py', 'matplotlib', 'rich') if m in sys.modules])"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

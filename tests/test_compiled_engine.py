@@ -16,8 +16,9 @@ import numpy as np
 import pytest
 
 import lieflow as lf
-from lieflow import compiled, driver, io
-from lieflow.cli import main
+from lieflow import compiled, driver
+from lieflow.app import io
+from lieflow.app.cli import main
 
 numba = pytest.importorskip("numba")
 

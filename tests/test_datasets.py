@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import lieflow as lf
-from lieflow import io
-from lieflow.config import ConfigError, build, parse_config
+from lieflow.app import io
+from lieflow.app.config import ConfigError, build, parse_config
 
 xr = pytest.importorskip("xarray")
 
@@ -246,7 +246,7 @@ def test_open_errors(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_a_solution_as_a_dataset_matches_the_file_of_the_same_run(tmp_path: Path) -> None:
-    from lieflow.datasets import solution_dataset
+    from lieflow.app.datasets import solution_dataset
 
     path = run_file(tmp_path, rigid("seeds = [0, 1]"))
     setup = build(parse_config(rigid("seeds = [0, 1]")), output=tmp_path / "unused.h5")

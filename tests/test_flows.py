@@ -17,7 +17,7 @@ from scipy.integrate import solve_ivp
 
 import lieflow as lf
 from lieflow import driver, tree
-from lieflow.config import build, parse_config
+from lieflow.app.config import build, parse_config
 from lieflow.flows import Splitting, StepStats
 
 MU = 0.3
@@ -234,7 +234,7 @@ def _setup(tmp_path: Path, name: str, steps: int, method: str = "strang") -> Any
 
 
 def test_lieflow_run_with_a_splitting_resumes_bit_for_bit(tmp_path: Path) -> None:
-    from lieflow import io
+    from lieflow.app import io
 
     io.run(_setup(tmp_path, "ref.h5", 60))
     io.run(_setup(tmp_path, "a.h5", 25))  # an early stop, then more steps asked for

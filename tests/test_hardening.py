@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 
 import lieflow as lf
-from lieflow import io, tableaus
-from lieflow.cli import main
-from lieflow.config import ConfigError, build, identity_changes, parse_config
+from lieflow import tableaus
+from lieflow.app import io
+from lieflow.app.cli import main
+from lieflow.app.config import ConfigError, build, identity_changes, parse_config
 from lieflow.errors import InputError, PluginError, TableauError
 
 RUN = 'h = 0.1\nsteps = 30\nsave_every = 10\noutput = "traj.h5"'

@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 import lieflow as lf
-from lieflow import io
-from lieflow.cli import main
-from lieflow.config import ConfigError, build, load_config
+from lieflow.app import io
+from lieflow.app.cli import main
+from lieflow.app.config import ConfigError, build, load_config
 
 CONFIG = """
 [system]

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 import lieflow as lf
-from lieflow import io
-from lieflow.config import ConfigError, RunSetup, build, load_config, parse_config
+from lieflow.app import io
+from lieflow.app.config import ConfigError, RunSetup, build, load_config, parse_config
 
 CONFIG = """
 [system]
@@ -147,8 +147,8 @@ def test_hard_kill_then_resume_is_bitwise_identical(tmp_path: Path, reference: P
     script = textwrap.dedent(
         f"""
         import os
-        from lieflow import io
-        from lieflow.config import build, load_config
+        from lieflow.app import io
+        from lieflow.app.config import build, load_config
 
         class Kill:
             def start(self, done, total): self.done = done
@@ -255,7 +255,7 @@ def test_environment_has_versions() -> None:
 
 
 def test_plot_into_a_file_is_refused_with_a_message(tmp_path: Path) -> None:
-    from lieflow.plotting import plot_trajectory
+    from lieflow.app.plotting import plot_trajectory
 
     out = tmp_path / "run.h5"
     io.run(setup_for(write_config(tmp_path, steps=5), out))

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from lieflow.cli import main
-from lieflow.reproduce import SCHEMES, paper_cases, published
+from lieflow.app.cli import main
+from lieflow.app.reproduce import SCHEMES, paper_cases, published
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 FIGURES = ("rigid_body_energy.png", "toda_energy.png", "generalized_rigid_body_energy.png")

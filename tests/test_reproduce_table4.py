@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from lieflow.reproduce import (
+from lieflow.app.reproduce import (
     ITERATION_SCHEMES,
     _like_with_like_table,
     paper_cases,

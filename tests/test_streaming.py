@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 import lieflow as lf
-from lieflow import io
-from lieflow.config import ConfigError
-from lieflow.reproduce import Case
+from lieflow.app import io
+from lieflow.app.config import ConfigError
+from lieflow.app.reproduce import Case
 
 
 def _body() -> tuple[lf.IsospectralSystem, np.ndarray]:
@@ -109,7 +109,7 @@ def test_streamed_memory_is_bounded(tmp_path: Path) -> None:
         """
         import sys, tracemalloc
         import lieflow as lf
-        from lieflow.reproduce import Case
+        from lieflow.app.reproduce import Case
         system, W0 = Case("generalized_rigid_body", "n", 96, 0.01, 1, 1e-14).build(0)
         steps, out = int(sys.argv[1]), sys.argv[2]
         lf.integrate(system, lf.schemes.get("midpoint"), W0, 0.01, steps=4, out=out + "w")

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 import lieflow as lf
-from lieflow import io
-from lieflow.cli import main
-from lieflow.config import ConfigError, build
-from lieflow.sweeps import load_sweep, parse_sweep, run_id, sweep
+from lieflow.app import io
+from lieflow.app.cli import main
+from lieflow.app.config import ConfigError, build
+from lieflow.app.sweeps import load_sweep, parse_sweep, run_id, sweep
 
 BASE = """
 [system]
@@ -237,7 +237,7 @@ class _LosingExecutor(cf.Executor):
         n = self.seen[task["id"]] = self.seen.get(task["id"], 0) + 1
         if n <= self.lose:
             if self.partial:
-                from lieflow.config import parse_config
+                from lieflow.app.config import parse_config
 
                 cfg = parse_config(task["text"], base_dir=task["base_dir"])
                 io.run(build(cfg, output=task["output"], replace=False), resume=True,
@@ -466,7 +466,7 @@ def test_a_file_created_by_another_attempt_meanwhile_is_retried_not_failed(
 ) -> None:
     """Attempt B finds no file, attempt A then creates and finishes it, B's exclusive create
     is refused: B reports "busy" (retried later, then skipped), not a failure."""
-    from lieflow.sweeps import run_task
+    from lieflow.app.sweeps import run_task
 
     spec = load_sweep(write_grid(tmp_path, '"initial.seed" = [0]')).runs[0]
     io.run(build(spec.config))  # attempt A

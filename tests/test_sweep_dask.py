@@ -21,10 +21,10 @@ import numpy as np
 import pytest
 
 import lieflow as lf
-from lieflow import io
-from lieflow.cli import main
-from lieflow.config import build
-from lieflow.sweeps import load_sweep
+from lieflow.app import io
+from lieflow.app.cli import main
+from lieflow.app.config import build
+from lieflow.app.sweeps import load_sweep
 
 distributed = pytest.importorskip("distributed")
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 import lieflow as lf
-from lieflow.cli import main
-from lieflow.plotting import plot_sweep, sweep_groups
+from lieflow.app.cli import main
+from lieflow.app.plotting import plot_sweep, sweep_groups
 
 pytest.importorskip("xarray")
 

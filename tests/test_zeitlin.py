@@ -450,7 +450,7 @@ def _small_example(tmp_path: Path) -> Path:
 
 def test_example_configuration_parses() -> None:
     pytest.importorskip("h5py")
-    from lieflow.config import build, load_config
+    from lieflow.app.config import build, load_config
 
     setup = build(load_config(EXAMPLE), output=Path("unused.h5"))
     cfg = setup.config
@@ -469,8 +469,8 @@ def test_lieflow_run_and_plot_on_a_small_copy_of_the_example(
     pytest.importorskip("matplotlib")
     from matplotlib.image import imread
 
-    from lieflow import io
-    from lieflow.cli import main
+    from lieflow.app import io
+    from lieflow.app.cli import main
 
     config = _small_example(tmp_path)
     assert main(["run", str(config), "--no-progress"]) == 0
@@ -539,9 +539,9 @@ def test_add_plotter_validates() -> None:
 def test_a_failing_plotter_is_a_plugin_error(tmp_path: Path) -> None:
     pytest.importorskip("h5py")
     pytest.importorskip("matplotlib")
-    from lieflow import io
-    from lieflow.config import build, load_config
-    from lieflow.plotting import plot_trajectory
+    from lieflow.app import io
+    from lieflow.app.config import build, load_config
+    from lieflow.app.plotting import plot_trajectory
 
     config = _small_example(tmp_path)
     io.run(build(load_config(config)))

@@ -1,5 +1,5 @@
 """Turbulence diagnostics of lieflow-zeitlin (issue 17.2) and their storage while a run goes
-(``/diagnostics/extra``, the generic ``system.extra_diagnostics`` hook of lieflow.io).
+(``/diagnostics/extra``, the generic ``system.extra_diagnostics`` hook of lieflow.app.io).
 
 Exact facts: Parseval (``Σ Z(l)`` is ``½∫ζ²`` by quadrature of a field given in closed form),
 a single-degree field's spectrum in closed form (``sin³θ cos 3φ``: ``Z(3) = 16π/35``), the
@@ -22,8 +22,8 @@ pytest.importorskip("h5py")
 from lieflow_zeitlin import diagnostics as dg  # noqa: E402
 
 import lieflow as lf  # noqa: E402
-from lieflow import io  # noqa: E402
-from lieflow.cli import main  # noqa: E402
+from lieflow.app import io  # noqa: E402
+from lieflow.app.cli import main  # noqa: E402
 
 
 def _field_coeffs(f, N: int) -> np.ndarray:  # type: ignore[no-untyped-def]

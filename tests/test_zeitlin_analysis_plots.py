@@ -19,8 +19,9 @@ pytest.importorskip("h5py")
 from lieflow_zeitlin import movie as zmovie  # noqa: E402
 from lieflow_zeitlin import plotting  # noqa: E402
 
-from lieflow import InputError, io  # noqa: E402
-from lieflow.cli import main  # noqa: E402
+from lieflow import InputError  # noqa: E402
+from lieflow.app import io  # noqa: E402
+from lieflow.app.cli import main  # noqa: E402
 
 CONFIG = """
 [system]

@@ -19,8 +19,8 @@ h5py = pytest.importorskip("h5py")
 from lieflow_zeitlin import quflow  # noqa: E402
 
 import lieflow as lf  # noqa: E402
-from lieflow import io  # noqa: E402
-from lieflow.cli import main  # noqa: E402
+from lieflow.app import io  # noqa: E402
+from lieflow.app.cli import main  # noqa: E402
 
 
 class _Tripwire:

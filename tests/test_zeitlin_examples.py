@@ -13,9 +13,9 @@ import pytest
 lz = pytest.importorskip("lieflow_zeitlin")
 pytest.importorskip("h5py")
 
-from lieflow import io  # noqa: E402
-from lieflow.cli import main  # noqa: E402
-from lieflow.config import build, load_config  # noqa: E402
+from lieflow.app import io  # noqa: E402
+from lieflow.app.cli import main  # noqa: E402
+from lieflow.app.config import build, load_config  # noqa: E402
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "plugins" / "lieflow-zeitlin" / "examples"
 

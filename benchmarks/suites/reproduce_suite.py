@@ -1,7 +1,7 @@
 """The whole ``lieflow reproduce`` suite (the paper's 28 runs): total and per cell.
 
-The cases come from :func:`lieflow.reproduce.paper_cases` and run through
-:func:`lieflow.reproduce.run_case` exactly as ``lieflow reproduce`` runs them (diagnostics
+The cases come from :func:`lieflow.app.reproduce.paper_cases` and run through
+:func:`lieflow.app.reproduce.run_case` exactly as ``lieflow reproduce`` runs them (diagnostics
 on). Two comparisons per cell:
 
 * against the paper's published seconds (Tables 1, 3, 5; another machine, so indicative);
@@ -17,7 +17,7 @@ import time
 import attrs
 import numpy as np
 
-from lieflow.reproduce import SCHEMES, Case, paper_cases, published, run_case
+from lieflow.app.reproduce import SCHEMES, Case, paper_cases, published, run_case
 
 from ..config import BenchContext
 from ..contenders import AsPublished, LieflowRun, PlainReduced
@@ -177,7 +177,7 @@ def run(ctx: BenchContext) -> Section:
             "× vs plain numpy reduced",
         ),
         tuple(rows),
-        caption="Reproduction suite: wall time per run (lieflow.reproduce.run_case, "
+        caption="Reproduction suite: wall time per run (lieflow.app.reproduce.run_case, "
         "diagnostics on) and speed-ups.",
     )
     slowest = sorted(cells, key=lambda c: c.wall_time, reverse=True)[:3]
@@ -242,7 +242,7 @@ def run(ctx: BenchContext) -> Section:
                 "(~2–5 s); proposed fixes, outside this change: those six runs on the compiled "
                 "engine once it runs the block form and the absolute rule (or the lean numpy "
                 "stopping rule of issue 18 item 2), and figures decimated to ~1000 points per "
-                "curve (lieflow/reproduce.py, lieflow/plotting.py)",
+                "curve (lieflow/app/reproduce.py, lieflow/app/plotting.py)",
             )
         )
     if ctx.config.quick:
@@ -254,7 +254,7 @@ def run(ctx: BenchContext) -> Section:
         title="The reproduction suite (`lieflow reproduce`)",
         intro="The paper's experiments — rigid body, Toda lattice, generalized rigid body "
         "(n = 10, 20, 50) with 1s-SyDIRK, 7s-SyDIRK, 2s-Gauss and 3s-Gauss — reusing "
-        "`lieflow.reproduce.paper_cases` and `run_case`.",
+        "`lieflow.app.reproduce.paper_cases` and `run_case`.",
         tables=(table,),
         targets=tuple(targets),
         notes=tuple(notes),

@@ -1,6 +1,6 @@
 """The generalized rigid body on so(n), n = 50 … 512: every scheme of the paper, every lever.
 
-Per ``(n, scheme)`` the contenders run on the same input (``lieflow.reproduce.Case`` for the
+Per ``(n, scheme)`` the contenders run on the same input (``lieflow.app.reproduce.Case`` for the
 generalized rigid body: ``J_i ~ U[1, 2)``, ``W0 = SO(n).random``, ``h = 0.01``, rtol 1e-14),
 interleaved, median of k rounds, without diagnostics:
 
@@ -18,7 +18,7 @@ import time
 
 import attrs
 
-from lieflow.reproduce import Case
+from lieflow.app.reproduce import Case
 
 from ..config import BenchContext
 from ..contenders import PAPER_SCHEMES, AsPublished, Contender, PlainReduced

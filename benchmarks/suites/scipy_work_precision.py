@@ -29,9 +29,9 @@ import numpy as np
 
 import lieflow as lf
 from lieflow import IsospectralSystem
+from lieflow.app.reproduce import Case
 from lieflow.driver import Diagnostics
 from lieflow.integrate import Engine
-from lieflow.reproduce import Case
 
 from ..config import BenchContext
 from ..report import Section, Table, TargetCheck, seconds

@@ -1,6 +1,6 @@
 """The so(3) rigid body: one long midpoint trajectory, and an ensemble advanced as a stack.
 
-Rigid body with inertia (1, 2, 3) (``lieflow.reproduce.Case``), midpoint rule, h = 0.1,
+Rigid body with inertia (1, 2, 3) (``lieflow.app.reproduce.Case``), midpoint rule, h = 0.1,
 FixedPoint rtol 1e-14, no diagnostics.
 """
 
@@ -11,7 +11,7 @@ import time
 import numpy as np
 
 from lieflow import SO
-from lieflow.reproduce import Case
+from lieflow.app.reproduce import Case
 
 from ..config import BenchContext
 from ..contenders import AsPublished, Contender

@@ -17,7 +17,7 @@ import attrs
 import numpy as np
 
 from lieflow import IsospectralSystem
-from lieflow.reproduce import Case
+from lieflow.app.reproduce import Case
 
 from ..config import BenchContext
 from ..contenders import AsPublished, Contender, LieflowRun

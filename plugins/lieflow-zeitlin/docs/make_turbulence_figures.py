@@ -19,8 +19,8 @@ from pathlib import Path
 from lieflow_zeitlin.movie import save_still
 from PIL import Image
 
-from lieflow.cli import main
-from lieflow.io import read_trajectory
+from lieflow.app.cli import main
+from lieflow.app.io import read_trajectory
 
 ROOT = Path(__file__).resolve().parents[3]
 EXAMPLE = ROOT / "plugins" / "lieflow-zeitlin" / "examples" / "turbulence_n24.toml"

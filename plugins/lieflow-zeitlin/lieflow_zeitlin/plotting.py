@@ -12,7 +12,7 @@ interpolated at ``p``'s colatitude and longitude (periodic in longitude).
 Sources
 -------
 Functions that draw runs accept a :class:`lieflow.Solution`, the ``Trajectory`` of a
-``lieflow run`` HDF5 file (``lieflow.io.read_trajectory``), or plain arrays: anything with
+``lieflow run`` HDF5 file (``lieflow.app.io.read_trajectory``), or plain arrays: anything with
 attributes ``t`` and ``W`` (saved times and states) and, for the drift figure,
 ``energy_error``, ``casimir_drift`` and either ``step_times`` or ``h``.
 
@@ -382,7 +382,7 @@ def save_figures(
     (snapshots, equirectangular), ``<prefix>_vorticity_final.png`` (last state, both
     projections) and, if ``source`` carries diagnostics, ``<prefix>_drift.png`` (energy and
     Casimir drift, enstrophy first). ``source`` is a :class:`lieflow.Solution`, the
-    ``Trajectory`` of a ``lieflow run`` file (``lieflow.io.read_trajectory(path)``) or a
+    ``Trajectory`` of a ``lieflow run`` file (``lieflow.app.io.read_trajectory(path)``) or a
     tuple ``(t, W)``.
     """
     out = Path(out_dir)
@@ -439,7 +439,7 @@ def spectra_figure(
     ranges of 2D turbulence; ``l^{-1}`` and ``l^{1/3}`` in the enstrophy spectrum).
 
     ``samples``: ``t``, ``energy_spectrum``, ``enstrophy_spectrum`` (rows per sample), as
-    :func:`lieflow.io.read_extra` returns them.
+    :func:`lieflow.app.io.read_extra` returns them.
     """
     from .diagnostics import time_mean
 
@@ -524,11 +524,11 @@ def statistics_figure(samples: dict[str, Array]) -> Figure:
 
 def run_samples(trajectory: Any) -> dict[str, Array]:
     """The diagnostics samples of a run: the file's ``/diagnostics/extra`` rows
-    (:func:`lieflow.io.read_extra`) or, for files without them, the diagnostics of its
+    (:func:`lieflow.app.io.read_extra`) or, for files without them, the diagnostics of its
     saved states (:func:`lieflow_zeitlin.diagnostics.snapshot`). For an ensemble run the
     spectra, energy and enstrophy are ensemble means, the levels and Casimirs the first
     member's."""
-    from lieflow.io import read_extra
+    from lieflow.app.io import read_extra
 
     from .diagnostics import snapshot
 

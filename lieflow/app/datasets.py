@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError, LieflowError
+from ..errors import InputError, LieflowError
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -272,7 +272,7 @@ def open_run(path: Path | str, *, chunks: Mapping[str, int] | str | None = None)
     Parameters
     ----------
     path : path
-        A file written by ``lieflow run``, ``lieflow sweep`` or :func:`lieflow.io.run`.
+        A file written by ``lieflow run``, ``lieflow sweep`` or :func:`lieflow.app.io.run`.
     chunks : mapping or "auto", optional
         Give dask arrays of these chunks (``Dataset.chunk``) instead of lazy numpy ones.
 

@@ -51,14 +51,14 @@ from typing import TYPE_CHECKING, Any, Literal, cast
 import attrs
 import numpy as np
 
-from .algebras import Array
-from .errors import LieflowError, PluginError
-from .flows import Flow, Splitting
-from .integrate import Engine, scheme_flow
-from .plugins import Kind, Registry, default_registry
-from .schemes.base import Scheme
-from .solvers.base import Solver
-from .systems.base import IsospectralSystem
+from ..algebras import Array
+from ..errors import LieflowError, PluginError
+from ..flows import Flow, Splitting
+from ..integrate import Engine, scheme_flow
+from ..plugins import Kind, Registry, default_registry
+from ..schemes.base import Scheme
+from ..solvers.base import Solver
+from ..systems.base import IsospectralSystem
 
 if TYPE_CHECKING:  # pragma: no cover
     from .io import TrajectoryHeader
@@ -342,7 +342,7 @@ class RunSetup:
         return Splitting.named(self.config.splitting.method, *self.flows, inner)
 
     def header(self) -> TrajectoryHeader:
-        """The trajectory file's header for this run (:class:`lieflow.io.TrajectoryHeader`)."""
+        """The trajectory file's header for this run (:class:`lieflow.app.io.TrajectoryHeader`)."""
         from .io import TrajectoryHeader
 
         cfg = self.config
@@ -522,7 +522,7 @@ def _component(raw: Mapping[str, Any], name: str, source: str) -> Component:
 
 
 def _splitting(raw: Mapping[str, Any], source: str) -> SplittingSettings:
-    from .flows import SPLITTINGS
+    from ..flows import SPLITTINGS
 
     sec = _Section(raw, "splitting", source)
     method = sec.string("method", required=False, hint='"strang"') or "strang"

@@ -48,12 +48,12 @@ from typing import TYPE_CHECKING, Any, Literal
 import attrs
 import numpy as np
 
-from . import _signals, driver, tree
-from .algebras import Array
+from .. import _signals, driver, tree
+from ..algebras import Array
+from ..driver import Chunk, Diagnostics, Monitor
+from ..errors import ConvergenceError, InputError, LieflowError
+from ..flows import WarmStart
 from .config import ConfigError, RunSetup, identity_changes
-from .driver import Chunk, Diagnostics, Monitor
-from .errors import ConvergenceError, InputError, LieflowError
-from .flows import WarmStart
 
 try:
     import fcntl
@@ -108,7 +108,7 @@ class OutputBusyError(LieflowError):
 class TrajectoryHeader:
     """What a :class:`TrajectoryWriter` needs to know about a run: the file's header.
 
-    ``lieflow run`` builds it from its configuration (:meth:`lieflow.config.RunSetup.header`),
+    ``lieflow run`` builds it from its configuration (:meth:`lieflow.app.config.RunSetup.header`),
     :func:`lieflow.integrate` with ``out=`` from its arguments.
 
     Attributes
@@ -170,7 +170,7 @@ def environment() -> dict[str, str]:
     """Versions and platform recorded in every output (lieflow, Python, numpy, scipy, h5py)."""
     import scipy
 
-    from . import __version__
+    from .. import __version__
 
     info = {
         "lieflow_version": __version__,
@@ -892,7 +892,7 @@ class TrajectoryWriter:
     @classmethod
     def create(cls, run: TrajectoryHeader | RunSetup) -> TrajectoryWriter:
         """Create ``run.output`` holding the header and step 0, and lock it (``run``: a
-        :class:`TrajectoryHeader`, or a :class:`~lieflow.config.RunSetup` for its header).
+        :class:`TrajectoryHeader`, or a :class:`~lieflow.app.config.RunSetup` for its header).
 
         The file is written under a temporary name in the same directory and then given its
         name, so a failure leaves no partial file. An existing file is replaced only if
@@ -937,7 +937,7 @@ class TrajectoryWriter:
     def reopen(cls, run: TrajectoryHeader | RunSetup) -> tuple[TrajectoryWriter, Checkpoint]:
         """Open ``run.output`` to resume, lock it, and return the writer and the last
         checkpoint; everything written after that checkpoint is dropped (``run``: a
-        :class:`TrajectoryHeader`, or a :class:`~lieflow.config.RunSetup` for its header).
+        :class:`TrajectoryHeader`, or a :class:`~lieflow.app.config.RunSetup` for its header).
 
         Every check runs before the file is opened for writing, so a refused file is left
         byte for byte as it was: it must be a lieflow trajectory of the same configuration
@@ -1269,7 +1269,7 @@ def run(
     Parameters
     ----------
     setup : RunSetup
-        A validated run (:func:`lieflow.config.build`).
+        A validated run (:func:`lieflow.app.config.build`).
     resume : bool
         Continue the existing file from its last checkpoint (bit-for-bit the same as an
         uninterrupted run; ``[run] steps`` may have grown). Without an existing file the run

@@ -32,8 +32,8 @@ from pathlib import Path
 from types import FrameType
 from typing import TextIO
 
-from . import __version__
-from .errors import InputError, LieflowError
+from .. import __version__
+from ..errors import InputError, LieflowError
 from .progress import ProgressBar
 
 __all__ = ["main"]
@@ -80,7 +80,7 @@ def _sigterm_as_interrupt() -> Iterator[None]:
 
 
 def _cmd_list(args: argparse.Namespace) -> int:
-    from .plugins import KINDS, default_registry
+    from ..plugins import KINDS, default_registry
 
     registry = default_registry()
     out: TextIO = sys.stdout
@@ -196,8 +196,8 @@ def _cmd_plot(args: argparse.Namespace) -> int:
 def _plot_movie(file: Path, out: Path, live: bool) -> Path:
     """``lieflow plot FILE --movie OUT``: the ``movie(trajectory, path, progress)`` attribute
     of the plotter a plugin registered for the file's system, with a progress bar."""
+    from ..plugins import default_registry
     from .io import read_trajectory
-    from .plugins import default_registry
 
     traj = read_trajectory(file)
     system = str(traj.meta["system"])

@@ -1,7 +1,7 @@
 """Sweeps: many runs of one base configuration over a grid of parameters (``lieflow sweep``).
 
 A grid file is a run configuration (``[system]``, ``[initial]``, ``[scheme]``, ``[solver]``,
-``[splitting]``, ``[run]``, see :mod:`lieflow.config`) plus a ``[sweep]`` table of lists
+``[splitting]``, ``[run]``, see :mod:`lieflow.app.config`) plus a ``[sweep]`` table of lists
 over dotted configuration keys; their product defines the runs::
 
     [sweep]
@@ -24,7 +24,7 @@ pool, one BLAS thread per worker) or on Dask distributed. Running it again skips
 runs and resumes the others from their checkpoints, bit for bit; a failed run is recorded
 with its error and does not stop the others; a run whose worker died is run again from its
 checkpoint; two attempts never write one file at once (the trajectory's lock:
-:class:`~lieflow.io.OutputBusyError` is retried later).
+:class:`~lieflow.app.io.OutputBusyError` is retried later).
 """
 
 from __future__ import annotations
@@ -53,6 +53,7 @@ from typing import Any
 import attrs
 import numpy as np
 
+from ..errors import InputError, LieflowError
 from .config import (
     _SECTIONS,
     Config,
@@ -62,7 +63,6 @@ from .config import (
     parse_config,
     read_toml_file,
 )
-from .errors import InputError, LieflowError
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -514,7 +514,7 @@ def load_sweep(path: Path | str, *, directory: Path | str | None = None) -> Swee
 # -- one run on a worker ------------------------------------------------------------------
 
 #: True while a worker of the default pool runs a task (its SIGTERM handler then raises
-#: KeyboardInterrupt, which lieflow.io.run turns into an "interrupted", resumable file).
+#: KeyboardInterrupt, which lieflow.app.io.run turns into an "interrupted", resumable file).
 _BUSY = False
 #: Set by SIGTERM in a worker of the default pool: tasks it has not started return at once.
 _STOP = False
@@ -1127,7 +1127,7 @@ class _Coordinator:
         if not force and (not self.dirty or now - self.last_write < every):
             return
         g = self.grid
-        from . import __version__
+        from .. import __version__
 
         _write_json(
             g.manifest,

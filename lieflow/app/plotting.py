@@ -16,13 +16,13 @@ from typing import TYPE_CHECKING, Any
 import attrs
 import numpy as np
 
-from .algebras import Array
-from .errors import LieflowError, PluginError
+from ..algebras import Array
+from ..errors import LieflowError, PluginError
 
 if TYPE_CHECKING:  # pragma: no cover
     from matplotlib.figure import Figure
 
-    from .plugins import Registry
+    from ..plugins import Registry
 
 __all__ = [
     "FLOOR",
@@ -146,8 +146,8 @@ def plot_trajectory(
     PluginError
         The system's plotter failed (the message names the plugin and the reason).
     """
+    from ..plugins import default_registry
     from .io import read_trajectory
-    from .plugins import default_registry
 
     traj = read_trajectory(path)
     src = Path(path)

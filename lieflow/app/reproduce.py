@@ -41,16 +41,16 @@ from pathlib import Path
 import attrs
 import numpy as np
 
-from . import compiled
-from .algebras import SO, Array
-from .errors import InputError
-from .integrate import Engine, integrate
-from .schemes import get as get_scheme
-from .solution import Solution
-from .solvers.fixed_point import FixedPoint
-from .systems.base import IsospectralSystem
-from .systems.rigid_body import GeneralizedRigidBody, RigidBody
-from .systems.toda import PAPER_W0, PeriodicToda
+from .. import compiled
+from ..algebras import SO, Array
+from ..errors import InputError
+from ..integrate import Engine, integrate
+from ..schemes import get as get_scheme
+from ..solution import Solution
+from ..solvers.fixed_point import FixedPoint
+from ..systems.base import IsospectralSystem
+from ..systems.rigid_body import GeneralizedRigidBody, RigidBody
+from ..systems.toda import PAPER_W0, PeriodicToda
 
 __all__ = [
     "SCHEMES",
@@ -669,7 +669,7 @@ def _write_report(
     total_time: float,
     paper_algorithm: Sequence[RunRecord] = (),
 ) -> Path:
-    from . import __version__
+    from .. import __version__
 
     machine = machine_description()
     lines = [
