@@ -13,8 +13,10 @@ on disk and figures:
 - :mod:`~lieflow.app.reproduce` — the paper's experiments (``lieflow reproduce``);
 - :mod:`~lieflow.app.cli` — the ``lieflow`` command.
 
-The numerical core never imports this package at module level; the few entry points that
+The core's modules never import this package at module level; the few entry points that
 reach it (``integrate(out=...)``, ``progress=True``, :meth:`~lieflow.Solution.to_xarray`)
 import it when called. The user-facing names (:func:`lieflow.open_run`,
-:func:`lieflow.open_sweep`, :func:`lieflow.sweep`, ...) are re-exported by ``lieflow``.
+:func:`lieflow.open_sweep`, :func:`lieflow.sweep`, ...) are re-exported by ``lieflow``'s
+``__init__``; none of these modules imports h5py, matplotlib, xarray or dask before it is
+used.
 """
