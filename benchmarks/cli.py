@@ -28,6 +28,7 @@ from .suites import (
     scipy_work_precision,
     so3_throughput,
     streaming_memory,
+    sweeps,
     work_precision,
 )
 
@@ -41,6 +42,7 @@ SUITES: tuple[tuple[str, Callable[[BenchContext], Section]], ...] = (
     ("iteration_cost", iteration_cost.run),
     ("zeitlin", euler_zeitlin.run),
     ("memory", streaming_memory.run),
+    ("sweeps", sweeps.run),
 )
 
 

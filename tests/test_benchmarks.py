@@ -153,3 +153,27 @@ def test_quick_run_writes_every_table(tmp_path: Path) -> None:
 
 def test_unknown_benchmark_name_is_refused(tmp_path: Path) -> None:
     assert cli.main(["--quick", "--only", "nope", "--out", str(tmp_path / "x.md")]) == 2
+
+
+def test_sweeps_suite_quick_reports_every_field() -> None:
+    """The sweeps benchmark in quick mode: every row and target present (not the timings)."""
+    import importlib.util
+
+    pytest.importorskip("xarray")
+    from benchmarks.suites import sweeps
+
+    section = sweeps.run(BenchContext(quick()))
+    assert section.title.startswith("Sweeps")
+    (table,) = section.tables
+    assert table.header == ("case", "how", "median", "per run", "speed-up")
+    hows = [row[1] for row in table.rows]
+    assert hows[0].startswith("one after another") and hows[1].startswith("local pool")
+    assert any(h.startswith("open_sweep +") for h in hows)
+    assert len(section.targets) == 3
+    pool, dask, opening = section.targets
+    assert pool.met is not None and opening.met is not None
+    assert "cores' worth" in pool.limit and "×" in pool.measured
+    assert "ms per run" in dask.measured or dask.met is None
+    if importlib.util.find_spec("distributed") is not None:
+        assert dask.met is not None and any("Dask LocalCluster" in h for h in hows)
+    assert any("load average" in note for note in section.notes)
