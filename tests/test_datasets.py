@@ -13,6 +13,7 @@ import pytest
 import lieflow as lf
 from lieflow.app import io
 from lieflow.app.config import ConfigError, build, parse_config
+from lieflow.app.sweeps import SweepResult
 
 xr = pytest.importorskip("xarray")
 
@@ -149,7 +150,7 @@ GRID = """
 """
 
 
-def make_sweep(tmp_path: Path, base: str, table: str) -> lf.sweeps.SweepResult:
+def make_sweep(tmp_path: Path, base: str, table: str) -> SweepResult:
     grid = tmp_path / "grid.toml"
     grid.write_text(base + "\n[sweep]\n" + table)
     with cf.ThreadPoolExecutor(2) as pool:

@@ -121,7 +121,7 @@ def test_file_matches_integrate(tmp_path: Path) -> None:
 
 def test_datasets_are_chunked_and_resizable(reference: Path) -> None:
     with h5py.File(reference) as f:
-        for name in ("trajectory/W", "diagnostics/energy_error", "diagnostics/iterations"):
+        for name in ("W", "time", "step", "energy_error", "iterations"):
             assert f[name].chunks is not None
             assert f[name].maxshape[0] is None
 
@@ -175,14 +175,14 @@ def test_resume_truncates_a_save_cut_off_half_way(tmp_path: Path, reference: Pat
     setup = setup_for(write_config(tmp_path), tmp_path / "torn.h5")
     io.run(setup, monitor=StopAt(20, KeyboardInterrupt()))
     with h5py.File(setup.output, "r+") as f:  # rows of a save that never got its checkpoint
-        for name in ("energy", "energy_error", "iterations", "residual"):
-            ds = f["diagnostics"][name]
+        for name in ("step", "energy", "energy_error", "iterations", "residual"):
+            ds = f[name]
             ds.resize(ds.shape[0] + 7, axis=0)
             ds[-7:] = 12345
-        for name in ("step", "t", "W"):
-            ds = f["trajectory"][name]
+        for name in ("saved_step", "time", "W"):
+            ds = f[name]
             ds.resize(ds.shape[0] + 1, axis=0)
-        f["trajectory/step"][-1] = 27
+        f["saved_step"][-1] = 27
     assert io.read_trajectory(setup.output).energy_error.shape[0] == 21  # reader ignores them
     io.run(setup, resume=True)
     assert_same_file(setup.output, reference)

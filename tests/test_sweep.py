@@ -19,7 +19,7 @@ import lieflow as lf
 from lieflow.app import io
 from lieflow.app.cli import main
 from lieflow.app.config import ConfigError, build
-from lieflow.app.sweeps import load_sweep, parse_sweep, run_id, sweep
+from lieflow.app.sweeps import SweepMonitor, load_sweep, parse_sweep, run_id, sweep
 
 BASE = """
 [system]
@@ -373,7 +373,7 @@ def test_ensemble_grid_and_progress_monitor(tmp_path: Path) -> None:
     """A sweep of ensemble runs, watched by a SweepMonitor."""
     seen: dict[str, Any] = {"updates": 0, "finished": []}
 
-    class Watch(lf.sweeps.SweepMonitor):
+    class Watch(SweepMonitor):
         def start(self, runs: int, skipped: int) -> None:
             seen["start"] = (runs, skipped)
 

@@ -38,9 +38,9 @@ import numpy as np
 from ..errors import InputError, LieflowError
 
 if sys.version_info >= (3, 11):
-    import tomllib
+    pass
 else:  # pragma: no cover - Python 3.10
-    import tomli as tomllib
+    pass
 
 __all__ = ["open_run", "open_sweep", "solution_dataset"]
 
@@ -57,7 +57,8 @@ def _xarray() -> Any:
 
 
 class _RunInfo:
-    """What :func:`open_run` needs of one file, read once: header, valid lengths, shapes."""
+    """What :func:`open_run` needs of one file, read once: header, valid lengths, shapes,
+    where its arrays are (format version 1 or 2)."""
 
     def __init__(self, path: Path) -> None:
         from . import io
@@ -65,32 +66,43 @@ class _RunInfo:
         h5py = io._h5py()
         self.path = path
         with io._open(path, "r") as f, io._Reading(path):
-            io._check_format(f, path)
+            layout = io._check_format(f, path)
             ck = io._read_checkpoint(f, path)
-            io._check_lengths(f, ck.step, path)
-            self.attrs = {k: io._plain(v) for k, v in f.attrs.items()}
+            io._check_lengths(f, ck.step, path, layout)
+            self.attrs = io._meta(f)
             self.k = ck.step
-            saved = f["trajectory/step"][()]
+            self.paths = layout.paths
+            #: file row of step k's iterations and residual: k + update_row0
+            self.update_row0 = layout.update_row0
+            saved = f[self.paths["saved_step"]][()]
             self.n_saved = int(np.searchsorted(saved, self.k, side="right"))
             self.saved_step = saved[: self.n_saved]
-            self.t = f["trajectory/t"][: self.n_saved]
+            self.t = f[self.paths["time"]][: self.n_saved]
             self.shapes = {
                 name: tuple(obj.shape[1:])
-                for name, obj in (
-                    ("W", f["trajectory/W"]),
-                    *((n, f[f"diagnostics/{n}"]) for n in _DIAGNOSTICS),
-                )
-                if isinstance(obj, h5py.Dataset)
+                for name in ("W", *_DIAGNOSTICS)
+                if isinstance(obj := f[self.paths[name]], h5py.Dataset)
             }
-            self.dtype = f["trajectory/W"].dtype
+            self.dtype = f[self.paths["W"]].dtype
+            self.labels = f["ensemble"][()] if layout.netcdf and "ensemble" in f else None
         self.h = float(self.attrs["h"])
         w = self.shapes["W"]
         self.members = w[0] if len(w) == 3 else None
-        self.seeds = _seeds(str(self.attrs.get("config", "")), self.members)
+        self.seeds = (
+            self.labels
+            if self.labels is not None
+            else _seeds(str(self.attrs.get("config", "")), self.members)
+        )
 
     def rows(self, name: str) -> int:
-        """Valid rows of a dataset (up to the checkpoint)."""
+        """Valid rows of a variable (up to the checkpoint; ``iterations`` and ``residual``
+        counted from step 0)."""
         return self.n_saved if name == "W" else self.k + 1
+
+    def offset(self, name: str) -> int:
+        """How many leading steps the file has no row for (step 0 of the solver's columns
+        in a version-1 file)."""
+        return -self.update_row0 if name in ("iterations", "residual") else 0
 
 
 _DIAGNOSTICS = ("energy", "energy_error", "casimirs", "casimir_drift", "iterations", "residual")
@@ -98,15 +110,9 @@ _DIAGNOSTICS = ("energy", "energy_error", "casimirs", "casimir_drift", "iteratio
 
 def _seeds(config: str, members: int | None) -> Any:
     """The ensemble's labels: ``[initial] seeds`` if the configuration has them."""
-    if members is None:
-        return None
-    try:
-        seeds = tomllib.loads(config).get("initial", {}).get("seeds")
-    except (tomllib.TOMLDecodeError, AttributeError):
-        seeds = None
-    if isinstance(seeds, list) and len(seeds) == members:
-        return np.asarray(seeds)
-    return np.arange(members)
+    from .io import _ensemble_labels
+
+    return None if members is None else _ensemble_labels(config, members)
 
 
 def _fill(dtype: np.dtype[Any]) -> Any:
@@ -119,9 +125,9 @@ class _Stacked:
     """A lazily read array over many files: ``lead`` dimensions of runs, then a dataset of
     each run's file padded to a common shape (missing runs and rows read as the fill).
 
-    ``offset`` shifts the first axis (``iterations`` of step ``k`` is file row ``k - 1``;
-    rows before the offset read as ``head``); ``last`` reads only each run's last valid row
-    (the final state) and drops the first axis.
+    Each run's :meth:`_RunInfo.offset` shifts the first axis (``iterations`` of step ``k``
+    is row ``k - 1`` of a version-1 file; rows before the offset read as ``head``); ``last``
+    reads only each run's last valid row (the final state) and drops the first axis.
     """
 
     def __init__(
@@ -133,16 +139,14 @@ class _Stacked:
         rest: tuple[int, ...],
         dtype: Any,
         *,
-        offset: int = 0,
         head: Any = 0,
         last: bool = False,
     ) -> None:
         self.runs, self.lead, self.name = list(runs), lead, name
-        self.rows, self.rest, self.offset, self.head, self.last = rows, rest, offset, head, last
+        self.rows, self.rest, self.head, self.last = rows, rest, head, last
         self.dtype = np.dtype(dtype)
         self.shape = (*lead, *(() if last else (rows,)), *rest)
         self.fill = _fill(self.dtype)
-        self.where = "trajectory/W" if name == "W" else f"diagnostics/{name}"
 
     def variable(self, dims: Sequence[str]) -> Any:
         xr = _xarray()
@@ -181,14 +185,15 @@ class _Stacked:
             ]
             if run is None:
                 continue
-            valid = run.rows(self.name) - self.offset  # rows of the file's dataset
+            offset = run.offset(self.name)
+            valid = run.rows(self.name) - offset  # rows of the file's dataset
             actual = run.shapes[self.name]
             target = out[pos] if nl else out
             if self.last:
                 rows, trailing = np.array([valid - 1]), body
             else:
-                rows, trailing = body[0] - self.offset, body[1:]
-                if self.offset:
+                rows, trailing = body[0] - offset, body[1:]
+                if offset:
                     target[rows < 0] = self.head
             ok_rows = (rows >= 0) & (rows < valid)
             masks = [t < a for t, a in zip(trailing, actual, strict=True)]
@@ -196,7 +201,7 @@ class _Stacked:
                 continue
             r = rows[ok_rows]
             with io._open(run.path, "r") as f, io._Reading(run.path):
-                ds = f[self.where]
+                ds = f[run.paths[self.name]]
                 if not isinstance(ds, h5py.Dataset):  # pragma: no cover
                     continue
                 block = ds[int(r.min()) : int(r.max()) + 1]
@@ -244,15 +249,9 @@ def _variables(
             if name == "W"
             else (np.float64 if name != "iterations" or ragged else np.int64)
         )
-        offset, head = (
-            (1, 0 if name == "iterations" else np.nan)
-            if name in ("iterations", "residual")
-            else (0, 0)
-        )
+        head = np.nan if name == "residual" else 0  # step 0 of a version-1 file
         dims = (*lead_dims, *_dims(ref, name))
-        out[name] = _Stacked(
-            runs, lead, name, rows, rest, dtype, offset=offset, head=head
-        ).variable(dims)
+        out[name] = _Stacked(runs, lead, name, rows, rest, dtype, head=head).variable(dims)
         if name == "W":
             final = _Stacked(runs, lead, name, rows, rest, dtype, last=True)
             out["W_final"] = final.variable((*lead_dims, *_dims(ref, name)[1:]))

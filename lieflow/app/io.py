@@ -34,12 +34,13 @@ from __future__ import annotations
 import datetime as _dt
 import errno
 import hashlib
+import json
 import os
 import platform
 import socket
 import sys
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from types import MappingProxyType
@@ -54,6 +55,11 @@ from ..driver import Chunk, Diagnostics, Monitor
 from ..errors import ConvergenceError, InputError, LieflowError
 from ..flows import WarmStart
 from .config import ConfigError, RunSetup, identity_changes
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
 
 try:
     import fcntl
@@ -76,6 +82,7 @@ __all__ = [
     "TrajectoryWriter",
     "checkpoint_digest",
     "environment",
+    "format_version",
     "read_checkpoint",
     "read_diagnostics",
     "read_extra",
@@ -85,12 +92,52 @@ __all__ = [
 ]
 
 FORMAT = "lieflow-trajectory"
-FORMAT_VERSION = 1
+#: The layout written: 2 (netCDF-4: variables at the root, named dimensions); files of
+#: version 1 (groups /trajectory and /diagnostics, no dimensions) are read and resumed.
+FORMAT_VERSION = 2
 _TINY = float(np.finfo(float).tiny)
 _PER_STEP = ("energy", "energy_error", "casimirs", "casimir_drift")
 _PER_UPDATE = ("iterations", "residual")
-#: Group (under /diagnostics) of the optional per-sample diagnostics a system provides.
-_EXTRA = "extra"
+#: Group of the optional per-sample diagnostics a system provides.
+_EXTRA = "diagnostics/extra"
+
+
+@attrs.frozen
+class _Layout:
+    """Where a format version keeps each array of a trajectory file.
+
+    ``paths`` maps ``saved_step``, ``time``, ``W``, ``W0``, the per-step diagnostics and
+    ``step`` (version 2 only) to dataset paths; ``update_row0`` is the row of step 0 in
+    ``iterations`` and ``residual`` (-1 in version 1, which has no row for step 0).
+    """
+
+    version: int
+    paths: Mapping[str, str]
+    update_row0: int
+
+    @property
+    def netcdf(self) -> bool:
+        """Whether the file follows netCDF-4 (named dimensions on every dataset)."""
+        return self.version >= 2
+
+    def update_rows(self, k: int) -> slice:
+        """Rows of ``iterations`` / ``residual`` holding steps ``1..k``."""
+        return slice(1 + self.update_row0, k + 1 + self.update_row0)
+
+
+_NAMES = ("energy", "energy_error", "casimirs", "casimir_drift", "iterations", "residual")
+_V1_PATHS = {"saved_step": "trajectory/step", "time": "trajectory/t", "W": "trajectory/W"}
+_V2_PATHS = {"saved_step": "saved_step", "time": "time", "W": "W", "step": "step"}
+_LAYOUTS = {
+    1: _Layout(
+        1,
+        MappingProxyType(
+            {**_V1_PATHS, "W0": "initial/W0", **{n: f"diagnostics/{n}" for n in _NAMES}}
+        ),
+        -1,
+    ),
+    2: _Layout(2, MappingProxyType({**_V2_PATHS, "W0": "initial/W0", **{n: n for n in _NAMES}}), 0),
+}
 #: Checkpoint slots store the flow's state leaf by leaf under ``warm/<path>`` (a scheme's
 #: :class:`~lieflow.flows.WarmStart`: ``warm/last``, ``warm/previous``, ``warm/trusted``).
 _STATE = "warm"
@@ -366,12 +413,29 @@ class _Reading:
         raise _damaged(self.path, exc) from None
 
 
-def _check_format(f: h5py.File, path: Path) -> None:
+def _check_format(f: h5py.File, path: Path) -> _Layout:
+    """The layout of a lieflow trajectory file, or LieflowError for any other file."""
     if _plain(f.attrs.get("format")) != FORMAT:
         raise LieflowError(
             f"{_where(path)} is not a lieflow trajectory file (no format = {FORMAT!r} "
             "attribute). To fix: pass a file written by `lieflow run`."
         )
+    version = _plain(f.attrs.get("format_version", 1))
+    layout = _LAYOUTS.get(version) if isinstance(version, int) else None
+    if layout is None:
+        raise LieflowError(
+            f"{_where(path)} is a lieflow trajectory file of format version {version!r}, "
+            f"which this lieflow cannot read (it reads versions 1 to {FORMAT_VERSION}). To "
+            "fix: read it with the newer lieflow that wrote it (pip install -U lieflow)."
+        )
+    return layout
+
+
+def format_version(path: Path | str) -> int:
+    """The format version of a trajectory file (1: groups, no dimensions; 2: netCDF-4)."""
+    p = _as_path(path)
+    with _open(p, "r") as f, _Reading(p):
+        return _check_format(f, p).version
 
 
 # -- checkpoint integrity -----------------------------------------------------------------
@@ -405,21 +469,27 @@ def checkpoint_digest(step: int, t: float, items: Mapping[str, Any]) -> str:
 
 
 _SLOT_ATTRS = ("step", "t", _DIGEST)
+#: Version 2 stores a slot's non-array items (``None``, booleans, numbers, strings) as one
+#: JSON attribute, so that every attribute is a plain netCDF string or number.
+_SCALARS = "scalars"
 
 
 def _slot_items(slot: h5py.Group) -> dict[str, Any]:
     """Everything a checkpoint slot stores except step, t and the digest: datasets by path
-    (arrays) and attributes (``"none"`` read back as ``None``)."""
+    (arrays; dimension scales are not items) and the other values (version 1: one attribute
+    each, ``"none"`` read back as ``None``; version 2: the JSON attribute ``scalars``)."""
     h5py = _h5py()
     items: dict[str, Any] = {}
 
     def visit(name: str, obj: Any) -> None:
-        if isinstance(obj, h5py.Dataset):
+        if isinstance(obj, h5py.Dataset) and not _is_scale(obj):
             items[name] = np.asarray(obj[()])
 
     slot.visititems(visit)
     for key, raw in slot.attrs.items():
-        if key not in _SLOT_ATTRS:
+        if key == _SCALARS:
+            items.update(json.loads(_plain(raw)))
+        elif key not in _SLOT_ATTRS:
             value = _plain(raw)
             items[key] = None if isinstance(value, str) and value == "none" else value
     return items
@@ -457,24 +527,27 @@ def _read_checkpoint(f: h5py.File, path: Path | None = None) -> Checkpoint:
     return Checkpoint(step, t, items["W"], MappingProxyType(leaves))
 
 
-def _check_lengths(f: h5py.File, k: int, path: Path) -> None:
+def _check_lengths(f: h5py.File, k: int, path: Path, layout: _Layout) -> None:
     """The diagnostics reach the checkpoint at step ``k`` (rows after it are dropped later)."""
-    d = f["diagnostics"]
-    if min(d[n].shape[0] for n in _PER_STEP) < k + 1 or d["iterations"].shape[0] < k:
+    at = layout.paths
+    per_step = [f[at[n]].shape[0] for n in (*_PER_STEP, *(("step",) if "step" in at else ()))]
+    if min(per_step) < k + 1 or f[at["iterations"]].shape[0] < k + 1 + layout.update_row0:
         raise LieflowError(
             f"{_where(path)} is damaged: its diagnostics end before its checkpoint at step "
             f"{k}. To fix: start the run again without --resume (use --force)."
         )
 
 
-def _check_invariants(f: h5py.File, ck: Checkpoint, system: Any, path: Path) -> None:
+def _check_invariants(
+    f: h5py.File, ck: Checkpoint, system: Any, path: Path, layout: _Layout
+) -> None:
     """The checkpointed state reproduces the energy and Casimirs recorded for its step."""
     k = ck.step
-    d = f["diagnostics"]
+    at = layout.paths
     H, C = system.hamiltonian(ck.W), system.casimirs(ck.W)
-    H_rec, C_rec, H0 = d["energy"][k], d["casimirs"][k], d["energy"][0]
+    H_rec, C_rec, H0 = f[at["energy"]][k], f[at["casimirs"]][k], f[at["energy"]][0]
     scale_H = np.maximum(np.maximum(np.abs(H_rec), np.abs(H0)), _TINY)
-    scale_C = system.casimir_scale(f["initial/W0"][()])
+    scale_C = system.casimir_scale(f[at["W0"]][()])
     bad = []
     if np.shape(H) != np.shape(H_rec) or not np.all(np.abs(H - H_rec) <= 1e-10 * scale_H):
         bad.append(f"energy {np.max(H)!r} (recorded {np.max(H_rec)!r})")
@@ -489,16 +562,34 @@ def _check_invariants(f: h5py.File, ck: Checkpoint, system: Any, path: Path) -> 
         )
 
 
+def _check_coordinates(f: h5py.File, k: int, path: Path, layout: _Layout) -> None:
+    """Version 2: read the coordinate variables a reader does not otherwise read (so that
+    their Fletcher-32 checksums are verified) and check the step axis counts ``0..k``."""
+    if not layout.netcdf:
+        return
+    steps = f[layout.paths["step"]][: k + 1]
+    for name in _LABELS:
+        if name in f:
+            f[name][()]
+    if not np.array_equal(steps, np.arange(k + 1)):
+        raise LieflowError(
+            f"{_where(path)} is damaged: its step coordinate is not 0..{k}. To fix: restore "
+            "it from a backup, or run the configuration again (--force)."
+        )
+
+
 @contextmanager
-def _opened(path: Path | str) -> Iterator[tuple[h5py.File, Checkpoint]]:
-    """A trajectory file open for reading, with its verified checkpoint; every reader's
-    checks (format, checksum, diagnostics reaching the checkpoint) done once here."""
+def _opened(path: Path | str) -> Iterator[tuple[h5py.File, Checkpoint, _Layout]]:
+    """A trajectory file open for reading, with its verified checkpoint and its layout;
+    every reader's checks (format, checksums, diagnostics reaching the checkpoint) done
+    once here."""
     p = _as_path(path)
     with _open(p, "r") as f, _Reading(p):
-        _check_format(f, p)
+        layout = _check_format(f, p)
         ck = _read_checkpoint(f, p)
-        _check_lengths(f, ck.step, p)
-        yield f, ck
+        _check_lengths(f, ck.step, p, layout)
+        _check_coordinates(f, ck.step, p, layout)
+        yield f, ck, layout
 
 
 def read_checkpoint(path: Path | str) -> Checkpoint:
@@ -515,35 +606,46 @@ def read_checkpoint(path: Path | str) -> Checkpoint:
         return _read_checkpoint(f, p)
 
 
+#: Root attributes that belong to the file format, not to the run (netCDF's provenance).
+_HIDDEN_ATTRS = ("_NCProperties",)
+
+
+def _meta(f: h5py.File) -> dict[str, Any]:
+    """The root attributes: the run's header (netCDF's own attributes left out)."""
+    return {key: _plain(v) for key, v in f.attrs.items() if key not in _HIDDEN_ATTRS}
+
+
 def read_trajectory(path: Path | str) -> Trajectory:
     """Read a trajectory file, up to its last checkpoint (anything after it is ignored).
 
     Every dataset lieflow writes carries HDF5's Fletcher-32 chunk checksums and the
     checkpoint a SHA-256 digest, so a file whose bytes changed on disk is refused rather
     than read as wrong numbers (files from lieflow versions before 0.2 have neither).
+    Files of both format versions are read (see the module's docstring).
 
     Raises
     ------
     LieflowError
         The file is missing, not HDF5, not a lieflow trajectory, or damaged.
     """
-    with _opened(path) as (f, ck):
+    with _opened(path) as (f, ck, layout):
         k = ck.step
-        saved = f["trajectory/step"][()]
+        at = layout.paths
+        saved = f[at["saved_step"]][()]
         n_saved = int(np.searchsorted(saved, k, side="right"))
-        d = f["diagnostics"]
+        updates = layout.update_rows(k)
         return Trajectory(
             path=_as_path(path),
-            meta=MappingProxyType({key: _plain(v) for key, v in f.attrs.items()}),
+            meta=MappingProxyType(_meta(f)),
             step=saved[:n_saved],
-            t=f["trajectory/t"][:n_saved],
-            W=f["trajectory/W"][:n_saved],
-            energy=d["energy"][: k + 1],
-            energy_error=d["energy_error"][: k + 1],
-            casimirs=d["casimirs"][: k + 1],
-            casimir_drift=d["casimir_drift"][: k + 1],
-            iterations=d["iterations"][:k],
-            residual=d["residual"][:k],
+            t=f[at["time"]][:n_saved],
+            W=f[at["W"]][:n_saved],
+            energy=f[at["energy"]][: k + 1],
+            energy_error=f[at["energy_error"]][: k + 1],
+            casimirs=f[at["casimirs"]][: k + 1],
+            casimir_drift=f[at["casimir_drift"]][: k + 1],
+            iterations=f[at["iterations"]][updates],
+            residual=f[at["residual"]][updates],
             checkpoint=ck,
         )
 
@@ -581,16 +683,16 @@ def read_diagnostics(path: Path | str) -> RunDiagnostics:
     LieflowError
         The file is missing, not HDF5, not a lieflow trajectory, or damaged.
     """
-    with _opened(path) as (f, ck):
+    with _opened(path) as (f, ck, layout):
         k = ck.step
-        d = f["diagnostics"]
+        at = layout.paths
         return RunDiagnostics(
             completed_steps=k,
-            W0=f["initial/W0"][()],
+            W0=f[at["W0"]][()],
             W=np.asarray(ck.W),
-            energy_error=d["energy_error"][: k + 1],
-            casimir_drift=d["casimir_drift"][: k + 1],
-            iterations=d["iterations"][:k],
+            energy_error=f[at["energy_error"]][: k + 1],
+            casimir_drift=f[at["casimir_drift"]][: k + 1],
+            iterations=f[at["iterations"]][layout.update_rows(k)],
         )
 
 
@@ -602,11 +704,11 @@ def read_extra(path: Path | str) -> dict[str, Array]:
     with _open(p, "r") as f, _Reading(p):
         _check_format(f, p)
         k = _read_checkpoint(f, p).step
-        group = f["diagnostics"].get(_EXTRA)
+        group = f.get(_EXTRA)
         if group is None:
             return {}
         n = int(np.searchsorted(group["step"][()], k, side="right"))
-        return {name: group[name][:n] for name in group}
+        return {name: ds[:n] for name, ds in group.items() if not _is_scale(ds)}
 
 
 def _extra_hook(system: Any, save_every: int) -> tuple[Any, int]:
@@ -618,12 +720,18 @@ def _extra_hook(system: Any, save_every: int) -> tuple[Any, int]:
     return getattr(system, "extra_diagnostics", None), int(every) if every else save_every
 
 
-def _append_extra(d: h5py.Group, rows: list[tuple[int, float, dict[str, Any]]]) -> None:
+def _append_extra(f: h5py.File, rows: list[tuple[int, float, dict[str, Any]]]) -> None:
     """Append ``(step, t, {name: value})`` rows to ``/diagnostics/extra`` (datasets are
-    created at the first row, shaped like its values)."""
+    created at the first row, shaped like its values; in a netCDF-4 file along the unlimited
+    dimension ``sample``, an ensemble's member axis on ``ensemble``)."""
     if not rows:
         return
-    group = d.require_group(_EXTRA)
+    netcdf = _is_netcdf(f)
+    group = f.get(_EXTRA)
+    if group is None:
+        group = f.require_group(_EXTRA)
+        if netcdf:
+            _dimension(group, "sample", 0, unlimited=True)
     columns: dict[str, Array] = {
         "step": np.array([r[0] for r in rows], dtype=np.int64),
         "t": np.array([r[1] for r in rows], dtype=np.float64),
@@ -632,11 +740,25 @@ def _append_extra(d: h5py.Group, rows: list[tuple[int, float, dict[str, Any]]]) 
         columns[name] = np.stack([np.asarray(r[2][name]) for r in rows])
     for name, values in columns.items():
         if name not in group:
-            _growable(group, name, values[0], values.dtype)
+            dims = _extra_dims(f, group, name, values.shape[1:]) if netcdf else None
+            _growable(group, name, values[0], values.dtype, dims)
         ds = group[name]
         n = ds.shape[0]
         ds.resize(n + len(values), axis=0)
         ds[n:] = values
+
+
+def _extra_dims(f: h5py.File, group: h5py.Group, name: str, shape: tuple[int, ...]) -> list[Any]:
+    """Dimensions of an extra diagnostic: ``sample``, then ``ensemble`` for an axis as long
+    as the ensemble's first, then ``<name>_dim<i>`` of the group."""
+    dims: list[Any] = [group["sample"]]
+    members = f["ensemble"].shape[0] if "ensemble" in f else None
+    for i, n in enumerate(shape):
+        if i == 0 and n == members:
+            dims.append(f["ensemble"])
+        else:
+            dims.append(_dimension(group, f"{name}_dim{i}", n))
+    return dims
 
 
 def _plain(value: Any) -> Any:
@@ -651,16 +773,109 @@ def _chunk_rows(row_bytes: int, target: int = 1 << 16) -> int:
     return max(1, min(1024, target // max(row_bytes, 1)))
 
 
-def _growable(group: h5py.Group, name: str, row: Array, dtype: Any) -> None:
+def _growable(
+    group: h5py.Group, name: str, row: Array, dtype: Any, dims: Sequence[Any] | None = None
+) -> h5py.Dataset:
+    """An empty dataset that grows along its first axis, one row shaped like ``row``;
+    ``dims`` (netCDF-4 files): the dimension scales of its axes."""
     row = np.asarray(row)
-    group.create_dataset(
+    ds = group.create_dataset(
         name,
         shape=(0, *row.shape),
         maxshape=(None, *row.shape),
-        dtype=dtype,
+        dtype=_stored_dtype(group.file, dtype),
         chunks=(_chunk_rows(row.size * np.dtype(dtype).itemsize), *row.shape),
         fletcher32=True,
     )
+    if dims is not None:
+        _attach(ds, dims)
+    return ds
+
+
+# -- netCDF-4 ------------------------------------------------------------------------------
+#
+# A netCDF-4 file is an HDF5 file whose datasets are netCDF variables: every axis of every
+# dataset has one HDF5 dimension scale (its netCDF dimension). A dimension with a coordinate
+# variable is that variable, made a scale under its own name; one without is an empty
+# dataset whose scale name says "not a variable" and its length. Each dimension carries a
+# file-wide id (``_Netcdf4Dimid``). Complex numbers are stored as the committed compound
+# type ``_PFNC_DOUBLE_COMPLEX_TYPE`` {r, i} (the nc-complex convention: h5py and h5netcdf
+# read it as complex, netCDF-C as a compound, nc-complex and netCDF4-python as complex).
+
+_NOT_A_VARIABLE = "This is a netCDF dimension but not a netCDF variable."
+_DIMID = "_Netcdf4Dimid"
+#: Coordinate variables of the fixed dimensions (labels of the ensemble and Casimirs).
+_LABELS = ("ensemble", "casimir")
+_COMPLEX_TYPES = {8: "_PFNC_FLOAT_COMPLEX_TYPE", 16: "_PFNC_DOUBLE_COMPLEX_TYPE"}
+
+
+def _is_netcdf(f: h5py.File) -> bool:
+    return _plain(f.attrs.get("format_version", 1)) >= 2
+
+
+def _is_scale(ds: Any) -> bool:
+    """Whether an HDF5 object is a dimension scale (a netCDF dimension)."""
+    return _plain(ds.attrs.get("CLASS", b"")) == "DIMENSION_SCALE"
+
+
+def _stored_dtype(f: h5py.File, dtype: Any) -> Any:
+    """The HDF5 type of ``dtype`` in a netCDF-4 file: complex as the committed compound type
+    of the nc-complex convention (created at its first use), anything else as it is."""
+    dtype = np.dtype(dtype)
+    if dtype.kind != "c" or not _is_netcdf(f):
+        return dtype
+    name = _COMPLEX_TYPES.get(dtype.itemsize)
+    if name is None:  # pragma: no cover - no complex256 state in practice
+        return dtype
+    if name not in f:
+        f[name] = dtype
+    return f[name]
+
+
+def _next_dimid(f: h5py.File) -> int:
+    """One more than the largest dimension id in the file."""
+    h5py = _h5py()
+    ids = [-1]
+
+    def visit(name: str, obj: Any) -> None:
+        if isinstance(obj, h5py.Dataset) and _DIMID in obj.attrs:
+            ids.append(int(obj.attrs[_DIMID]))
+
+    f.visititems(visit)
+    return max(ids) + 1
+
+
+def _dimension(
+    group: h5py.Group, name: str, size: int, *, unlimited: bool = False, dimid: int | None = None
+) -> h5py.Dataset:
+    """A netCDF dimension without coordinate variable (created if missing)."""
+    if name in group:
+        return group[name]
+    kwargs: dict[str, Any] = {"maxshape": (None,), "chunks": (1024,)} if unlimited else {}
+    ds = group.create_dataset(name, shape=(size,), dtype=">f4", **kwargs)
+    ds.make_scale(f"{_NOT_A_VARIABLE}{size:10d}")
+    ds.attrs[_DIMID] = np.int32(_next_dimid(group.file) if dimid is None else dimid)
+    return ds
+
+
+def _coordinate(ds: h5py.Dataset, dimid: int) -> h5py.Dataset:
+    """Make a 1-D dataset the coordinate variable of the dimension of its name."""
+    ds.make_scale(ds.name.rsplit("/", 1)[-1])
+    ds.attrs[_DIMID] = np.int32(dimid)
+    return ds
+
+
+def _attach(ds: h5py.Dataset, dims: Sequence[Any]) -> None:
+    """Attach one dimension scale to each axis of ``ds``."""
+    for axis, scale in enumerate(dims):
+        ds.dims[axis].attach_scale(scale)
+
+
+def _detach(ds: h5py.Dataset) -> None:
+    """Detach every dimension scale of ``ds`` (before deleting it: no dangling references)."""
+    for axis in range(ds.ndim):
+        for scale in list(ds.dims[axis].values()):
+            ds.dims[axis].detach_scale(scale)
 
 
 # -- one writer per output file ------------------------------------------------------------
@@ -791,7 +1006,7 @@ def _verify_for_resume(header: TrajectoryHeader) -> Checkpoint:
     path = header.output
     from_config = bool(header.config_source)
     with _open(path, "r", _RESUME_FIX) as f, _Reading(path):
-        _check_format(f, path)
+        layout = _check_format(f, path)
         stored, now = str(_plain(f.attrs["identity"])), header.identity
         if stored != now:
             changed = "; ".join(identity_changes(stored, now)) or f"{stored} -> {now}"
@@ -808,7 +1023,7 @@ def _verify_for_resume(header: TrajectoryHeader) -> Checkpoint:
                 + ", or write to a new output file.",
                 "--resume",
             )
-        if not np.array_equal(f["initial/W0"][()], header.W0):
+        if not np.array_equal(f[layout.paths["W0"]][()], header.W0):
             given = f"[initial] in {header.config_source}" if from_config else "W0"
             raise ConfigError(
                 f"--resume: {_where(path)} starts from a different initial condition than "
@@ -817,8 +1032,9 @@ def _verify_for_resume(header: TrajectoryHeader) -> Checkpoint:
                 "--resume",
             )
         ck = _read_checkpoint(f, path)
-        _check_lengths(f, ck.step, path)
-        _check_invariants(f, ck, header.system, path)
+        _check_lengths(f, ck.step, path, layout)
+        _check_coordinates(f, ck.step, path, layout)
+        _check_invariants(f, ck, header.system, path, layout)
         if ck.step > header.requested_steps:
             raise ConfigError(
                 f"--resume: {_where(path)} already holds {ck.step} steps, more than the "
@@ -853,21 +1069,25 @@ class TrajectoryWriter:
         self._lock = lock
         self._path = Path(f.filename)
         self._file_id = _file_id(f)
-        diag = f["diagnostics"]
+        self._layout = layout = _check_format(f, self._path)
+        at = layout.paths
         self._diagnostics = Diagnostics(
             header.system,
-            diag["energy"][0],
-            diag["casimirs"][0],
-            header.system.casimir_scale(f["initial/W0"][()]),
+            f[at["energy"]][0],
+            f[at["casimirs"]][0],
+            header.system.casimir_scale(f[at["W0"]][()]),
         )
-        # h5py path lookups cost tens of microseconds each: keep the handles
-        self._diag = {name: diag[name] for name in (*_PER_STEP, *_PER_UPDATE)}
-        self._traj = {name: f["trajectory"][name] for name in ("step", "t", "W")}
+        # h5py path lookups cost tens of microseconds each: keep the handles (``step``: the
+        # per-step coordinate of a netCDF-4 file, appended with the diagnostics)
+        per_step = (*_PER_STEP, *(("step",) if "step" in at else ()))
+        self._diag = {name: f[at[name]] for name in (*per_step, *_PER_UPDATE)}
+        self._traj = {name: f[at[name]] for name in ("saved_step", "time", "W")}
         self._ck = f["checkpoint"]
         self._slots = [self._ck["slot0"], self._ck["slot1"]]
         self._slot_data: list[dict[str, Any]] = [{}, {}]
-        self._n_diag = self._diag["iterations"].shape[0] + 1  # rows committed (steps 0..K)
-        self._n_saved = self._traj["step"].shape[0]
+        # rows committed (steps 0..K)
+        self._n_diag = self._diag["iterations"].shape[0] - layout.update_row0
+        self._n_saved = self._traj["saved_step"].shape[0]
         # per buffered chunk: (step indices kept, states kept, iterations, residuals, H, C,
         # extra rows); only the kept states, never a whole chunk (memory stays bounded)
         self._buffer: list[tuple[Array, Array, Array, Array, Array, Array, list[Any]]] = []
@@ -962,7 +1182,7 @@ class TrajectoryWriter:
             f = _open(path, "r+", _RESUME_FIX)
             try:
                 with _Reading(path):
-                    _truncate(f, ck.step)
+                    _truncate(f, ck.step, _check_format(f, path))
                     f.attrs["resumes"] = int(f.attrs.get("resumes", 0)) + 1
                     f.attrs["requested_steps"] = setup.requested_steps
                     f.attrs["status"] = "running"
@@ -1027,8 +1247,10 @@ class TrajectoryWriter:
                 "iterations": np.concatenate([b[2] for b in buf]).astype(np.int64),
                 "residual": np.concatenate([b[3] for b in buf]).astype(float),
             }
+            if "step" in self._diag:
+                columns["step"] = np.arange(n0, n0 + H.shape[0], dtype=np.int64)
             for name, values in columns.items():
-                start = n0 if name in _PER_STEP else n0 - 1
+                start = n0 + self._layout.update_row0 if name in _PER_UPDATE else n0
                 ds = self._diag[name]
                 ds.resize(start + len(values), axis=0)
                 ds[start:] = values
@@ -1039,11 +1261,11 @@ class TrajectoryWriter:
                 kept.append(W_last[None])
             if steps.size:
                 states = np.concatenate(kept)
-                for name, value in (("step", steps), ("t", steps * h), ("W", states)):
+                for name, value in (("saved_step", steps), ("time", steps * h), ("W", states)):
                     ds = self._traj[name]
                     ds.resize(n_saved + steps.size, axis=0)
                     ds[n_saved:] = value
-            _append_extra(self._f["diagnostics"], [e for b in buf for e in b[6]])
+            _append_extra(self._f, [e for b in buf for e in b[6]])
             self._checkpoint(stop, stop * h, W_last, state)
             self._f.flush()
             self._n_diag, self._n_saved = n0 + H.shape[0], n_saved + steps.size
@@ -1103,8 +1325,15 @@ class TrajectoryWriter:
 def _write_slot(
     slot: h5py.Group, index: int, t: float, items: Mapping[str, Any], cache: dict[str, Any]
 ) -> None:
-    """Store ``items`` in a checkpoint slot (arrays as datasets, other values as attributes,
-    ``None`` as ``"none"``), then its step, time and :func:`checkpoint_digest`."""
+    """Store ``items`` in a checkpoint slot (arrays as datasets; other values as attributes,
+    ``None`` as ``"none"``, in version 1, as the JSON attribute ``scalars`` in version 2),
+    then its step, time and :func:`checkpoint_digest`."""
+    netcdf = _is_netcdf(slot.file)
+    if cache.get("") != sorted(items):  # other leaves than this slot's last write here
+        _prune(slot, set(items))
+        cache.clear()
+        cache[""] = sorted(items)
+    scalars: dict[str, Any] = {}
     for key, value in items.items():
         if isinstance(value, np.ndarray):
             if key in slot.attrs:  # it was None (an attribute) at this slot's last write
@@ -1113,8 +1342,13 @@ def _write_slot(
             continue
         if key in slot:
             cache.pop(key, None)
-            del slot[key]
-        slot.attrs[key] = "none" if value is None else value
+            _drop(slot, key)
+        if netcdf:
+            scalars[key] = _plain(value)
+        else:
+            slot.attrs[key] = "none" if value is None else value
+    if netcdf:
+        slot.attrs[_SCALARS] = json.dumps(scalars, sort_keys=True)
     slot.attrs["step"] = index
     slot.attrs["t"] = t
     slot.attrs[_DIGEST] = checkpoint_digest(index, t, items)
@@ -1134,16 +1368,116 @@ def _put(group: h5py.Group, name: str, value: Array, cache: dict[str, Any]) -> N
     if ds is None and name in group:
         ds = cache[name] = group[name]
     if ds is not None and (ds.shape != value.shape or ds.dtype != value.dtype):
-        del group[name]
+        cache.pop(name)
+        _drop(group, name)
         ds = None
     if ds is None:
-        cache[name] = group.create_dataset(name, data=value, **_checked(value))
+        ds = cache[name] = _create(group, name, value)
     else:
         ds[...] = value
 
 
+def _create(group: h5py.Group, name: str, value: Array) -> h5py.Dataset:
+    """A dataset holding ``value`` with its checksum; in a netCDF-4 file with dimensions: a
+    state (shaped like W0) on the file's (``ensemble``,) ``row``, ``col``, anything else on
+    dimensions ``<name>_dim<i>`` of its own group."""
+    f = group.file
+    ds = group.create_dataset(
+        name, data=value, dtype=_stored_dtype(f, value.dtype), **_checked(value)
+    )
+    if _is_netcdf(f) and value.ndim:
+        if name.rsplit("/", 1)[-1] in ("W", "W0") and value.shape == _state_shape(f):
+            _attach(ds, [f[d] for d in _state_dims(value.ndim)])
+        else:
+            base = name.rsplit("/", 1)[-1]
+            _attach(ds, [_dimension(ds.parent, f"{base}_dim{i}", n) for i, n in
+                         enumerate(value.shape)])  # fmt: skip
+    return ds
+
+
+def _prune(slot: h5py.Group, keep: set[str]) -> None:
+    """Delete what a checkpoint slot holds besides the items ``keep`` (the leaves of a flow
+    state of another shape: a resume by a lieflow whose scheme keeps other state), so that
+    the slot holds exactly the items its digest covers."""
+    h5py = _h5py()
+    stale: list[str] = []
+
+    def visit(name: str, obj: Any) -> None:
+        if isinstance(obj, h5py.Dataset) and not _is_scale(obj) and name not in keep:
+            stale.append(name)
+
+    slot.visititems(visit)
+    for name in stale:
+        if name in slot:
+            _drop(slot, name)
+    for key in list(slot.attrs):
+        if key not in (*_SLOT_ATTRS, _SCALARS) and key not in keep:
+            del slot.attrs[key]
+    for key in keep:  # a group where a leaf goes (or a leaf where a group goes)
+        parts = key.split("/")
+        for i in range(1, len(parts) + 1):
+            sub = "/".join(parts[:i])
+            obj = slot.get(sub)
+            if obj is None:
+                break
+            if isinstance(obj, h5py.Group) != (i < len(parts)):
+                _drop(slot, sub)
+                break
+
+
+def _drop(group: h5py.Group, name: str) -> None:
+    """Delete dataset (or group) ``name`` of ``group`` and the dimensions only it used."""
+    h5py = _h5py()
+    obj = group[name]
+    parent, base = obj.parent, name.rsplit("/", 1)[-1]
+    if _is_netcdf(group.file):
+        inner = [obj] if isinstance(obj, h5py.Dataset) else []
+        if isinstance(obj, h5py.Group):
+            obj.visititems(lambda _, o: inner.append(o) if isinstance(o, h5py.Dataset) else None)
+        for ds in inner:
+            _detach(ds)
+    del group[name]
+    for i in range(8):
+        dim = f"{base}_dim{i}"
+        if dim in parent and _is_scale(parent[dim]):
+            del parent[dim]
+
+
+def _state_dims(ndim: int) -> list[str]:
+    """The dimensions of a state with ``ndim`` axes: (``ensemble``,) ``row``, ``col``."""
+    return [*_batch_dims(ndim - 2), "row", "col"]
+
+
+def _batch_dims(n: int) -> list[str]:
+    """Names of ``n`` batch axes: ``ensemble`` (``ensemble_0``, ... if more than one)."""
+    return ["ensemble"] if n == 1 else [f"ensemble_{i}" for i in range(n)]
+
+
+def _state_shape(f: h5py.File) -> tuple[int, ...]:
+    """The shape of one state of a netCDF-4 file (from its dimensions)."""
+    ens = [f[d].shape[0] for d in ("ensemble", *(f"ensemble_{i}" for i in range(8))) if d in f]
+    return (*ens, f["row"].shape[0], f["col"].shape[0])
+
+
+def _ensemble_labels(config: str, members: int) -> Array:
+    """Labels of an ensemble's members: ``[initial] seeds`` of the configuration if it
+    has one per member, else ``0..members-1``."""
+    try:
+        seeds = tomllib.loads(config).get("initial", {}).get("seeds") if config else None
+    except (tomllib.TOMLDecodeError, AttributeError):
+        seeds = None
+    if isinstance(seeds, list) and len(seeds) == members:
+        try:
+            return np.asarray(seeds, dtype=np.int64)
+        except (TypeError, ValueError, OverflowError):
+            pass
+    return np.arange(members, dtype=np.int64)
+
+
 def _initialise(f: h5py.File, header: TrajectoryHeader) -> None:
-    system, W0 = header.system, header.W0
+    """Write a new file's header, dimensions, variables and step 0 (format version 2)."""
+    system, W0 = header.system, np.asarray(header.W0)
+    powers = [k for k in system.casimir_powers if k <= system.algebra.n]
     meta: dict[str, Any] = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -1156,7 +1490,7 @@ def _initialise(f: h5py.File, header: TrajectoryHeader) -> None:
         "h": header.h,
         "save_every": header.save_every,
         "requested_steps": header.requested_steps,
-        "casimir_powers": [k for k in system.casimir_powers if k <= system.algebra.n],
+        "casimir_powers": np.asarray(powers, dtype=np.int64),
         "completed_steps": 0,
         "status": "running",
         "wall_time": 0.0,
@@ -1167,62 +1501,108 @@ def _initialise(f: h5py.File, header: TrajectoryHeader) -> None:
     }
     for key, value in meta.items():
         f.attrs[key] = value
-    f.create_group("initial").create_dataset("W0", data=W0, **_checked(W0))
-    H0 = system.hamiltonian(W0)
-    C0 = system.casimirs(W0)
-    tr = f.create_group("trajectory")
-    _growable(tr, "step", np.int64(0), np.int64)
-    _growable(tr, "t", np.float64(0), np.float64)
-    _growable(tr, "W", W0, W0.dtype)
-    d = f.create_group("diagnostics")
-    _growable(d, "energy", H0, np.float64)
-    _growable(d, "energy_error", H0, np.float64)
-    _growable(d, "casimirs", C0, np.float64)
-    _growable(d, "casimir_drift", C0, np.float64)
-    _growable(d, "iterations", np.int64(0), np.int64)
-    _growable(d, "residual", np.float64(0), np.float64)
-    for name, value in (
-        ("energy", H0),
-        ("energy_error", np.zeros_like(H0)),
-        ("casimirs", C0),
-        ("casimir_drift", np.zeros_like(C0)),
-    ):
-        d[name].resize(1, axis=0)
-        d[name][0] = value
-    for name, value in (("step", 0), ("t", 0.0), ("W", W0)):
-        tr[name].resize(1, axis=0)
-        tr[name][0] = value
+    h5py = _h5py()
+    props = (
+        f"version=2,lieflow={meta['lieflow_version']},hdf5={h5py.version.hdf5_version},"
+        f"h5py={h5py.__version__}"
+    )
+    f.attrs["_NCProperties"] = np.array(props, dtype=h5py.string_dtype("ascii", len(props)))
+    H0 = np.asarray(system.hamiltonian(W0), dtype=np.float64)
+    C0 = np.asarray(system.casimirs(W0), dtype=np.float64)
+    batch = W0.shape[:-2]
+    # dimensions: the two unlimited axes first (ids 0, 1), then the fixed ones
+    time = _coordinate(_growable(f, "time", np.float64(0), np.float64), 0)
+    step = _coordinate(_growable(f, "step", np.int64(0), np.int64), 1)
+    dimid = 2
+    ens = []
+    for name, n in zip(_batch_dims(len(batch)), batch, strict=True):
+        labels = _ensemble_labels(header.config_text, n) if len(batch) == 1 else np.arange(n)
+        ens.append(_coordinate(f.create_dataset(name, data=labels, **_checked(labels)), dimid))
+        dimid += 1
+    row = _dimension(f, "row", W0.shape[-2], dimid=dimid)
+    col = _dimension(f, "col", W0.shape[-1], dimid=dimid + 1)
+    casimir_labels = np.asarray(powers if len(powers) == C0.shape[-1] else
+                                np.arange(C0.shape[-1]), dtype=np.int64)  # fmt: skip
+    casimir = _coordinate(
+        f.create_dataset("casimir", data=casimir_labels, **_checked(casimir_labels)), dimid + 2
+    )
+    state = [*ens, row, col]
+    saved = _growable(f, "saved_step", np.int64(0), np.int64, [time])
+    W = _growable(f, "W", W0, W0.dtype, [time, *state])
+    variables = {
+        "energy": _growable(f, "energy", H0, np.float64, [step, *ens]),
+        "energy_error": _growable(f, "energy_error", H0, np.float64, [step, *ens]),
+        "casimirs": _growable(f, "casimirs", C0, np.float64, [step, *ens, casimir]),
+        "casimir_drift": _growable(f, "casimir_drift", C0, np.float64, [step, *ens, casimir]),
+        "iterations": _growable(f, "iterations", np.int64(0), np.int64, [step]),
+        "residual": _growable(f, "residual", np.float64(0), np.float64, [step]),
+    }
+    for name, text in _DESCRIPTIONS.items():
+        f[name].attrs["long_name"] = text
+    W.attrs["coordinates"] = "saved_step"
+    initial = f.create_group("initial").create_dataset(
+        "W0", data=W0, dtype=_stored_dtype(f, W0.dtype), **_checked(W0)
+    )
+    _attach(initial, state)
+    rows = {
+        time: 0.0, step: 0, saved: 0, W: W0,
+        variables["energy"]: H0, variables["energy_error"]: np.zeros_like(H0),
+        variables["casimirs"]: C0, variables["casimir_drift"]: np.zeros_like(C0),
+        variables["iterations"]: 0, variables["residual"]: np.nan,
+    }  # fmt: skip
+    for ds, value in rows.items():
+        ds.resize(1, axis=0)
+        ds[0] = value
     extra, _ = _extra_hook(system, header.save_every)
     if extra is not None:
-        _append_extra(d, [(0, 0.0, extra(W0))])
+        _append_extra(f, [(0, 0.0, extra(W0))])
     ck = f.create_group("checkpoint")
     for i in (0, 1):
         _write_slot(ck.create_group(f"slot{i}"), 0, 0.0, {"W": W0}, {})
     ck.attrs["current"] = 0
 
 
-def _truncate(f: h5py.File, k: int) -> None:
+#: ``long_name`` of the variables of a netCDF-4 trajectory file.
+_DESCRIPTIONS = {
+    "time": "time t = k h of the saved states",
+    "saved_step": "step index k of the saved states",
+    "W": "saved states W_k",
+    "step": "step index k of the per-step diagnostics",
+    "energy": "energy (Hamiltonian) H(W_k)",
+    "energy_error": "relative energy error |H(W_k) - H(W_0)| / |H(W_0)|",
+    "casimirs": "Casimirs C_j(W_k) = tr W_k^j",
+    "casimir_drift": "Casimir drift |C_j(W_k) - C_j(W_0)| / ||W_0||^j",
+    "iterations": "solver updates of step k (0 at step 0)",
+    "residual": "last relative update of step k's solve (NaN at step 0)",
+    "casimir": "power j of the Casimir tr W^j",
+}
+
+
+def _truncate(f: h5py.File, k: int, layout: _Layout) -> None:
     """Drop every row written after step ``k`` (a save the process did not finish)."""
-    d = f["diagnostics"]
-    for name in _PER_STEP:
-        if d[name].shape[0] > k + 1:
-            d[name].resize(k + 1, axis=0)
+    at = layout.paths
+    per_step = (*_PER_STEP, *(("step",) if "step" in at else ()))
+    for name in per_step:
+        if f[at[name]].shape[0] > k + 1:
+            f[at[name]].resize(k + 1, axis=0)
+    updates = k + 1 + layout.update_row0
     for name in _PER_UPDATE:
-        if d[name].shape[0] > k:
-            d[name].resize(k, axis=0)
-    if min(d[n].shape[0] for n in _PER_STEP) != k + 1 or d["iterations"].shape[0] != k:
+        if f[at[name]].shape[0] > updates:
+            f[at[name]].resize(updates, axis=0)
+    if min(f[at[n]].shape[0] for n in per_step) != k + 1 or f[at["iterations"]].shape[0] != updates:
         raise LieflowError(
             f"{f.filename!r} is damaged: its diagnostics end before its checkpoint at step "
             f"{k}. To fix: start the run again without --resume (use --force)."
         )
-    tr = f["trajectory"]
-    n = int(np.searchsorted(tr["step"][()], k, side="right"))
-    for name in ("step", "t", "W"):
-        tr[name].resize(n, axis=0)
-    if _EXTRA in d:
-        n = int(np.searchsorted(d[_EXTRA]["step"][()], k, side="right"))
-        for name in d[_EXTRA]:
-            d[_EXTRA][name].resize(n, axis=0)
+    n = int(np.searchsorted(f[at["saved_step"]][()], k, side="right"))
+    for name in ("saved_step", "time", "W"):
+        f[at[name]].resize(n, axis=0)
+    group = f.get(_EXTRA)
+    if group is not None:
+        n = int(np.searchsorted(group["step"][()], k, side="right"))
+        for ds in group.values():
+            if not _is_scale(ds):
+                ds.resize(n, axis=0)
     f.attrs["completed_steps"] = k
 
 

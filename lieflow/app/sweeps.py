@@ -679,10 +679,9 @@ def file_status(spec: RunSpec) -> str:
 
 def _max_energy_error(path: Path) -> float | None:
     try:
-        import h5py
+        from .io import read_diagnostics
 
-        with h5py.File(path, "r") as f:
-            return float(np.max(f["diagnostics/energy_error"][()]))
+        return float(np.max(read_diagnostics(path).energy_error))
     except Exception:
         return None
 
