@@ -591,37 +591,54 @@ def _reduced_step(
 
 
 @_helper
-def _predict(last: Any, prev: Any, has_prev: bool, out: Any) -> None:
-    """The warm-start prediction ``2 last - prev`` (``last`` alone after one step), 1-D."""
-    for i in range(out.size):
-        out[i] = 2.0 * last[i] - prev[i] if has_prev else last[i]
+def _predict(hist: Any, kk: int, points: int, weights: Any, out: Any) -> None:
+    """The warm-start prediction from the last ``points`` solutions of trajectory ``kk``
+    (:meth:`WarmStart.prediction <lieflow.flows.WarmStart.prediction>`):
+    ``out = sum_j weights[points - 1, j] hist[j, kk]``, 1-D."""
+    m = out.size
+    w0 = weights[points - 1, 0]
+    for e in range(m):
+        out[e] = w0 * hist[0, kk, e]
+    for j in range(1, points):
+        w = weights[points - 1, j]
+        for e in range(m):
+            out[e] += w * hist[j, kk, e]
 
 
 @_helper
-def _commit(solved: Any, last: Any, prev: Any, flags: Any, diff2: float, norm2: float) -> None:
-    """:meth:`WarmStart.advance` for the whole stack (warm arrays flattened to ``(K, m)``)."""
-    flags[2] = 1 if flags[0] == 0 or math.sqrt(diff2) < math.sqrt(norm2) else 0
-    K, m = last.shape
+def _commit(solved: Any, hist: Any, flags: Any, weights: Any, acc: Any, err2: Any) -> None:
+    """:meth:`WarmStart.advance <lieflow.flows.WarmStart.advance>` for the whole stack:
+    the squared errors of the predictions of ``solved`` from ``0 .. nh`` points (summed
+    over the stack), the best number of points (ties: fewer; one more if it was all of
+    them and ``hist`` holds more) into ``flags[1]``, and ``solved`` into the history
+    ``hist`` (``(depth, K, m)``, most recent first; ``flags[0]``: how many are filled)."""
+    depth, K, m = hist.shape
+    nh = flags[0]
+    for u in range(nh + 1):
+        err2[u] = 0.0
     for kk in range(K):
-        for i in range(m):
-            if flags[0] != 0:
-                prev[kk, i] = last[kk, i]
-            last[kk, i] = solved[kk, i]
-    if flags[0] != 0:
-        flags[1] = 1
-    flags[0] = 1
-
-
-@_helper
-def _distance2(a: Any, b: Any) -> tuple[float, float]:
-    """``||a - b||^2`` and ``||a||^2`` of 1-D arrays."""
-    d2 = 0.0
-    n2 = 0.0
-    for i in range(a.size):
-        d = a[i] - b[i]
-        d2 += d * d
-        n2 += a[i] * a[i]
-    return d2, n2
+        for e in range(m):
+            err2[0] += solved[kk, e] * solved[kk, e]
+        for u in range(1, nh + 1):
+            _predict(hist, kk, u, weights, acc)
+            for e in range(m):
+                d = solved[kk, e] - acc[e]
+                err2[u] += d * d
+    best = 0
+    for u in range(1, nh + 1):
+        if err2[u] < err2[best]:
+            best = u
+    if best == nh and best < depth:
+        best += 1
+    flags[1] = best
+    for j in range(depth - 1, 0, -1):
+        for kk in range(K):
+            for e in range(m):
+                hist[j, kk, e] = hist[j - 1, kk, e]
+    for kk in range(K):
+        for e in range(m):
+            hist[0, kk, e] = solved[kk, e]
+    flags[0] = min(nh + 1, depth)
 
 
 def _driver(fstep: Any, fviews: Any) -> Any:
@@ -631,38 +648,40 @@ def _driver(fstep: Any, fviews: Any) -> Any:
 
     def advance(
         W: Any, hA: Any, hb: Any, skew: bool, B: Any, params: Any, P: Any,
-        pparams: Any, project: bool, rule: Any, irule: Any, last: Any, prev: Any, flags: Any,
-        states: Any, iters: Any,
+        pparams: Any, project: bool, rule: Any, irule: Any, hist: Any, weights: Any,
+        flags: Any, states: Any, iters: Any,
     ) -> int:  # fmt: skip
         """Advance the stack ``W`` (``(K, n, n)``) by up to ``states.shape[0]`` steps of
         ``fstep``.
 
-        ``last``/``prev`` (``(K, m)``: each trajectory's warm offsets, flattened) and
-        ``flags = (has_last, has_prev, trusted)`` are the warm-start state, updated in place
-        after every completed step. ``irule`` holds
-        ``(max_iter, patience, window, project, retry_cold, use_warm)``. Each new state is
-        mapped by ``P`` (the system's compiled projection) when ``project``. Writes each
-        step's states and its iteration count (max over the stack) and returns how many steps
-        completed; fewer than asked means the next step failed and nothing of it was committed.
+        ``hist`` (``(depth, K, m)``: the last ``depth`` solutions' warm offsets of each
+        trajectory, flattened, most recent first), ``flags = (filled, trusted)`` and the
+        extrapolation weights (row ``p - 1``: from ``p`` points) are the warm-start state
+        (:class:`~lieflow.flows.WarmStart`), updated in place after every completed step.
+        ``irule`` holds ``(max_iter, patience, window, project, retry_cold, use_warm)``.
+        Each new state is mapped by ``P`` (the system's compiled projection) when
+        ``project``. Writes each step's states and its iteration count (max over the
+        stack) and returns how many steps completed; fewer than asked means the next step
+        failed and nothing of it was committed.
         """
         K, n, s = W.shape[0], W.shape[1], hb.shape[0]
         retry_cold, use_warm = irule[4] != 0, irule[5] != 0
-        m = last.shape[1]
+        m = hist.shape[2]
         solved = np.empty((K, m))
         pred = np.zeros(m)
+        acc = np.empty(m)
+        err2 = np.empty(hist.shape[0] + 1)
         work = np.empty((2, 2, s, n, n))
         scratch = np.empty((5, s, n, n))
         res = np.empty(irule[0])
         x, x0, xf, x0f, m0, m1, m2, m3 = fviews(work, scratch)
         for step in range(states.shape[0]):
-            has_last, has_prev = flags[0] != 0, flags[1] != 0
-            guessing = use_warm and has_last and flags[2] != 0
-            diff2 = 0.0
-            norm2 = 0.0
+            points = min(flags[0], flags[1])
+            guessing = use_warm and points > 0
             most = 0
             for kk in range(K):
-                if has_last:
-                    _predict(last[kk], prev[kk], has_prev, pred)
+                if guessing:
+                    _predict(hist, kk, points, weights, pred)
                 cur = W[kk] if step == 0 else states[step - 1, kk]
                 out = states[step, kk]
                 total = fstep(cur, out, pred, solved[kk], guessing, retry_cold, hA, hb, x, x0, xf,
@@ -675,12 +694,9 @@ def _driver(fstep: Any, fviews: Any) -> Any:
                     for c in range(n):
                         if not math.isfinite(out[a, c]):
                             return step
-                d2, n2 = _distance2(solved[kk], pred)
-                norm2 += n2
-                if has_last:
-                    diff2 += d2
                 most = max(most, total)
-            _commit(solved, last, prev, flags, diff2, norm2)
+            if use_warm:
+                _commit(solved, hist, flags, weights, acc, err2)
             iters[step] = most
         return states.shape[0]
 
@@ -697,23 +713,23 @@ def _entry_points(key: str) -> tuple[Any, Any]:
 
     def sydirk_advance(
         W: Any, hA: Any, hb: Any, skew: bool, B: Any, params: Any, P: Any, pparams: Any,
-        project: bool, rule: Any, irule: Any, last: Any, prev: Any, flags: Any, states: Any,
-        iters: Any,
+        project: bool, rule: Any, irule: Any, hist: Any, weights: Any, flags: Any,
+        states: Any, iters: Any,
     ) -> int:  # fmt: skip
         """The chunk loop of compositions of midpoint steps, ``hb = h b``."""
         key  # noqa: B018 - part of the cache key
         return _advance_sydirk(W, hA, hb, skew, B, params, P, pparams, project, rule, irule,
-                               last, prev, flags, states, iters)  # fmt: skip
+                               hist, weights, flags, states, iters)  # fmt: skip
 
     def reduced_advance(
         W: Any, hA: Any, hb: Any, skew: bool, B: Any, params: Any, P: Any, pparams: Any,
-        project: bool, rule: Any, irule: Any, last: Any, prev: Any, flags: Any, states: Any,
-        iters: Any,
+        project: bool, rule: Any, irule: Any, hist: Any, weights: Any, flags: Any,
+        states: Any, iters: Any,
     ) -> int:  # fmt: skip
         """The chunk loop of the reduced stage form, ``hA = h A``, ``hb = h b``."""
         key  # noqa: B018 - part of the cache key
         return _advance_reduced(W, hA, hb, skew, B, params, P, pparams, project, rule,
-                                irule, last, prev, flags, states, iters)  # fmt: skip
+                                irule, hist, weights, flags, states, iters)  # fmt: skip
 
     return sydirk_advance, reduced_advance
 
@@ -726,7 +742,7 @@ def _compile_entry(func: F) -> F:
     f8, i8 = t.float64, t.int64
     sig = t.int64(
         f8[:, :, ::1], f8[:, ::1], f8[::1], t.boolean, MAP_TYPE, f8[::1], MAP_TYPE, f8[::1],
-        t.boolean, f8[::1], i8[::1], f8[:, ::1], f8[:, ::1], i8[::1], f8[:, :, :, ::1],
+        t.boolean, f8[::1], i8[::1], f8[:, :, ::1], f8[:, ::1], i8[::1], f8[:, :, :, ::1],
         i8[::1],
     )  # fmt: skip
 

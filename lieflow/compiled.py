@@ -41,6 +41,7 @@ trust is decided for the whole stack, as numpy does.
 from __future__ import annotations
 
 import importlib.util
+from collections.abc import Sequence
 from types import ModuleType
 from typing import Any
 
@@ -49,7 +50,7 @@ import numpy as np
 
 from . import driver
 from .algebras import Array
-from .flows import SchemeFlow, WarmStart
+from .flows import DEFAULT_DEPTH, SchemeFlow, WarmStart, extrapolation_matrix
 from .schemes.base import Scheme
 from .solvers.base import Solver
 from .solvers.fixed_point import FixedPoint
@@ -90,10 +91,11 @@ class Chunk:
         The states after each completed step, ``(done, *batch, n, n)``.
     iterations : ndarray
         Fixed-point updates per completed step (max over an ensemble), ``(done,)``.
-    last, previous : ndarray or None
-        Warm-start offsets after the last completed step (:class:`WarmStart` fields).
-    trusted : bool
-        Whether the warm-start prediction is trusted for the next step.
+    history : tuple of ndarray
+        The warm-start offsets of the last completed steps, most recent first
+        (:meth:`WarmStart.history <lieflow.flows.WarmStart.history>`).
+    trusted : int
+        How many of them the next step's prediction extrapolates from.
     complete : bool
         Whether all requested steps completed; if not, the next step was not accepted and
         must be handed to the numpy path.
@@ -101,9 +103,8 @@ class Chunk:
 
     states: Array = attrs.field(repr=False)
     iterations: Array = attrs.field(repr=False)
-    last: Array | None = attrs.field(repr=False)
-    previous: Array | None = attrs.field(repr=False)
-    trusted: bool
+    history: tuple[Array, ...] = attrs.field(repr=False)
+    trusted: int
     complete: bool
 
     @property
@@ -151,29 +152,27 @@ class CompiledPlan:
         W: Array,
         h: float,
         steps: int,
-        last: Array | None = None,
-        previous: Array | None = None,
-        trusted: bool = True,
-        warm_start: bool = True,
+        history: Sequence[Array] = (),
+        depth: int = DEFAULT_DEPTH,
+        trusted: int = 1,
     ) -> Chunk:
         """Advance ``W`` (``(*batch, n, n)``) by up to ``steps`` steps of size ``h`` from the
-        warm-start state ``(last, previous, trusted)`` (:class:`~lieflow.WarmStart`)."""
+        warm-start state: the kept solutions ``history`` (most recent first), how many are
+        kept (``depth``; 0: no warm starts) and how many the next prediction uses
+        (``trusted``), as in :class:`~lieflow.flows.WarmStart`."""
         k = kernels()
         batch, n = W.shape[:-2], self.n
         K = int(np.prod(batch, dtype=np.int64))
         core = self.warm_shape()
         Wk = np.ascontiguousarray(W, dtype=np.float64).reshape(K, n, n)
-
         size = int(np.prod(core))
-
-        def unpack(a: Array | None) -> Array:
-            if a is None:
-                return np.zeros((K, size))
-            return np.array(a, dtype=np.float64, order="C").reshape(K, size)
-
-        lastk, prevk = unpack(last), unpack(previous)
-        flags = np.array([last is not None, previous is not None, trusted], dtype=np.int64)
-        irule = np.append(self.irule, np.int64(warm_start))
+        keep = max(depth, 1)
+        hist = np.zeros((keep, K, size))
+        filled = min(len(history), keep) if depth else 0
+        for j in range(filled):
+            hist[j] = np.asarray(history[j], dtype=np.float64).reshape(K, size)
+        flags = np.array([filled, int(trusted)], dtype=np.int64)
+        irule = np.append(self.irule, np.int64(depth > 0))
         states = np.empty((steps, K, n, n))
         iters = np.zeros(steps, dtype=np.int64)
         run = k.sydirk_advance if self.kind == "sydirk" else k.reduced_advance
@@ -181,15 +180,14 @@ class CompiledPlan:
         done = run(
             Wk, h * self.A, h * self.b, self.skew, self.B, self.params,
             self.project if project else self.B, self.pparams, project, self.rule,
-            irule, lastk, prevk, flags, states, iters,
+            irule, hist, extrapolation_matrix(keep), flags, states, iters,
         )  # fmt: skip
         shape = (*batch, *core)
         return Chunk(
             states[:done].reshape(done, *batch, n, n),
             iters[:done],
-            lastk.reshape(shape) if flags[0] else None,
-            prevk.reshape(shape) if flags[1] else None,
-            bool(flags[2]),
+            tuple(hist[j].reshape(shape) for j in range(int(flags[0]))),
+            int(flags[1]),
             done == steps,
         )
 
@@ -214,11 +212,12 @@ class CompiledSchemeFlow(SchemeFlow):
         self, W: Array, start: int, h: float, steps: int, state: WarmStart | None
     ) -> driver.Chunk:
         """Up to ``steps`` steps after step ``start`` (fewer if one is not accepted)."""
-        warm = WarmStart() if state is None else state
-        c = self.plan.advance(
-            W, h, steps, warm.last, warm.previous, warm.trusted, warm_start=self.warm_start
-        )
-        new = WarmStart(c.last, c.previous, c.trusted) if state is not None else None
+        if state is None:
+            c = self.plan.advance(W, h, steps, depth=0)
+            new = None
+        else:
+            c = self.plan.advance(W, h, steps, state.history(), state.depth, int(state.trusted))
+            new = state.replaced(c.history, c.trusted) if c.done else state
         states = c.states
         if c.done and self.plan.project is None:
             states = self.system.project(states)

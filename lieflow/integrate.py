@@ -87,7 +87,7 @@ def iterate(
     *,
     start: int = 0,
     warm: WarmStart | None = None,
-    warm_start: bool = True,
+    warm_start: bool | int = True,
 ) -> Iterator[Step]:
     """Yield steps ``start + 1, start + 2, ...`` from the (already validated) state ``W0``:
     an endless stream over :func:`lieflow.driver.advance` of a :class:`SchemeFlow`.
@@ -146,7 +146,7 @@ def scheme_flow(
     steps: int,
     *,
     engine: Engine = "auto",
-    warm_start: bool = True,
+    warm_start: bool | int = True,
 ) -> SchemeFlow:
     """The :class:`SchemeFlow` that runs ``scheme`` on ``system`` with ``engine``.
 
@@ -290,7 +290,7 @@ def _stream(
     n_steps: int,
     *,
     save_every: int,
-    warm_start: bool,
+    warm_start: bool | int,
     out: Any,
     resume: bool,
     replace: bool,
@@ -366,7 +366,7 @@ def integrate(
     solver: Solver | None = None,
     save_every: int = 1,
     diagnostics: bool = True,
-    warm_start: bool = True,
+    warm_start: bool | int = True,
     on_failure: Literal["raise", "truncate"] = "raise",
     progress: bool | Monitor = False,
     engine: Engine = "auto",
@@ -401,8 +401,10 @@ def integrate(
         the saved states only, allocated once.
     diagnostics : bool
         Record the relative energy error and Casimir drift at every step.
-    warm_start : bool
-        Start each solve from the previous step's solution (SPEC §5).
+    warm_start : bool or int
+        Start each solve from a polynomial extrapolation of the previous steps' solutions
+        (SPEC §5, :class:`~lieflow.flows.WarmStart`); an int is how many solutions to keep
+        (``True``: :data:`~lieflow.flows.DEFAULT_DEPTH`).
     on_failure : {"raise", "truncate"}
         On a failed step raise :class:`ConvergenceError` (default) or return the steps done,
         with ``status = FAILED`` and the error in ``failure``.

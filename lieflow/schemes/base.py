@@ -144,12 +144,23 @@ class StageProblem:
         One batched call of ``B``; for skew algebras ``W_i B_i = (B_i W_i)^†`` saves a
         product. The weights are cast to ``W0``'s real precision (single stays single).
         """
+        # Few temporaries (a streamed run of a large system keeps ~20 states at most):
+        # each is dropped as soon as it is used; W0 + (...) is evaluated as (...) += W0,
+        # the same bits.
         W = self.system.project_stage(stages)
         B = self.system.B(W)
-        BW = B @ W
-        WB = dagger(BW) if self.skew else W @ B
+        if self.skew:
+            C = B @ W
+            del W, B
+            C = C - dagger(C)
+        else:
+            C = B @ W - W @ B
+            del W, B
         weights = np.asarray(hb, dtype=self.W0.real.dtype)
-        return self.W0 + np.einsum("i,...iab->...ab", weights, BW - WB)
+        out = np.einsum("i,...iab->...ab", weights, C)
+        del C
+        out += self.W0
+        return out
 
 
 class TableauProblem(StageProblem):

@@ -76,8 +76,16 @@ class BlockProblem(TableauProblem):
         super().__init__(system, W0, h, tableau)
         s = tableau.stages
         self.diag = np.arange(s)
-        trivial = np.broadcast_to(W0[..., None, None, :, :], (*W0.shape[:-2], s, s, *W0.shape[-2:]))
-        self.x0 = trivial + warm if warm is not None else trivial.copy()
+        self.trivial = np.broadcast_to(
+            W0[..., None, None, :, :], (*W0.shape[:-2], s, s, *W0.shape[-2:])
+        )
+        self.warm = warm
+
+    @property
+    def x0(self) -> Array:
+        """``M`` at ``h = 0`` (every block ``W0``) plus ``warm``, a new array on each
+        access."""
+        return self.trivial + self.warm if self.warm is not None else self.trivial.copy()
 
     def stages(self, M: Array) -> Array:
         """The stage values ``M_kk``, shape ``(..., s, n, n)``."""
@@ -153,7 +161,13 @@ class ReducedProblem(TableauProblem):
         trivial[..., 0, :, :, :] = np.eye(n)
         trivial[..., 1, :, :, :] = W0[..., None, :, :]
         self.trivial = trivial
-        self.x0 = trivial + warm if warm is not None else trivial.copy()
+        self.warm = warm
+
+    @property
+    def x0(self) -> Array:
+        """``(I, W0)`` plus ``warm``, a new array on each access: the solver reads it once,
+        and no copy outlives the first update."""
+        return self.trivial + self.warm if self.warm is not None else self.trivial.copy()
 
     def stages(self, x: Array) -> Array:
         """Stage values ``G_i^† P_i``, shape ``(..., s, n, n)``."""

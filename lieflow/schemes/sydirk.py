@@ -31,14 +31,30 @@ class MidpointProblem(StageProblem):
     ) -> None:
         super().__init__(system, W0)
         self.half = 0.5 * float(h)
-        self.x0 = W0 + warm if warm is not None else W0.copy()
+        self.warm = warm
+
+    @property
+    def x0(self) -> Array:
+        """``W0 + warm`` (cold: ``W0``), a new array on each access: the solver reads it
+        once, and no copy outlives the first update."""
+        return self.W0 + self.warm if self.warm is not None else self.W0.copy()
 
     def map(self, M: Array) -> Array:
+        # W0 + q (BM - MB) + q^2 BMB with the same roundings (``x += y`` is ``y + x``), each
+        # temporary dropped once used: a streamed run of a large system keeps ~20 states.
         B = self.B(M)
         BM = B @ M
+        BMB = BM @ B
         MB = right_product(BM, M, B, self.skew)
+        del B
+        out = np.subtract(BM, MB)
+        del BM, MB
         q = self.half
-        return self.W0 + q * (BM - MB) + (q * q) * (BM @ B)
+        out *= q
+        out += self.W0
+        BMB *= q * q
+        out += BMB
+        return out
 
     def map_derivative(self, M: Array, dM: Array) -> Array:
         B = self.B(M)
@@ -95,7 +111,8 @@ class SyDIRK(Scheme):
         warm: Array | None = None,
     ) -> StepResult:
         W = W0
-        offsets = []
+        s = self.tableau.stages
+        offsets = np.empty((*W0.shape[:-2], s, *W0.shape[-2:]), dtype=W0.dtype)
         iterations = 0
         for i, bi in enumerate(self.tableau.b):
 
@@ -104,6 +121,6 @@ class SyDIRK(Scheme):
 
             problem, res = solve(solver, build, None if warm is None else warm[..., i, :, :])
             iterations += res.iterations
-            offsets.append(res.x - W)
+            np.subtract(res.x, W, out=offsets[..., i, :, :])
             W = problem.update(res.x)
-        return StepResult(W, np.stack(offsets, axis=-3), iterations, res.solver, res.residuals[-1])
+        return StepResult(W, offsets, iterations, res.solver, res.residuals[-1])
