@@ -244,7 +244,8 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     _Terminated.received = False
     with _sigterm_as_interrupt():
         result = sweep(grid, args.executor, workers=args.workers, scheduler=args.scheduler,
-                       monitor=SweepProgress(live=_show_progress(args)))  # fmt: skip
+                       monitor=SweepProgress(live=_show_progress(args)),
+                       store=args.store)  # fmt: skip
     c = result.counts
     print(
         f"sweep {grid.source}: {len(result.runs)} runs: {c['complete']} complete "
@@ -350,6 +351,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="processes of the local pool or LocalCluster (default: cores)")  # fmt: skip
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="sweep directory (overrides [sweep] directory)")  # fmt: skip
+    p.add_argument("--store", choices=("zarr",), default=None,
+                   help="also write every run's results into one Zarr store, DIR/runs.zarr "
+                        "(each worker its own runs), which lieflow.open_sweep reads")  # fmt: skip
     p.add_argument("--dry-run", action="store_true", help="check and list the runs only")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_sweep)

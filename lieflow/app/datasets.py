@@ -42,7 +42,7 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.10
     pass
 
-__all__ = ["open_run", "open_sweep", "solution_dataset"]
+__all__ = ["ZARR_STORE", "open_run", "open_sweep", "solution_dataset", "write_zarr_run"]
 
 
 def _xarray() -> Any:
@@ -85,6 +85,34 @@ class _RunInfo:
             }
             self.dtype = f[self.paths["W"]].dtype
             self.labels = f["ensemble"][()] if layout.netcdf and "ensemble" in f else None
+        #: the run's arrays in a sweep's Zarr store when read from there (:meth:`from_zarr`)
+        self.group: Any = None
+        self._finish()
+
+    @classmethod
+    def from_zarr(cls, group: Any, arrays: Mapping[str, Any], path: Path) -> _RunInfo:
+        """A run as stored in a sweep's Zarr store (:func:`write_zarr_run`): its group and
+        the group's ``arrays`` by name; ``path`` is its trajectory file (not read)."""
+        self = cls.__new__(cls)
+        self.path, self.group = path, arrays
+        attrs = dict(group.attrs)
+        self.k = int(attrs.pop(_STORED))
+        saved = attrs.pop(_SAVED, None)  # the saved steps and times, when few
+        self.attrs = attrs
+        self.paths = {name: name for name in _ARRAYS}
+        self.update_row0 = 0
+        if saved is None:
+            saved = (arrays["saved_step"][...], arrays["time"][...])
+        self.saved_step = np.asarray(saved[0], dtype=np.int64)
+        self.t = np.asarray(saved[1], dtype=np.float64)
+        self.n_saved = len(self.saved_step)
+        self.shapes = {name: tuple(arrays[name].shape[1:]) for name in ("W", *_DIAGNOSTICS)}
+        self.dtype = np.dtype(arrays["W"].dtype)
+        self.labels = np.asarray(attrs.pop(_LABELS)) if _LABELS in attrs else None
+        self._finish()
+        return self
+
+    def _finish(self) -> None:
         self.h = float(self.attrs["h"])
         w = self.shapes["W"]
         self.members = w[0] if len(w) == 3 else None
@@ -104,8 +132,42 @@ class _RunInfo:
         in a version-1 file)."""
         return -self.update_row0 if name in ("iterations", "residual") else 0
 
+    def block(self, name: str, start: int, stop: int) -> Any:
+        """Rows ``start:stop`` of the file's (or the store's) array ``name``."""
+        if self.group is not None:
+            return np.asarray(self.group[name][start:stop])
+        from . import io
+
+        with io._open(self.path, "r") as f, io._Reading(self.path):
+            return f[self.paths[name]][start:stop]
+
+    def arrays(self) -> dict[str, Any]:
+        """Every array of the run up to its checkpoint, step 0's solver columns included
+        (0 iterations, NaN residual; a version-1 file has no row for them)."""
+        out: dict[str, Any] = {"saved_step": self.saved_step, "time": self.t}
+        for name in ("W", *_DIAGNOSTICS):
+            offset = self.offset(name)
+            data = self.block(name, 0, self.rows(name) - offset)
+            if offset:
+                head = np.full((offset, *data.shape[1:]), np.nan if name == "residual" else 0)
+                data = np.concatenate([head.astype(data.dtype), data])
+            out[name] = data
+        if self.labels is not None:
+            out["ensemble"] = self.labels
+        return out
+
 
 _DIAGNOSTICS = ("energy", "energy_error", "casimirs", "casimir_drift", "iterations", "residual")
+_ARRAYS = ("saved_step", "time", "W", *_DIAGNOSTICS)
+#: The Zarr store of a sweep (``lieflow sweep --store zarr``), in the sweep directory.
+ZARR_STORE = "runs.zarr"
+#: Attribute of a run's group in the store, written last: the steps it holds.
+_STORED = "lieflow_stored_steps"
+#: Attributes of a run's group: its saved steps and times (up to ``_SAVED_MAX`` of them;
+#: JSON numbers round-trip exactly), its ensemble's labels.
+_SAVED, _SAVED_MAX, _LABELS = "lieflow_saved", 10_000, "lieflow_ensemble"
+#: Bytes per chunk of the store's arrays (along their first axis).
+_CHUNK_BYTES = 8 << 20
 
 
 def _seeds(config: str, members: int | None) -> Any:
@@ -169,9 +231,6 @@ class _Stacked:
         return xr.Variable(tuple(dims), indexing.LazilyIndexedArray(Backend()))
 
     def read(self, key: tuple[Any, ...]) -> Any:
-        from . import io
-
-        h5py = io._h5py()
         idx = [np.arange(n)[k] for n, k in zip(self.shape, key, strict=True)]
         drop = [i for i, k in enumerate(key) if isinstance(k, (int, np.integer))]
         full = [np.atleast_1d(i) for i in idx]
@@ -200,11 +259,7 @@ class _Stacked:
             if not ok_rows.any() or not all(m.any() for m in masks):
                 continue
             r = rows[ok_rows]
-            with io._open(run.path, "r") as f, io._Reading(run.path):
-                ds = f[run.paths[self.name]]
-                if not isinstance(ds, h5py.Dataset):  # pragma: no cover
-                    continue
-                block = ds[int(r.min()) : int(r.max()) + 1]
+            block = run.block(self.name, int(r.min()), int(r.max()) + 1)
             inner = np.ix_(*(t[m] for t, m in zip(trailing, masks, strict=True)))
             sub = (slice(None), *inner)
             data = block[(r - r.min(),)][sub]
@@ -311,6 +366,93 @@ def _coords(info: _RunInfo) -> dict[str, Any]:
     return coords
 
 
+def _zarr() -> Any:
+    try:
+        import zarr
+    except ImportError as exc:
+        raise InputError(
+            f"the sweep's Zarr store needs the 'zarr' package, version 3 ({exc}). To fix: "
+            "pip install 'lieflow[sweep]' (with Python 3.11 or newer)."
+        ) from None
+    return zarr
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return value.item() if isinstance(value, np.generic) else value
+
+
+def write_zarr_run(path: Path | str, store: Path | str, name: str) -> int:
+    """Write the run of trajectory file ``path`` into group ``name`` of the Zarr store
+    ``store`` (replacing what the group held), up to the file's checkpoint.
+
+    The group holds the arrays of the file's root (``saved_step``, ``time``, ``W``, the
+    per-step diagnostics with step 0's ``iterations`` and ``residual``, ``ensemble``),
+    chunked along their first axis, and the file's header as attributes; the attribute
+    ``lieflow_stored_steps`` (the steps held) is written last, so a group a writer left
+    half-written is never read. Only the group's own keys are written: processes writing
+    different groups of one store never write the same object.
+
+    Returns
+    -------
+    int
+        The steps written (the file's checkpoint).
+    """
+    zarr = _zarr()
+    info = _RunInfo(Path(path))
+    attrs = {key: _jsonable(value) for key, value in info.attrs.items()}
+    group = zarr.open_group(str(Path(store) / name), mode="w", attributes=attrs)
+    for key, value in info.arrays().items():
+        value = np.asarray(value)
+        rows = max(1, min(len(value), _CHUNK_BYTES // max(1, value[:1].nbytes)))
+        array = group.create_array(
+            key, shape=value.shape, dtype=value.dtype, chunks=(rows, *value.shape[1:])
+        )
+        array[...] = value
+    done: dict[str, Any] = {_STORED: info.k}
+    if info.labels is not None:
+        done[_LABELS] = info.labels.tolist()
+    if info.n_saved <= _SAVED_MAX:
+        done[_SAVED] = [info.saved_step.tolist(), info.t.tolist()]
+    group.attrs.update(done)  # one write, the last
+    return info.k
+
+
+def _store(root: Path) -> dict[str, Any] | None:
+    """Every group and array of the sweep's Zarr store by path (one read of its
+    consolidated metadata), or None (no store, no zarr, unreadable)."""
+    path = root / ZARR_STORE
+    if not path.is_dir():
+        return None
+    try:
+        import zarr
+
+        return dict(zarr.open_group(str(path), mode="r").members(max_depth=None))
+    except Exception:  # no zarr 3 here, or not a Zarr group: read the files
+        return None
+
+
+def _stored_run(
+    store: Mapping[str, Any] | None, record: Mapping[str, Any], path: Path
+) -> _RunInfo | None:
+    """A run from the store if it holds the run as the manifest records it (same steps
+    and status), else None (the file is read instead)."""
+    if store is None:
+        return None
+    try:
+        run = record["id"]
+        group = store.get(run)
+        if group is None or group.attrs.get(_STORED) != record.get("completed_steps"):
+            return None
+        if group.attrs.get("status") != record.get("status"):
+            return None
+        arrays = {name: store[f"{run}/{name}"] for name in _ARRAYS}
+        return _RunInfo.from_zarr(group, arrays, path)
+    except Exception:
+        return None
+
+
 def _manifest(path: Path | str) -> tuple[Path, dict[str, Any]]:
     from .sweeps import MANIFEST, SWEEP_FORMAT
 
@@ -378,11 +520,12 @@ def open_sweep(
     lead_dims = [a["name"] for a in axes]
     records = {tuple(r["index"]): r for r in data["runs"]}
     order = list(itertools.product(*(range(n) for n in lead)))
+    store = _store(root)
     infos: list[_RunInfo | None] = []
     for index in order:
         rec = records.get(index)
-        info = None
-        if rec is not None and os.path.exists(root / rec["output"]):
+        info = None if rec is None else _stored_run(store, rec, root / rec["output"])
+        if info is None and rec is not None and os.path.exists(root / rec["output"]):
             try:
                 info = _RunInfo(root / rec["output"])
             except LieflowError:
@@ -457,6 +600,7 @@ def open_sweep(
         "grid": data.get("grid", ""),
         "sweep_axes": json.dumps({a["name"]: a["keys"] for a in axes}),
         "lieflow_version": data.get("lieflow_version", ""),
+        "runs_from_store": sum(i is not None and i.group is not None for i in infos),
     }
     ds = xr.Dataset(variables, coords=coords, attrs=attrs)
     if stack:

@@ -1,25 +1,41 @@
 """HDF5 trajectory files: a writer that saves as the run proceeds, a reader, and resume.
 
-File layout (format ``lieflow-trajectory``, format version 1)::
+The files are netCDF-4 files (HDF5 with named dimensions: ``xarray.open_dataset(path,
+engine="h5netcdf")`` opens them, and every netCDF tool). File layout (format
+``lieflow-trajectory``, format version 2)::
 
     /                         attributes: lieflow version, the configuration's full text and
                               identity, system / scheme / solver, h, save_every, requested
                               and completed steps, status, wall time, platform and versions
-    /initial/W0               the initial condition
-    /trajectory/step, t, W    saved states (every save_every-th step and the last)
-    /diagnostics/energy       eta(W_k), k = 0..K            (one row per step, K = completed)
-    /diagnostics/energy_error |eta(W_k) - eta(W_0)| / |eta(W_0)|
-    /diagnostics/casimirs     Casimirs C_j(W_k), shape (K + 1, n_casimirs)
-    /diagnostics/casimir_drift  |C_j(W_k) - C_j(W_0)| / ||W_0||^{k_j}
-    /diagnostics/iterations   solver updates of steps 1..K
-    /diagnostics/residual     last relative update of each step's solve
+      dimensions              time (unlimited), step (unlimited), [ensemble], row, col,
+                              casimir
+    /time, /saved_step        t = k h and k of the saved states (every save_every-th step
+                              and the last); ``time`` is the coordinate of ``time``
+    /W                        saved states (time, [ensemble], row, col)
+    /step                     k = 0..K, the coordinate of ``step`` (K = completed steps)
+    /energy                   eta(W_k) (step, [ensemble])
+    /energy_error             |eta(W_k) - eta(W_0)| / |eta(W_0)|
+    /casimirs                 Casimirs C_j(W_k) (step, [ensemble], casimir)
+    /casimir_drift            |C_j(W_k) - C_j(W_0)| / ||W_0||^{k_j}
+    /iterations, /residual    solver updates and last relative update of step k (step);
+                              0 and NaN at step 0
+    /ensemble, /casimir       labels: the members' seeds (or 0..K-1), the powers j
+    /initial/W0               the initial condition ([ensemble], row, col)
     /diagnostics/extra/step, t, <name>  optional: a system's own diagnostics
                               (``system.extra_diagnostics(W) -> {name: array}``) at step 0
                               and every ``system.diagnostics_every``-th step (default:
-                              save_every; 0: none), rows up to the checkpoint
-                              (:func:`read_extra`)
+                              save_every; 0: none), rows up to the checkpoint, on the
+                              unlimited dimension ``sample`` (:func:`read_extra`)
     /checkpoint/slot0, slot1  (W, warm) at a step, written alternately; the root group's
-                              "current" attribute names the valid one and is set last
+                              "current" attribute names the valid one and is set last; a
+                              slot's non-array values are its JSON attribute ``scalars``
+
+Complex states are stored in the committed compound type ``_PFNC_DOUBLE_COMPLEX_TYPE``
+{r, i} (the nc-complex convention, as h5netcdf writes complex numbers), which h5py, h5netcdf
+and xarray read as complex and netCDF-C as a compound. Every attribute is a string, a
+number or a 1-D array of numbers. Files of format version 1 (``/trajectory/step, t, W``,
+``/diagnostics/<name>`` with ``iterations`` and ``residual`` of steps 1..K only, no
+dimensions, slot values as attributes) are read, and resumed in their own layout.
 
 All datasets are chunked and resizable. Per-step diagnostics are buffered between saves; at
 every save the buffers are appended, the state is checkpointed (step index, ``W`` and the

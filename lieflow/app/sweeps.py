@@ -44,6 +44,7 @@ import socket
 import sys
 import time
 import traceback
+import warnings
 from collections import deque
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -63,6 +64,7 @@ from .config import (
     parse_config,
     read_toml_file,
 )
+from .datasets import ZARR_STORE
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -71,6 +73,7 @@ else:  # pragma: no cover - Python 3.10
 
 __all__ = [
     "MANIFEST",
+    "STORES",
     "SWEEP_FORMAT",
     "Axis",
     "RunSpec",
@@ -84,6 +87,8 @@ __all__ = [
 ]
 
 SWEEP_FORMAT = "lieflow-sweep"
+#: Stores :func:`sweep` can write besides the trajectory files (``store=``).
+STORES = ("zarr",)
 SWEEP_FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
 #: Statuses of a run in the manifest.
@@ -609,7 +614,12 @@ def run_task(task: Mapping[str, Any]) -> dict[str, Any]:
         config = parse_config(task["text"], source=task["source"], base_dir=task["base_dir"])
         setup = build(config, output=task["output"], replace=False)
         monitor = _ProgressFile(Path(task["progress"])) if task.get("progress") else None
-        summary = io.run(setup, resume=True, monitor=monitor)
+        try:
+            summary = io.run(setup, resume=True, monitor=monitor)
+        except LieflowError:
+            _store_run(task, out)  # a failed run: its steps before the failure
+            raise
+        _store_run(task, out)
         out.update(
             status=summary.status,
             completed_steps=summary.completed_steps,
@@ -637,6 +647,31 @@ def run_task(task: Mapping[str, Any]) -> dict[str, Any]:
         _BUSY = False
     out["finished"] = time.time()
     return out
+
+
+def _store_run(task: Mapping[str, Any], out: dict[str, Any]) -> None:
+    """Write the run's file into the sweep's Zarr store (``task["store"]``) if it has one;
+    a failure to do so is recorded in ``out["store_error"]``, never the run's failure (the
+    dataset then reads the run from its file)."""
+    if not task.get("store"):
+        return
+    from .datasets import write_zarr_run
+
+    try:
+        write_zarr_run(task["output"], task["store"], task["id"])
+    except Exception as exc:
+        out["store_error"] = f"{type(exc).__name__}: {exc}"
+
+
+def _consolidate(store: Path) -> None:
+    """Consolidate the store's metadata (one read opens it), if it exists."""
+    if not store.is_dir():
+        return
+    with contextlib.suppress(Exception), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "not part of the Zarr format 3 specification"
+        import zarr
+
+        zarr.consolidate_metadata(str(store))
 
 
 # -- the file's own word on a run -----------------------------------------------------------
@@ -961,6 +996,7 @@ def sweep(
     monitor: SweepMonitor | None = None,
     max_attempts: int = 3,
     busy_timeout: float = 600.0,
+    store: str | None = None,
 ) -> SweepResult:
     """Run every run of a sweep that is not complete, in parallel; write the manifest.
 
@@ -989,6 +1025,13 @@ def sweep(
     busy_timeout : float
         Seconds to keep retrying a run whose file another process is writing (e.g. a worker
         the scheduler gave up on that still runs) before recording it as failed.
+    store : {None, "zarr"}
+        ``"zarr"``: also write each run's results (states at the saved times, diagnostics,
+        header) into one Zarr store, ``DIRECTORY/runs.zarr``, one group per run written by
+        the worker that ran it as the run ends (complete or failed); complete runs the store
+        lacks are written by this process first. :func:`lieflow.open_sweep` reads the store
+        where it holds a run as the manifest records it (else the run's file). The
+        trajectory files stay the record that resumes and skips are decided on.
 
     Returns
     -------
@@ -1016,6 +1059,13 @@ def sweep(
         raise InputError(f"workers must be a positive integer, got {workers!r}")
     if scheduler is not None and executor != "dask":
         raise InputError("scheduler= is the address of a Dask scheduler: pass executor='dask'")
+    if store is not None and store not in STORES:
+        raise InputError(
+            f"store must be one of {', '.join(map(repr, STORES))} or None (the trajectory "
+            f"files only), got {store!r}"
+        )
+    if store is not None:
+        _require("zarr")
     if scheduler is not None and workers is not None:
         raise InputError(
             "workers= sizes a new local pool or LocalCluster; the cluster at scheduler= has "
@@ -1059,7 +1109,8 @@ def sweep(
                 )
         else:
             pool = _executor_of(executor)
-        coord = _Coordinator(grid, pool, local, monitor, max_attempts, busy_timeout)
+        zarr_store = root / ZARR_STORE if store == "zarr" else None
+        coord = _Coordinator(grid, pool, local, monitor, max_attempts, busy_timeout, zarr_store)
         interrupted = coord.run()
         records = tuple(coord.records)
     wall = time.perf_counter() - t0
@@ -1083,8 +1134,9 @@ class _Coordinator:
         monitor: SweepMonitor | None,
         max_attempts: int,
         busy_timeout: float,
+        store: Path | None = None,
     ) -> None:
-        self.grid, self.pool, self.local = grid, pool, local
+        self.grid, self.pool, self.local, self.store = grid, pool, local, store
         self.monitor, self.max_attempts, self.busy_timeout = monitor, max_attempts, busy_timeout
         self.progress_dir = grid.directory / ".progress"
         self.records: list[dict[str, Any]] = []
@@ -1162,6 +1214,7 @@ class _Coordinator:
             "output": str(spec.output),
             "progress": str(self.progress_dir / f"{spec.id}.json"),
             "id": spec.id,
+            "store": str(self.store) if self.store is not None else "",
         }
 
     def _capacity(self, runs: int) -> int:
@@ -1219,6 +1272,8 @@ class _Coordinator:
             (0.0, i) for i, r in enumerate(self.records) if r["status"] != "complete"
         )
         self.skipped = skipped = len(grid.runs) - len(todo)
+        if self.store is not None:
+            self._store_complete_runs()
         self.dirty = True
         self.write_manifest(force=True)
         total_steps = sum(s.config.run.steps for s in grid.runs)
@@ -1286,7 +1341,29 @@ class _Coordinator:
             if self.monitor is not None:
                 self.monitor.stop()
             self.write_manifest(force=True)
+            if self.store is not None:
+                _consolidate(self.store)
         return interrupted
+
+    def _store_complete_runs(self) -> None:
+        """Create the Zarr store and write into it the complete runs it lacks (a sweep
+        run before without ``store``); the runs still to run are written by their workers."""
+        import zarr
+
+        from .datasets import _STORED, write_zarr_run
+
+        store = self.store
+        if store is None:  # pragma: no cover - called only with a store
+            return
+        root = zarr.open_group(str(store), mode="a")
+        for spec, rec in zip(self.grid.runs, self.records, strict=True):
+            if rec["status"] != "complete":
+                continue
+            group = root.get(spec.id)
+            if group is not None and group.attrs.get(_STORED) == rec["completed_steps"]:
+                continue
+            with contextlib.suppress(LieflowError, OSError):
+                write_zarr_run(spec.output, store, spec.id)
 
     def _collect(
         self,
@@ -1355,6 +1432,7 @@ class _Coordinator:
             "pid",
             "traceback",
             "threads",
+            "store_error",
         ):
             if key in out:
                 rec[key] = out[key]
