@@ -328,3 +328,30 @@ def test_a_newer_format_is_refused(tmp_path: Path) -> None:
         io.read_trajectory(path)
     with pytest.raises(lf.LieflowError, match="format version 3"):
         lf.open_run(path)
+
+
+def test_a_slot_follows_state_trees_that_change_shape(tmp_path: Path) -> None:
+    """Leaves that become trees and back (a state of another shape after a resume by
+    another lieflow), arrays that change size, a dimension left by a killed writer: the
+    slot holds exactly the items written (its digest matches) and stays netCDF-4."""
+    path = io.run(build(parse_config(RIGID.replace("steps = 60", "steps = 2")),
+                        output=tmp_path / "x.h5")).path  # fmt: skip
+    W = io.read_checkpoint(path).W
+    states = [
+        {"W": W, "warm/a": np.ones(3), "warm/flag": True},
+        {"W": W, "warm/a/b": np.ones((2, 2)), "warm/a/c": None, "warm/flag": False},
+        {"W": W, "warm/a": np.arange(5.0), "warm/n": 3},
+        {"W": W, "warm/a": np.arange(4.0) + 1j},
+    ]
+    with h5py.File(path, "r+") as f:
+        slot, cache = f["checkpoint/slot0"], {}
+        for k, items in enumerate(states):
+            if k == 3:  # a dimension of another length that a killed writer left behind
+                io._drop(slot, "warm/a")
+                io._dimension(slot["warm"], "a_dim0", 9)
+                cache.clear()
+            io._write_slot(slot, k, 0.1 * k, items, cache)
+            stored = io._slot_items(slot)
+            assert sorted(stored) == sorted(items)
+            assert io.checkpoint_digest(k, 0.1 * k, stored) == slot.attrs["sha256"]
+    assert_netcdf4(path)

@@ -47,6 +47,7 @@ checkpoint and continues bit-for-bit as if never stopped (same states, same diag
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import errno
 import hashlib
@@ -864,9 +865,14 @@ def _next_dimid(f: h5py.File) -> int:
 def _dimension(
     group: h5py.Group, name: str, size: int, *, unlimited: bool = False, dimid: int | None = None
 ) -> h5py.Dataset:
-    """A netCDF dimension without coordinate variable (created if missing)."""
+    """A netCDF dimension without coordinate variable (created if missing; one of another
+    length, left by a process killed while it replaced a dataset, is replaced)."""
     if name in group:
-        return group[name]
+        old = group[name]
+        if unlimited or old.shape[0] == size:
+            return old
+        _detach_all(old)
+        del group[name]
     kwargs: dict[str, Any] = {"maxshape": (None,), "chunks": (1024,)} if unlimited else {}
     ds = group.create_dataset(name, shape=(size,), dtype=">f4", **kwargs)
     ds.make_scale(f"{_NOT_A_VARIABLE}{size:10d}")
@@ -885,6 +891,13 @@ def _attach(ds: h5py.Dataset, dims: Sequence[Any]) -> None:
     """Attach one dimension scale to each axis of ``ds``."""
     for axis, scale in enumerate(dims):
         ds.dims[axis].attach_scale(scale)
+
+
+def _detach_all(scale: h5py.Dataset) -> None:
+    """Detach a dimension scale from every dataset still attached to it."""
+    for ref, axis in list(scale.attrs.get("REFERENCE_LIST", [])):
+        with contextlib.suppress(*_DAMAGE):
+            scale.file[ref].dims[int(axis)].detach_scale(scale)
 
 
 def _detach(ds: h5py.Dataset) -> None:
