@@ -180,7 +180,7 @@ class CompiledPlan:
         done = run(
             Wk, h * self.A, h * self.b, self.skew, self.B, self.params,
             self.project if project else self.B, self.pparams, project, self.rule,
-            irule, hist, extrapolation_matrix(keep), flags, states, iters,
+            irule, hist, np.array(extrapolation_matrix(keep)), flags, states, iters,
         )  # fmt: skip
         shape = (*batch, *core)
         return Chunk(

@@ -35,7 +35,7 @@ from . import tree
 from .algebras import Array
 from .errors import InputError
 from .schemes.base import Scheme
-from .solvers.base import Solver
+from .solvers.base import Solver, squared_norm
 from .solvers.fixed_point import FixedPoint
 from .systems.base import IsospectralSystem
 
@@ -120,14 +120,29 @@ def extrapolation_weights(points: int) -> tuple[int, ...]:
 _STACKED = 1 << 14
 
 
-def extrapolation_matrix(points: int) -> np.ndarray:
-    """The ``(points, points)`` matrix whose row ``m - 1`` holds the weights of the
-    extrapolation from ``m`` points (:func:`extrapolation_weights`, zero-padded),
-    ``m = 1 .. points``."""
+def _matrix(points: int) -> np.ndarray:
     C = np.zeros((points, points))
     for m in range(1, points + 1):
         C[m - 1, :m] = extrapolation_weights(m)
+    C.setflags(write=False)
     return C
+
+
+#: :func:`extrapolation_weights` and :func:`extrapolation_matrix` up to 16 points
+#: (read-only constants: building them costs more than a small step's extrapolation).
+_WEIGHTS = tuple(extrapolation_weights(m) for m in range(17))
+_MATRICES = tuple(_matrix(m) for m in range(17))
+
+
+def extrapolation_matrix(points: int) -> np.ndarray:
+    """The ``(points, points)`` matrix whose row ``m - 1`` holds the weights of the
+    extrapolation from ``m`` points (:func:`extrapolation_weights`, zero-padded),
+    ``m = 1 .. points``; read-only."""
+    return _MATRICES[points] if points < len(_MATRICES) else _matrix(points)
+
+
+def _weights(points: int) -> tuple[int, ...]:
+    return _WEIGHTS[points] if points < len(_WEIGHTS) else extrapolation_weights(points)
 
 
 def _stacked(history: Sequence[Any]) -> np.ndarray | None:
@@ -135,14 +150,17 @@ def _stacked(history: Sequence[Any]) -> np.ndarray | None:
     first = history[0]
     if not (isinstance(first, np.ndarray) and first.size * len(history) <= _STACKED):
         return None
-    if not all(isinstance(x, np.ndarray) and x.shape == first.shape for x in history):
-        return None
+    for x in history:
+        if not (isinstance(x, np.ndarray) and x.shape == first.shape):
+            return None
     return np.stack(history).reshape(len(history), -1)
 
 
 def _combine(weights: Sequence[int], history: Sequence[Any]) -> Any:
     """``sum_j weights[j] * history[j]`` leaf by leaf (the history's arrays are never
     written)."""
+    if len(weights) == 1 and isinstance(history[0], np.ndarray):
+        return history[0].copy()
     stack = _stacked(history[: len(weights)])
     if stack is not None:
         w = np.array(weights, dtype=stack.real.dtype)
@@ -162,15 +180,15 @@ def _prediction_errors(solved: Any, history: Sequence[Any]) -> list[float]:
     points."""
     stack = _stacked(history)
     if stack is not None and isinstance(solved, np.ndarray) and solved.shape == history[0].shape:
-        C = extrapolation_matrix(len(history)).astype(stack.real.dtype)
+        C = extrapolation_matrix(len(history))
+        if stack.real.dtype != C.dtype:
+            C = C.astype(stack.real.dtype)
         E = solved.reshape(1, -1) - C @ stack
         if E.dtype.kind == "c":
             E = E.view(E.real.dtype)
         return [float(e) for e in np.einsum("ij,ij->i", E, E)]
     return [
-        tree.sum_of_squares(
-            tree.map_leaves(np.subtract, solved, _combine(extrapolation_weights(m), history))
-        )
+        tree.sum_of_squares(tree.map_leaves(np.subtract, solved, _combine(_weights(m), history)))
         for m in range(1, len(history) + 1)
     ]
 
@@ -264,7 +282,7 @@ class WarmStart:
         most as many as are kept); ``None`` for the cold guess."""
         history = self.history()
         m = min(int(self.trusted) if points is None else points, len(history))
-        return _combine(extrapolation_weights(m), history) if m > 0 else None
+        return _combine(_weights(m), history) if m > 0 else None
 
     def guess(self) -> Any:
         """The initial guess to use: :meth:`prediction`, or ``None`` (cold)."""
@@ -276,7 +294,10 @@ class WarmStart:
         ``solved`` was closest (ties: fewer points), plus one if that was all of them and
         one more is kept from now on."""
         history = self.history()
-        best, best_error = 0, tree.sum_of_squares(solved)
+        best = 0
+        best_error = (
+            squared_norm(solved) if isinstance(solved, np.ndarray) else tree.sum_of_squares(solved)
+        )
         if history:
             for m, error in enumerate(_prediction_errors(solved, history), start=1):
                 if error < best_error:

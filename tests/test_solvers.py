@@ -224,3 +224,27 @@ def test_compiled_rule_agrees_at_the_cap() -> None:
                 rule.divergence_factor, 20, rule.patience, rule.window, False,
             )  # fmt: skip
             assert REASONS[code] == expected
+
+
+@pytest.mark.parametrize("bad", [np.inf, -np.inf, np.nan, 1e200])
+def test_lean_check_reports_non_finite_without_warnings(bad: float) -> None:
+    """The single-problem check measures ``||new||`` first and forms ``new - old`` only
+    when it is finite: a blown-up update is ``non_finite`` and raises no floating-point
+    warning (and no ``np.errstate`` per update is needed)."""
+    import warnings
+
+    from lieflow.solvers.fixed_point import IterationMonitor, StoppingRule
+
+    x0 = np.ones((3, 3))
+    for old in (x0, np.full((3, 3), bad)):
+        monitor = IterationMonitor(StoppingRule(), 2, x0)
+        new = x0.copy()
+        new[0, 1] = bad
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert monitor.check(new, old) == "non_finite"
+        assert len(monitor.residuals) == 1 and np.isnan(monitor.residuals[0])
+    monitor = IterationMonitor(StoppingRule(), 2, x0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert monitor.check(x0, np.full((3, 3), np.inf)) == "non_finite"

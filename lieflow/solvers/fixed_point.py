@@ -148,7 +148,8 @@ class IterationMonitor:
     updates and the growth of the iterate. Local to a ``solve`` call (never shared)."""
 
     def __init__(self, rule: StoppingRule, core_ndim: int, x0: Array) -> None:
-        eps = float(np.finfo(x0.dtype).eps) if x0.dtype.kind in "fc" else _EPS
+        dtype = x0.dtype
+        eps = _EPS if dtype == np.float64 or dtype == np.complex128 else _eps(dtype)
         if eps > _EPS:  # single precision: the floor scales with machine epsilon
             rule = attrs.evolve(rule, roundoff_floor=rule.roundoff_floor * (eps / _EPS))
         self.rule = rule
@@ -156,6 +157,7 @@ class IterationMonitor:
         self.residuals: list[float] = []
         self._size0 = batch_norm(x0, core_ndim)
         self._single = x0.ndim == core_ndim  # one problem: the lean check in floats
+        self._size0f = 0.0  # the lean check's reference size, from its first update on
 
     def check(self, new: Array, old: Array) -> str | None:
         """Record the update ``old -> new``; ``None`` to go on, else the reason to stop.
@@ -181,22 +183,37 @@ class IterationMonitor:
     def _check_single(self, new: Array, old: Array) -> str | None:
         """:meth:`check` for one problem (no batch): the same numbers, as Python floats
         (a few numpy calls instead of a dozen array reductions per update)."""
-        rule = self.rule
-        with np.errstate(invalid="ignore", over="ignore"):
-            step = math.sqrt(squared_norm(new - old))
-            size = math.sqrt(squared_norm(new))
-        if not (math.isfinite(step) and math.isfinite(size)):
-            self.residuals.append(float("nan"))
+        # ||new|| first: when it is finite, ``new - old`` raises no floating-point warning
+        # (``old`` is the last finite iterate or the guess; inf or nan there propagate
+        # quietly), so no ``np.errstate`` (a context switch per update) is needed.
+        size2 = squared_norm(new)
+        step = math.sqrt(squared_norm(new - old)) if size2 < _INF else _NAN
+        size = math.sqrt(size2)
+        if not (step < _INF and size < _INF):
+            self.residuals.append(_NAN)
             return "non_finite"
-        tiny = _TINY
-        if not self.residuals:
-            self._size0 = np.asarray(max(float(self._size0), size, tiny))
-        self.residuals.append(step / max(size, tiny))
-        met = step <= rule.atol + rule.rtol * size
-        return rule.verdict(self.residuals, met, size / float(self._size0))
+        residuals = self.residuals
+        if not residuals:
+            self._size0f = max(float(self._size0), size, _TINY)
+        residuals.append(step / max(size, _TINY))
+        rule = self.rule
+        return REASONS[
+            stopping_verdict(
+                residuals, len(residuals), step <= rule.atol + rule.rtol * size,
+                size / self._size0f, rule.rtol, rule.roundoff_floor, rule.divergence_factor,
+                rule.max_iter, rule.patience, rule.window, rule.project,
+            )
+        ]  # fmt: skip
 
 
 _TINY = float(np.finfo(float).tiny)
+_INF = math.inf
+_NAN = math.nan
+
+
+def _eps(dtype: np.dtype) -> float:
+    """Machine epsilon of a floating dtype (of float64 for any other)."""
+    return float(np.finfo(dtype).eps) if dtype.kind in "fc" else _EPS
 
 
 def _anderson_step(
