@@ -253,17 +253,17 @@ def test_lieflow_run_with_a_splitting_resumes_bit_for_bit(tmp_path: Path) -> Non
     lam0 = np.sort(np.linalg.eigvals(a.W[0]).imag)
     lam = np.sort(np.linalg.eigvals(a.W[-1]).imag)
     assert np.max(np.abs(lam - lam0 * np.exp(-MU * 3.0))) < 1e-14
-    with pytest.raises(lf.config.ConfigError, match="splitting"):
+    with pytest.raises(lf.app.config.ConfigError, match="splitting"):
         io.run(_setup(tmp_path, "a.h5", 80, method="lie"), resume=True)
 
 
 def test_splitting_config_errors() -> None:
     bad = SPLIT_CONFIG.format(method="yoshida8", steps=10)
-    with pytest.raises(lf.config.ConfigError, match=r"\[splitting\] method"):
+    with pytest.raises(lf.app.config.ConfigError, match=r"\[splitting\] method"):
         parse_config(bad)
     bad = SPLIT_CONFIG.format(method="strang", steps=10).replace('name = "drag"', 'name = "dragg"')
     reg = lf.load_registry(autoload=False, plugins=[("drag", DragPlugin())])
-    with pytest.raises(lf.config.ConfigError, match=r"\[splitting\] flows\[0\] name"):
+    with pytest.raises(lf.app.config.ConfigError, match=r"\[splitting\] flows\[0\] name"):
         build(parse_config(bad), registry=reg)
 
 

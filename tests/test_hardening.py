@@ -316,7 +316,7 @@ def test_config_functions_refuse_wrong_types() -> None:
     with pytest.raises(ConfigError, match="must be TOML text"):
         parse_config(b"[run]\nh = 0.1")  # type: ignore[arg-type]
     with pytest.raises(ConfigError, match="must be a file path"):
-        lf.config.load_config(None)  # type: ignore[arg-type]
+        lf.app.config.load_config(None)  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize(
