@@ -6,6 +6,7 @@ import concurrent.futures as cf
 import contextlib
 import json
 import os
+import re
 import sys
 import threading
 import time
@@ -87,6 +88,30 @@ def test_nested_tables_are_dotted_keys_and_directory_option(tmp_path: Path) -> N
     assert g.axes[0].keys == ("solver.params.rtol",) and g.axes[0].name == "rtol"
     assert g.directory == tmp_path / "out" / "study"
     assert [r.config.solver.params["rtol"] for r in g.runs] == [1e-10, 1e-14]
+
+
+SPLIT = (
+    BASE
+    + """
+[splitting]
+method = "strang"
+flows = [{ name = "scaled", params = { rate = 0.5 } }, { name = "scaled", params = { rate = 1.0 } }]
+"""
+)
+
+
+def test_a_number_in_a_key_indexes_a_list_of_the_base_configuration(tmp_path: Path) -> None:
+    g = load_sweep(write_grid(tmp_path, '"splitting.flows.1.params.rate" = [0.0, 2.0]\n', SPLIT))
+    assert g.axes[0].name == "rate"
+    flows = [r.config.splitting.flows for r in g.runs]  # type: ignore[union-attr]
+    assert [[f.params["rate"] for f in fl] for fl in flows] == [[0.5, 0.0], [0.5, 2.0]]
+    for key, needle in [
+        ("splitting.flows.2.params.rate", "is a list of 2 in the base configuration, and '2'"),
+        ("splitting.flows.x.params.rate", "and 'x' is not an index of it"),
+        ("splitting.method.x", "splitting.method is 'strang' in the base configuration"),
+    ]:
+        with pytest.raises(ConfigError, match=re.escape(needle)):
+            load_sweep(write_grid(tmp_path, f'"{key}" = [1.0]\n', SPLIT))
 
 
 def test_run_ids_are_deterministic_readable_and_order_independent() -> None:

@@ -277,22 +277,43 @@ def _short_names(groups: list[list[str]]) -> list[str]:
 
 
 def _set(data: dict[str, Any], key: str, value: Any, source: str) -> None:
+    """Set the dotted ``key`` of a run's configuration to ``value``.
+
+    A part that is a number indexes a list of the base configuration (``[[splitting.flows]]``
+    tables: ``"splitting.flows.1.params.nu"`` is the second flow's ``nu``); tables on the
+    way that the base configuration lacks are created.
+    """
     parts = key.split(".")
     if parts[0] == "solver" and "solver" not in data and parts[1] != "name":
         data["solver"] = {"name": "fixed_point"}  # the default of a configuration without one
-    node = data
-    for i, part in enumerate(parts[:-1]):
-        child = node.setdefault(part, {})
-        if not isinstance(child, dict):
-            where = ".".join(parts[: i + 1])
+    node: Any = data
+    for i, part in enumerate(parts):
+        if isinstance(node, list):
+            if not part.isdigit() or int(part) >= len(node):
+                raise _fail(
+                    source,
+                    f"[sweep] {key}",
+                    f"{'.'.join(parts[:i])} is a list of {len(node)} in the base "
+                    f"configuration, and {part!r} is not an index of it",
+                    f"index it from 0 to {len(node) - 1}, e.g. "
+                    f'"{".".join([*parts[:i], "0", *parts[i + 1 :]])}"',
+                )
+            index: int | str = int(part)
+        elif isinstance(node, dict):
+            index = part
+        else:
             raise _fail(
                 source,
                 f"[sweep] {key}",
-                f"{where} is {child!r} in the base configuration, not a table",
-                f"sweep {where} as a whole instead",
+                f"{'.'.join(parts[:i])} is {node!r} in the base configuration, not a table",
+                f"sweep {'.'.join(parts[:i])} as a whole instead",
             )
-        node = child
-    node[parts[-1]] = copy.deepcopy(value)
+        if i == len(parts) - 1:
+            node[index] = copy.deepcopy(value)
+        elif isinstance(node, dict):
+            node = node.setdefault(part, {})
+        else:
+            node = node[index]
 
 
 # -- TOML text of a run's configuration (stored in its file) ----------------------------------
