@@ -3,6 +3,7 @@ bit-for-bit after Ctrl-C, a hard kill, or a save that was cut off half-way."""
 
 from __future__ import annotations
 
+import itertools
 import os
 import subprocess
 import sys
@@ -264,3 +265,21 @@ def test_plot_into_a_file_is_refused_with_a_message(tmp_path: Path) -> None:
     with pytest.raises(lf.LieflowError, match="is a file, not a directory"):
         plot_trajectory(out, blocker)
     assert blocker.read_text() == "keep me"
+
+
+def test_checkpoint_warm_start_keeps_the_runs_depth(tmp_path: Path) -> None:
+    """``Checkpoint.warm`` rebuilds the warm start a run had at its checkpoint: all the
+    solutions it kept (five by default), equal to those of the same steps in memory."""
+    system = lf.systems.get("rigid_body", inertia=(1.0, 2.0, 3.0))
+    W0 = system.algebra.random(seed=3)
+    scheme = lf.schemes.get("gauss2")
+    path = tmp_path / "run.h5"
+    lf.integrate(system, scheme, W0, h=0.1, steps=8, save_every=8, out=path, engine="numpy")
+    warm = io.read_checkpoint(path).warm
+    steps = list(itertools.islice(lf.iterate(system, scheme, W0, 0.1, lf.solvers.FixedPoint()), 8))
+    expected = steps[-1].warm
+    assert expected is not None and warm.depth == expected.depth == 5
+    assert warm.trusted == expected.trusted
+    assert len(warm.history()) == 5
+    for got, want in zip(warm.history(), expected.history(), strict=True):
+        np.testing.assert_array_equal(got, want)

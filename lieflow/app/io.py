@@ -54,6 +54,7 @@ import hashlib
 import json
 import os
 import platform
+import re
 import socket
 import sys
 import time
@@ -156,7 +157,8 @@ _LAYOUTS = {
     2: _Layout(2, MappingProxyType({**_V2_PATHS, "W0": "initial/W0", **{n: n for n in _NAMES}}), 0),
 }
 #: Checkpoint slots store the flow's state leaf by leaf under ``warm/<path>`` (a scheme's
-#: :class:`~lieflow.flows.WarmStart`: ``warm/last``, ``warm/previous``, ``warm/trusted``).
+#: :class:`~lieflow.flows.WarmStart`: ``warm/last``, ``warm/previous/0``, ...,
+#: ``warm/trusted``; files written before the deeper warm starts: ``warm/previous``).
 _STATE = "warm"
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 _DIGEST = "sha256"
@@ -270,8 +272,11 @@ class Checkpoint:
 
     @property
     def warm(self) -> WarmStart:
-        """The state of a run of one scheme: its :class:`~lieflow.flows.WarmStart`."""
-        state = self.state(WarmStart())
+        """The state of a run of one scheme: its :class:`~lieflow.flows.WarmStart`, keeping
+        as many solutions as the run did (``previous/0``, ``previous/1``, ... are stored,
+        filled or not; older files store one ``previous`` array)."""
+        kept = sum(1 for key in self.leaves if re.fullmatch(r"previous/\d+", key))
+        state = self.state(WarmStart.keeping(kept + 1) if kept else WarmStart())
         return state if isinstance(state, WarmStart) else WarmStart()
 
 
