@@ -28,6 +28,7 @@ from .solution import Solution, Status
 from .solvers.base import Solver
 from .solvers.fixed_point import FixedPoint
 from .systems.base import IsospectralSystem
+from .systems.shifted import CasimirShifted, shifted
 
 
 @attrs.frozen
@@ -280,6 +281,18 @@ def _system_name(system: IsospectralSystem) -> str:
     return type(system).__name__
 
 
+def _nonzero(casimir_shift: object) -> bool:
+    return isinstance(casimir_shift, str) or casimir_shift != 0
+
+
+def _shift_identity(flow: Flow) -> dict[str, float]:
+    """``{"casimir_shift": c}`` for a scheme stepped with a Casimir shift (part of a file's
+    identity: a resume with another shift is refused), else nothing (files without one
+    keep their identity)."""
+    stepped = getattr(flow, "system", None)
+    return {"casimir_shift": stepped.c} if isinstance(stepped, CasimirShifted) else {}
+
+
 def _stream(
     system: IsospectralSystem,
     scheme: Scheme | Flow,
@@ -311,6 +324,7 @@ def _stream(
             "warm_start": warm_start,
             "h": h,
             "save_every": save_every,
+            **_shift_identity(flow),
         },
         sort_keys=True,
         default=str,
@@ -373,6 +387,7 @@ def integrate(
     out: str | os.PathLike[str] | None = None,
     resume: bool = False,
     replace: bool = False,
+    casimir_shift: float | Literal["auto"] = 0.0,
 ) -> Solution:
     """Integrate ``dW/dt = [B(W), W]`` from ``W0`` with a fixed step ``h``.
 
@@ -446,6 +461,13 @@ def integrate(
     replace : bool
         With ``out`` and no ``resume``: replace an existing file (otherwise an existing
         file is refused, so that a finished run is never overwritten by accident).
+    casimir_shift : float or "auto"
+        Step the scheme on the Hamiltonian plus a Casimir, :math:`B(W) - cW`
+        (:class:`~lieflow.systems.shifted.CasimirShifted`): the same flow, and an
+        isospectral Lie–Poisson scheme of the same order, often far better conditioned.
+        ``"auto"``: the least-squares :math:`c` of ``W0``
+        (:func:`~lieflow.systems.shifted.casimir_shift`); ``0`` (default): the scheme as
+        defined on ``system`` (the paper's). Diagnostics are always ``system``'s.
 
     Returns
     -------
@@ -484,19 +506,21 @@ def integrate(
     if out is None and (resume or replace):
         raise InputError("resume and replace apply to a run streamed to a file: pass out=PATH")
     if isinstance(scheme, Flow) and not isinstance(scheme, Scheme):
-        if solver is not None or not warm_start or engine != "auto":
+        if solver is not None or not warm_start or engine != "auto" or _nonzero(casimir_shift):
             raise InputError(
-                "solver, warm_start and engine configure a Scheme; a Flow carries its own "
-                "(set them on its SchemeFlow parts)"
+                "solver, warm_start, engine and casimir_shift configure a Scheme; a Flow "
+                "carries its own (set them on its SchemeFlow parts)"
             )
         _check_types(system, scheme, None)
         W0a = _validated(system, W0)
         flow: Flow = scheme
+        stepped = system
     else:
         solver = FixedPoint() if solver is None else solver
         _check_types(system, scheme, solver)
         W0a = _validated(system, W0)
-        flow = scheme_flow(system, scheme, solver, W0a, n_steps, engine=engine,
+        stepped = shifted(system, W0a, casimir_shift)
+        flow = scheme_flow(stepped, scheme, solver, W0a, n_steps, engine=engine,
                            warm_start=warm_start)  # fmt: skip
 
     if out is not None:

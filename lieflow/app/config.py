@@ -28,6 +28,7 @@ settings::
     steps = 2000         # or t_final = 200.0 (a whole number of steps h): exactly one
     save_every = 10      # keep every 10th state and checkpoint there
     output = "rigid_body.h5"
+    casimir_shift = "auto"  # optional: step on eta plus a Casimir (lieflow.integrate)
 
 :func:`parse_config` turns the text into a frozen :class:`Config` (checking every key's
 presence and type, refusing unknown keys), and :func:`build` turns a :class:`Config` into
@@ -59,6 +60,7 @@ from ..plugins import Kind, Registry, default_registry
 from ..schemes.base import Scheme
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
+from ..systems.shifted import shifted
 
 if TYPE_CHECKING:  # pragma: no cover
     from .io import TrajectoryHeader
@@ -244,6 +246,10 @@ class RunSettings:
         How the scheme's steps are computed (:func:`lieflow.integrate`'s ``engine``). Not
         part of the run's identity: a file may be resumed with another engine (the steps
         then agree to roundoff, not bit for bit).
+    casimir_shift : float or "auto"
+        Step the scheme on the Hamiltonian plus a Casimir (:func:`lieflow.integrate`'s
+        ``casimir_shift``); ``0`` (default): the scheme as defined. Part of the identity
+        when not 0.
     """
 
     h: float
@@ -252,6 +258,7 @@ class RunSettings:
     output: Path
     t_final: float | None = None
     engine: str = "auto"
+    casimir_shift: float | str = 0.0
 
 
 @attrs.frozen
@@ -295,6 +302,7 @@ class Config:
                 "h": self.run.h,
                 "save_every": self.run.save_every,
                 **({} if self.splitting is None else {"splitting": self.splitting.as_dict()}),
+                **({"casimir_shift": shift} if (shift := self.run.casimir_shift) else {}),
             },
             sort_keys=True,
             default=str,
@@ -335,7 +343,8 @@ class RunSetup:
         """What the run advances: the scheme as a :class:`~lieflow.SchemeFlow` on the
         ``[run] engine``, composed with the ``[splitting]`` flows if there are any."""
         run = self.config.run
-        inner = scheme_flow(self.system, self.scheme, self.solver, self.W0, run.steps,
+        stepped = shifted(self.system, self.W0, run.casimir_shift)
+        inner = scheme_flow(stepped, self.scheme, self.solver, self.W0, run.steps,
                             engine=cast(Engine, run.engine))  # fmt: skip
         if self.config.splitting is None:
             return inner
@@ -694,10 +703,27 @@ def _run(raw: Mapping[str, Any], source: str, base: Path, default_output: str) -
             "engine", f"must be one of {', '.join(map(repr, _ENGINES))}, got {engine!r}",
             'engine = "auto" (compiled where supported and faster, else numpy)',
         )  # fmt: skip
+    shift: float | str = 0.0
+    if isinstance(sec.data.get("casimir_shift"), str):
+        shift = str(sec.string("casimir_shift"))
+        if shift != "auto":
+            raise sec.error(
+                "casimir_shift",
+                f'expected "auto" or a number, got {shift!r}',
+                'write casimir_shift = "auto" (the least-squares shift of W0) or a number',
+            )
+    elif sec.has("casimir_shift"):
+        shift = sec.number("casimir_shift", positive=False) or 0.0
     sec.finish()
     out = Path(output or default_output).expanduser()
     return RunSettings(
-        h, steps, save_every or 1, out if out.is_absolute() else base / out, t_final, engine
+        h,
+        steps,
+        save_every or 1,
+        out if out.is_absolute() else base / out,
+        t_final,
+        engine,
+        shift,
     )
 
 
