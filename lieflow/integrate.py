@@ -66,8 +66,8 @@ def _check_types(system: object, scheme: object, solver: object) -> None:
             f"system must be an IsospectralSystem, got {type(system).__name__}; "
             "use lieflow.systems.get(name, ...) or subclass IsospectralSystem"
         )
-    if isinstance(scheme, Flow) and not isinstance(scheme, Scheme):
-        return  # a flow carries its own solvers
+    if not isinstance(scheme, Scheme) and isinstance(scheme, Flow):
+        return  # a flow carries its own solvers (Scheme first: a protocol check is slow)
     if not isinstance(scheme, Scheme):
         raise InputError(
             f"scheme must be a Scheme or a Flow, got {type(scheme).__name__}; "
@@ -505,7 +505,7 @@ def integrate(
         raise InputError(f"on_failure must be 'raise' or 'truncate', got {on_failure!r}")
     if out is None and (resume or replace):
         raise InputError("resume and replace apply to a run streamed to a file: pass out=PATH")
-    if isinstance(scheme, Flow) and not isinstance(scheme, Scheme):
+    if not isinstance(scheme, Scheme) and isinstance(scheme, Flow):
         if solver is not None or not warm_start or engine != "auto" or _nonzero(casimir_shift):
             raise InputError(
                 "solver, warm_start, engine and casimir_shift configure a Scheme; a Flow "
