@@ -73,7 +73,7 @@ def _check_types(system: object, scheme: object, solver: object) -> None:
             f"scheme must be a Scheme or a Flow, got {type(scheme).__name__}; "
             "use lieflow.schemes.get(name)"
         )
-    if not isinstance(solver, Solver):
+    if not (hasattr(solver, "name") and callable(getattr(solver, "solve", None))):
         raise InputError(
             f"solver must implement the Solver protocol (name, solve), got {type(solver).__name__}"
         )
