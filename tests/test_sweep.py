@@ -347,6 +347,33 @@ def test_default_local_pool_one_blas_thread(tmp_path: Path) -> None:
         assert {r["threads"] for r in res.runs} == {1}
 
 
+class _RecordingExecutor(cf.Executor):
+    """Runs tasks inline and records the order in which runs were submitted."""
+
+    def __init__(self) -> None:
+        self.order: list[str] = []
+
+    def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> cf.Future[Any]:
+        self.order.append(args[0]["id"])
+        fut: cf.Future[Any] = cf.Future()
+        fut.set_result(fn(*args, **kwargs))
+        return fut
+
+
+def test_longest_runs_are_submitted_first(tmp_path: Path) -> None:
+    """Runs go to the executor by decreasing number of steps (grid order among equals), so
+    a sweep does not end on one long run while the other workers idle; the manifest keeps
+    the grid's order."""
+    grid = load_sweep(write_grid(tmp_path, '"run.steps" = [10, 40, 20]\n"initial.seed" = [0, 1]\n'))
+    pool = _RecordingExecutor()
+    res = sweep(grid.source, executor=pool)
+    by_id = {r.id: r.config.run.steps for r in grid.runs}
+    assert [by_id[i] for i in pool.order] == [40, 40, 20, 20, 10, 10]
+    assert pool.order[:2] == [r.id for r in grid.runs if r.config.run.steps == 40]
+    manifest = json.loads(res.manifest.read_text())
+    assert [r["id"] for r in manifest["runs"]] == [r.id for r in grid.runs]
+
+
 def test_executor_arguments_are_checked(tmp_path: Path) -> None:
     grid = write_grid(tmp_path, '"initial.seed" = [0]')
     with pytest.raises(lf.InputError, match="executor must be"):

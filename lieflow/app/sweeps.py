@@ -1289,8 +1289,13 @@ class _Coordinator:
         except (OSError, ValueError, KeyError, TypeError):
             before = {}
         self.records = [self._record(s, _file_state(s), before.get(s.id, {})) for s in grid.runs]
+        # longest runs first (by steps, then grid order): the last runs to finish are then
+        # short ones, so workers fall idle together at the end (LPT scheduling)
         todo: deque[tuple[float, int]] = deque(
-            (0.0, i) for i, r in enumerate(self.records) if r["status"] != "complete"
+            sorted(
+                ((0.0, i) for i, r in enumerate(self.records) if r["status"] != "complete"),
+                key=lambda item: -grid.runs[item[1]].config.run.steps,
+            )
         )
         self.skipped = skipped = len(grid.runs) - len(todo)
         if self.store is not None:
