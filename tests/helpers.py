@@ -42,3 +42,30 @@ class TracelessHermitianBody(HermitianBody):
 
     def B(self, W: np.ndarray) -> np.ndarray:
         return self.algebra.project(-W * self.C)
+
+
+def zeitlin_ensemble(members: int = 3, steps: int = 12, save_every: int = 4) -> str:
+    """A small Euler–Zeitlin run configuration (N = 4, complex states) whose initial
+    condition is an ensemble of ``members`` perturbations of one random state."""
+    return f"""
+[system]
+name = "euler_zeitlin"
+params = {{ N = 4 }}
+
+[initial]
+random = true
+seed = 2
+[initial.perturb]
+members = {members}
+size = 1e-3
+seed = 10
+
+[scheme]
+name = "midpoint"
+
+[run]
+h = 0.01
+steps = {steps}
+save_every = {save_every}
+engine = "numpy"
+"""

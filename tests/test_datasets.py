@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import zeitlin_ensemble
 
 import lieflow as lf
 from lieflow.app import io
@@ -103,28 +104,7 @@ def test_ensemble_from_seeds_runs_as_one_batch(tmp_path: Path) -> None:
 
 
 def test_ensemble_from_perturbations_and_complex_states(tmp_path: Path) -> None:
-    text = """
-[system]
-name = "euler_zeitlin"
-params = { N = 4 }
-
-[initial]
-random = true
-seed = 2
-[initial.perturb]
-members = 3
-size = 1e-3
-seed = 10
-
-[scheme]
-name = "midpoint"
-
-[run]
-h = 0.01
-steps = 12
-save_every = 4
-engine = "numpy"
-"""
+    text = zeitlin_ensemble()
     setup = build(parse_config(text), output=tmp_path / "ez.h5")
     system = setup.system
     base = system.random_state(2)

@@ -12,6 +12,7 @@ from typing import Any
 import h5py
 import numpy as np
 import pytest
+from helpers import zeitlin_ensemble
 
 import lieflow as lf
 from lieflow.app import io
@@ -46,28 +47,7 @@ save_every = 10
 engine = "numpy"
 """
 
-ZEITLIN = """
-[system]
-name = "euler_zeitlin"
-params = { N = 4 }
-
-[initial]
-random = true
-seed = 2
-[initial.perturb]
-members = 3
-size = 1e-3
-seed = 10
-
-[scheme]
-name = "midpoint"
-
-[run]
-h = 0.01
-steps = 12
-save_every = 4
-engine = "numpy"
-"""
+ZEITLIN = zeitlin_ensemble()
 
 NAMES = ("energy", "energy_error", "casimirs", "casimir_drift")
 

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import zeitlin_ensemble
 
 import lieflow as lf
 from lieflow.app import io
@@ -136,28 +137,7 @@ def test_lieflow_sweep_refuses_an_unknown_store(
 
 
 def test_complex_ensemble_runs_in_the_store(tmp_path: Path) -> None:
-    base = """
-[system]
-name = "euler_zeitlin"
-params = { N = 4 }
-
-[initial]
-random = true
-seed = 2
-[initial.perturb]
-members = 2
-size = 1e-3
-seed = 10
-
-[scheme]
-name = "midpoint"
-
-[run]
-h = 0.01
-steps = 6
-save_every = 3
-engine = "numpy"
-"""
+    base = zeitlin_ensemble(members=2, steps=6, save_every=3)
     res = lf.sweep(write_grid(tmp_path, base, '"run.h" = [0.01, 0.02]'), workers=2,
                    store="zarr")  # fmt: skip
     assert res.ok
