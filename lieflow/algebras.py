@@ -199,7 +199,9 @@ class U(LieAlgebra):
 
     def project(self, X: ArrayLike) -> Array:
         X = np.asarray(X)
-        return 0.5 * (X - dagger(X))
+        Y = X - dagger(X)
+        Y *= 0.5
+        return Y
 
     @property
     def dimension(self) -> int:
@@ -216,9 +218,11 @@ class SU(U):
     symbol: ClassVar[str] = "su"
 
     def project(self, X: ArrayLike) -> Array:
-        Y = super().project(X)
-        tr = np.trace(Y, axis1=-2, axis2=-1)[..., None, None]
-        return Y - (tr / self.n) * np.eye(self.n, dtype=Y.real.dtype)
+        Y = np.ascontiguousarray(super().project(X))  # new: the reshape below is a view
+        n = self.n
+        diagonal = Y.reshape(*Y.shape[:-2], n * n)[..., :: n + 1]  # a view
+        diagonal -= diagonal.sum(axis=-1, keepdims=True) / n
+        return Y
 
     @property
     def dimension(self) -> int:
