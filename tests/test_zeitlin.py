@@ -134,6 +134,31 @@ def test_solve_in_single_precision_and_scaled() -> None:
     np.testing.assert_allclose(scaled.apply(W), L.apply(W), rtol=0, atol=0)
 
 
+@pytest.mark.parametrize("N", [2, 3, 8, 17, 33])
+@pytest.mark.parametrize("shift", [0.0, 3.0])
+def test_compiled_sweep_gives_the_numpy_bits(
+    monkeypatch: pytest.MonkeyPatch, N: int, shift: float
+) -> None:
+    """With numba, the partitioned Thomas sweeps run as compiled loops; they must give the
+    same bits as the numpy row operations (results must not depend on numba)."""
+    from lieflow_zeitlin import laplacian
+
+    if laplacian._sweep_compiled is None:
+        pytest.skip("numba is not installed")
+    L = lz.HoppeYauLaplacian(N, scale=1.7, shift=shift, block=max(1, N // 3))
+    for dtype in (np.complex128, np.complex64):
+        X = _random_complex(N, seed=N, batch=(3,)).astype(dtype)
+        compiled = L.solve(X)
+        monkeypatch.setattr(laplacian, "_sweep_compiled", None)
+        plain = L.solve(X)
+        monkeypatch.undo()
+        assert compiled.dtype == plain.dtype == dtype
+        assert np.array_equal(compiled, plain)
+        traceless = X - (np.trace(X, axis1=-2, axis2=-1) / N)[:, None, None] * np.eye(N)
+        tol = 1e-5 if dtype == np.complex64 else 1e-12
+        assert _rel(L.apply(plain), 1.7 * traceless) <= tol
+
+
 # --------------------------------------------------------------------------- quantization
 @pytest.mark.parametrize("N", [2, 5, 9])
 def test_quantization_round_trips(N: int) -> None:

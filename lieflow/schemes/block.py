@@ -176,10 +176,18 @@ class ReducedProblem(TableauProblem):
     def _Bdag(self, B: Array) -> Array:
         return -B if self.skew else dagger(B)
 
-    def _assemble(self, GB: Array, PB: Array, constant: Array | float) -> Array:
+    def _assemble(self, GB: Array, PB: Array, constant: Array | None) -> Array:
+        """``(h sum_j a_ij GB_j, -h sum_j a_ij PB_j) + constant``: one ``(s×s)@(s×n²)``
+        product per half, written into the result."""
+        *batch, s, n, _ = GB.shape
+        out = np.empty((*batch, 2, s, n * n), dtype=np.result_type(GB, PB, self.A))
         hA = self.h * self.A
-        out = np.einsum("ij,...xjab->...xiab", hA, np.stack([GB, -PB], axis=-4))
-        return out + constant
+        for half, (coef, Y) in enumerate(((hA, GB), (-hA, PB))):
+            np.matmul(coef, Y.reshape(*batch, s, n * n), out=out[..., half, :, :])
+        out = out.reshape(*batch, 2, s, n, n)
+        if constant is not None:
+            out += constant
+        return out
 
     def map(self, x: Array) -> Array:
         G, P = x[..., 0, :, :, :], x[..., 1, :, :, :]
@@ -194,7 +202,7 @@ class ReducedProblem(TableauProblem):
         dB = self.B_derivative(W, dagger(dG) @ P + dagger(G) @ dP)
         dGB = dG @ self._Bdag(B) + G @ self._Bdag(dB)
         dPB = dP @ B + P @ dB
-        return self._assemble(dGB, dPB, 0.0)
+        return self._assemble(dGB, dPB, None)
 
     def frozen_map(self, x: Array) -> Array:
         r"""With ``B`` frozen both stage equations are linear (row-block form):
