@@ -177,22 +177,28 @@ class ReducedProblem(TableauProblem):
         return -B if self.skew else dagger(B)
 
     def _assemble(self, GB: Array, PB: Array, constant: Array | None) -> Array:
-        """``(h sum_j a_ij GB_j, -h sum_j a_ij PB_j) + constant``: one ``(s×s)@(s×n²)``
+        """``(h sum_j a_ij G_j B_j^†, -h sum_j a_ij PB_j) + constant`` from ``GB_j = G_j B_j``
+        (skew algebras: ``B^† = -B``, so the sign goes into the coefficients and no
+        negated copy of a stack is made) or ``G_j B_j^†`` (others): one ``(s×s)@(s×n²)``
         product per half, written into the result."""
         *batch, s, n, _ = GB.shape
         out = np.empty((*batch, 2, s, n * n), dtype=np.result_type(GB, PB, self.A))
         hA = self.h * self.A
-        for half, (coef, Y) in enumerate(((hA, GB), (-hA, PB))):
+        for half, (coef, Y) in enumerate(((-hA if self.skew else hA, GB), (-hA, PB))):
             np.matmul(coef, Y.reshape(*batch, s, n * n), out=out[..., half, :, :])
         out = out.reshape(*batch, 2, s, n, n)
         if constant is not None:
             out += constant
         return out
 
+    def _times_B(self, G: Array, B: Array) -> Array:
+        """``G B`` on skew algebras, ``G B^†`` otherwise (what :meth:`_assemble` takes)."""
+        return G @ (B if self.skew else dagger(B))
+
     def map(self, x: Array) -> Array:
         G, P = x[..., 0, :, :, :], x[..., 1, :, :, :]
         B = self.B(dagger(G) @ P)
-        return self._assemble(G @ self._Bdag(B), P @ B, self.trivial)
+        return self._assemble(self._times_B(G, B), P @ B, self.trivial)
 
     def map_derivative(self, x: Array, dx: Array) -> Array:
         G, P = x[..., 0, :, :, :], x[..., 1, :, :, :]
@@ -200,7 +206,7 @@ class ReducedProblem(TableauProblem):
         W = dagger(G) @ P
         B = self.B(W)
         dB = self.B_derivative(W, dagger(dG) @ P + dagger(G) @ dP)
-        dGB = dG @ self._Bdag(B) + G @ self._Bdag(dB)
+        dGB = self._times_B(dG, B) + self._times_B(G, dB)
         dPB = dP @ B + P @ dB
         return self._assemble(dGB, dPB, None)
 
