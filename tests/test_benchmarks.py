@@ -179,3 +179,26 @@ def test_sweeps_suite_quick_reports_every_field() -> None:
     if importlib.util.find_spec("distributed") is not None:
         assert dask.met is not None and any("Dask LocalCluster" in h for h in hows)
     assert any("load average" in note for note in section.notes)
+
+
+def test_stiffness_of_the_rigid_body_matches_its_linearisation() -> None:
+    """ρ(J) of the so(3) rigid body against the eigenvalues of Euler's equations linearised
+    at W0, derived independently in R³: ẇ = w × I⁻¹w (lieflow's hat map W = ŵ, B = (I⁻¹w)^)."""
+    from benchmarks.config import BenchContext, quick
+    from benchmarks.suites.scipy_work_precision import problems, stiffness
+
+    problem = next(p for p in problems(BenchContext(quick())) if p.key == "rigid_body")
+    W0 = problem.W0
+    w = np.array([W0[2, 1], W0[0, 2], W0[1, 0]])
+    B = problem.system.B(W0)
+    Iinv = np.array([B[2, 1], B[0, 2], B[1, 0]]) / w  # B = S ⊙ W: the inverse inertias
+
+    def cross(a: np.ndarray) -> np.ndarray:
+        return np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+
+    # d/dw (w × Iinv w) = [w]× diag(Iinv) - [Iinv w]×  (up to lieflow's sign of the bracket)
+    jac = cross(w) @ np.diag(Iinv) - cross(Iinv * w)
+    rho = float(np.max(np.abs(np.linalg.eigvals(jac))))
+    st = stiffness(problem)
+    assert st.frequency == pytest.approx(rho, rel=1e-10)
+    assert 0 < st.norm_shifted <= st.norm_B

@@ -460,40 +460,94 @@ def section_parts(
     return table, target, name
 
 
-def stiffness(problem: Problem) -> tuple[float, float, float]:
-    """``(||B(W0)||_2, ||B(W0) - c W0||_2, ||[B(W0), W0]||_F / ||W0||_F)`` with the
-    least-squares Casimir shift ``c`` of ``W0``: what bounds the fixed-point step (its
-    contraction factor grows with ``h ||B||``), the same with the shift, and how fast the
-    flow moves (what an explicit method's step size follows)."""
-    W0 = problem.W0
-    B = problem.system.B(W0)
-    c = casimir_shift(problem.system, W0)
-    rate = float(np.linalg.norm(B @ W0 - W0 @ B) / np.linalg.norm(W0))
-    return float(np.linalg.norm(B, 2)), float(np.linalg.norm(B - c * W0, 2)), rate
+@attrs.frozen
+class Stiffness:
+    """What sets the step each side can take, at ``W0``.
+
+    Attributes
+    ----------
+    norm_B, norm_shifted : float
+        ``||B(W0)||_2`` and ``||B(W0) - c W0||_2`` (least-squares Casimir shift ``c``).
+    rate : float
+        ``||[B(W0), W0]||_F / ||W0||_F``: how fast the flow moves (what the accuracy of a
+        step follows).
+    frequency : float
+        ``ρ(J)``, the spectral radius of the linearised vector field
+        ``J δ = [B(W0), δ] + [B'(W0) δ, W0]``: the fastest frequency of a perturbation. The
+        fixed-point iteration of a tableau ``A`` contracts by about ``h ρ(A) ρ(J)`` per
+        update (the map's derivative is ``h A ⊗ J`` at ``h → 0``).
+    """
+
+    norm_B: float
+    norm_shifted: float
+    rate: float
+    frequency: float
+
+
+#: Largest dimension of ``J`` assembled densely; above it ARPACK finds ``ρ(J)``.
+_DENSE_J = 1024
+
+
+def stiffness(problem: Problem) -> Stiffness:
+    """:class:`Stiffness` of ``problem`` at its initial state."""
+    from scipy.sparse.linalg import LinearOperator, eigs
+
+    system, W0 = problem.system, problem.W0
+    B = system.B(W0)
+    c = casimir_shift(system, W0)
+
+    def J(v: np.ndarray) -> np.ndarray:
+        d = v.reshape(W0.shape).astype(W0.dtype)
+        dB = system.B_derivative(W0, d)
+        return (B @ d - d @ B + dB @ W0 - W0 @ dB).ravel()
+
+    m = W0.size
+    if m <= _DENSE_J:
+        dense = np.stack([J(e) for e in np.eye(m)], axis=1)
+        frequency = float(np.max(np.abs(np.linalg.eigvals(dense))))
+    else:
+        op = LinearOperator((m, m), matvec=J, dtype=W0.dtype)
+        vals = eigs(op, k=2, which="LM", return_eigenvectors=False, tol=1e-6)
+        frequency = float(np.max(np.abs(vals)))
+    return Stiffness(
+        norm_B=float(np.linalg.norm(B, 2)),
+        norm_shifted=float(np.linalg.norm(B - c * W0, 2)),
+        rate=float(np.linalg.norm(B @ W0 - W0 @ B) / np.linalg.norm(W0)),
+        frequency=frequency,
+    )
 
 
 #: Why lieflow loses where it does, and what was done about it (measured in the sessions
 #: that wrote this suite; the numbers in braces are recomputed on every run).
 DIAGNOSIS = (
-    "What limits lieflow here is the implicit solve, not the order: the fixed-point "
-    "iteration's contraction factor and the local error grow with h‖B(W)‖, while the step "
-    "DOP853 takes follows how fast the flow moves, ‖[B, W]‖/‖W‖ ({ratios}). The Casimir "
-    'shift (casimir_shift="auto", lieflow.systems.shifted: B − cW, the same flow) removes '
-    "the part of B that is a multiple of W: on the paper's so(10) body ‖B‖₂ falls from 1.2 "
-    "to 0.14, gauss4 converges at h = 4 where it diverged at h = 2, and its energy error at "
-    "h = 1 falls from 2e-8 to 5e-15 — which took the worst so(10) ratio from 0.46× to above "
-    "1× (the +shift curves). What remains on so(10) at 1e-8 is the fixed cost of a call "
-    "(~0.3 ms: validating W0, checking the system's compiled B on W0 and off it, numba's "
-    "dispatch) against runs of only 5–10 steps (~0.4 ms of compiled loops); on long runs it "
-    "vanishes. On Euler–Zeitlin the shift gains less (‖B − cW‖₂ stays about 2/3 of ‖B‖₂: "
-    "B = Δ⁻¹W weighs degree l by 1/(l(l+1)), so no single multiple of W matches it, and "
-    "its degree-1 part, a rigid rotation, is only a fifth of ‖B‖₂), each fixed-point update "
-    "costs s stages of three complex products and B, and there is no compiled engine for "
-    "complex data: ~10× short. Measured and rejected: Newton (3–5 updates, but a dense "
-    "(2sn²)² Jacobian), FrozenB (1.2–3× fewer updates), Anderson acceleration (10–20% "
-    "fewer), the collocation-polynomial predictor (worse than the step-index extrapolation "
-    "now used). Next: Newton–Krylov preconditioned by the frozen-B stage equations, whose "
-    "cost would not grow with h‖B‖."
+    "What limits lieflow is the implicit solve. Its fixed-point iteration contracts by about "
+    "h ρ(A) ρ(J) per update: ρ(J) is the fastest frequency of the linearised flow "
+    "δ ↦ [B(W), δ] + [B′(W)δ, W], ρ(A) the tableau's (Gauss with 1–4 stages: 0.5, 0.29, "
+    "0.22, 0.17), and each update costs 3s products (reduced form). (Measured rates: so(10) "
+    "gauss3+shift at h = 2: 0.13, predicted 0.12; Euler–Zeitlin gauss4 at h = 0.25: "
+    "0.45–0.49, predicted 0.43, and 0.27–0.31 with the shift.) DOP853's step follows "
+    "the accuracy, i.e. how fast the flow moves, ‖[B, W]‖/‖W‖, as long as hρ(J) stays inside "
+    'its stability region ({ratios}). The Casimir shift (casimir_shift="auto", '
+    "lieflow.systems.shifted: B − cW, the same flow) removes the part of B that is a "
+    "multiple of W: on the paper's so(10) body ‖B‖₂ falls from 1.2 to 0.14, gauss4 "
+    "converges at h = 4 where it diverged at h = 2, and its energy error at h = 1 falls from "
+    "2e-8 to 5e-15 — which took the worst so(10) ratio from 0.46× to above 1× (the +shift "
+    "curves). What remains on so(10) at 1e-8: runs of 5–10 steps whose warm starts have "
+    "little history (at h = 2 the first residual is still 1e-2 and the iteration contracts "
+    "by ~0.13 per update: ~14 updates a step), and the fixed cost of a call (~0.3 ms: "
+    "validating W0, checking the system's compiled B on W0 and off it, numba's dispatch) "
+    "against ~0.5 ms of compiled loops. On Euler–Zeitlin the target is out of reach of any "
+    "implicit ISOSyRK scheme at this accuracy: ρ(J) ≈ 10 (small scales advected by the flow) "
+    "is 20× the rate the flow moves; both sides need h ≈ 0.25 for an energy error of 1e-8 "
+    "(gauss4+shift: 7e-9 at h = 0.25; DOP853 at tol 1e-7 averages h ≈ 0.23), where gauss4 "
+    "takes ~27 updates of 12 complex products (~320 products a step) against DOP853's 12 "
+    "evaluations of 2 products (24 a step); being 2× "
+    "faster would need at most one update a step, i.e. no iteration. What lieflow gives "
+    "there instead is Casimirs at roundoff where DOP853's drift by 3e-8. Measured and "
+    "rejected: Newton (3–5 updates, but a dense (2sn²)² Jacobian), FrozenB (treats "
+    "[B, δ] exactly; 1.2–3× fewer updates at several times the cost each, since ρ(J) is "
+    "not only that term), Anderson acceleration (10–20% fewer), the collocation-polynomial "
+    "predictor (worse than the step-index extrapolation now used)."
 )
 
 
@@ -503,10 +557,10 @@ def run(ctx: BenchContext) -> Section:
     tables, targets, images, notes = [], [], [], []
     stiff = []
     for problem in problems(ctx):
-        norm_B, norm_shifted, rate = stiffness(problem)
+        st = stiffness(problem)
         stiff.append(
-            f"{problem.key}: ‖B‖₂ = {norm_B:.2g}, ‖B − c⋆W‖₂ = {norm_shifted:.2g}, "
-            f"‖[B, W]‖/‖W‖ = {rate:.2g}"
+            f"{problem.key}: ρ(J) = {st.frequency:.2g}, ‖[B, W]‖/‖W‖ = {st.rate:.2g}, "
+            f"‖B‖₂ = {st.norm_B:.2g}, ‖B − c⋆W‖₂ = {st.norm_shifted:.2g}"
         )
         points = measure(ctx, problem)
         table, target, name = section_parts(ctx, problem, points)
