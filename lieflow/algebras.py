@@ -31,6 +31,14 @@ def frobenius_norm(X: Array) -> Array:
     return np.sqrt(np.sum(np.abs(X) ** 2, axis=(-2, -1)))
 
 
+def _halved(Y: Array) -> Array:
+    """``Y / 2``, in place when ``Y`` is a (fresh) floating array."""
+    if Y.dtype.kind in "fc":
+        Y *= 0.5
+        return Y
+    return 0.5 * Y
+
+
 def _positive_int(n: int) -> int:
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise InputError(f"matrix size n must be a positive integer, got {n!r}")
@@ -179,7 +187,7 @@ class SO(LieAlgebra):
 
     def project(self, X: ArrayLike) -> Array:
         X = np.asarray(X)
-        return 0.5 * (X - np.swapaxes(X, -1, -2))
+        return _halved(X - np.swapaxes(X, -1, -2))
 
     @property
     def dimension(self) -> int:
@@ -199,9 +207,7 @@ class U(LieAlgebra):
 
     def project(self, X: ArrayLike) -> Array:
         X = np.asarray(X)
-        Y = X - dagger(X)
-        Y *= 0.5
-        return Y
+        return _halved(X - dagger(X))
 
     @property
     def dimension(self) -> int:
