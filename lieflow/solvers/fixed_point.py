@@ -12,7 +12,7 @@ import numpy as np
 
 from ..algebras import Array
 from ..errors import InputError
-from .base import ImplicitProblem, SolveResult, batch_norm, squared_norm
+from .base import ImplicitProblem, SolveResult, batch_norm, einsum
 
 _EPS = float(np.finfo(float).eps)
 
@@ -149,15 +149,27 @@ class IterationMonitor:
 
     def __init__(self, rule: StoppingRule, core_ndim: int, x0: Array) -> None:
         dtype = x0.dtype
-        eps = _EPS if dtype == np.float64 or dtype == np.complex128 else _eps(dtype)
+        eps = _EPS if dtype.char in "dD" else _eps(dtype)
         if eps > _EPS:  # single precision: the floor scales with machine epsilon
             rule = attrs.evolve(rule, roundoff_floor=rule.roundoff_floor * (eps / _EPS))
         self.rule = rule
         self.core = core_ndim
         self.residuals: list[float] = []
-        self._size0 = batch_norm(x0, core_ndim)
         self._single = x0.ndim == core_ndim  # one problem: the lean check in floats
-        self._size0f = 0.0  # the lean check's reference size, from its first update on
+        if self._single:
+            # ||x0|| as batch_norm computes it (the same einsum kernel, a square root in
+            # x0's precision), as a float; the lean check's reference size from its first
+            # update on
+            norm2 = _sum_of_squares(x0)
+            self._size0f = math.sqrt(norm2) if eps == _EPS else float(np.sqrt(norm2))
+            self._size0: Array | float = self._size0f
+            # the rule as arguments of stopping_verdict (read once, not per update)
+            self._args = (
+                rule.rtol, rule.roundoff_floor, rule.divergence_factor, rule.max_iter,
+                rule.patience, rule.window, rule.project,
+            )  # fmt: skip
+        else:
+            self._size0 = batch_norm(x0, core_ndim)
 
     def check(self, new: Array, old: Array) -> str | None:
         """Record the update ``old -> new``; ``None`` to go on, else the reason to stop.
@@ -186,24 +198,33 @@ class IterationMonitor:
         # ||new|| first: when it is finite, ``new - old`` raises no floating-point warning
         # (``old`` is the last finite iterate or the guess; inf or nan there propagate
         # quietly), so no ``np.errstate`` (a context switch per update) is needed.
-        size2 = squared_norm(new)
-        step = math.sqrt(squared_norm(new - old)) if size2 < _INF else _NAN
+        size2 = float(_sum_of_squares(new))
+        step = math.sqrt(_sum_of_squares(new - old)) if size2 < _INF else _NAN
         size = math.sqrt(size2)
         if not (step < _INF and size < _INF):
             self.residuals.append(_NAN)
             return "non_finite"
         residuals = self.residuals
         if not residuals:
-            self._size0f = max(float(self._size0), size, _TINY)
+            self._size0f = max(self._size0f, size, _TINY)
         residuals.append(step / max(size, _TINY))
         rule = self.rule
-        return REASONS[
-            stopping_verdict(
-                residuals, len(residuals), step <= rule.atol + rule.rtol * size,
-                size / self._size0f, rule.rtol, rule.roundoff_floor, rule.divergence_factor,
-                rule.max_iter, rule.patience, rule.window, rule.project,
-            )
-        ]  # fmt: skip
+        met = step <= rule.atol + rule.rtol * size
+        growth = size / self._size0f
+        if met and growth < _INF:
+            # what stopping_verdict returns for a met tolerance when the relative update
+            # and the growth are finite (the update is: step and size are)
+            return "converged"
+        return REASONS[stopping_verdict(residuals, len(residuals), met, growth, *self._args)]
+
+
+def _sum_of_squares(x: Array) -> Any:
+    """``||x||_F^2`` as a NumPy scalar of ``x``'s real precision: :func:`squared_norm`'s
+    (and :func:`batch_norm`'s) einsum, for an array."""
+    flat = x.ravel()
+    if flat.dtype.kind == "c":
+        flat = flat.view(flat.real.dtype)
+    return einsum("i,i->", flat, flat)
 
 
 _TINY = float(np.finfo(float).tiny)

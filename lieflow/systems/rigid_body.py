@@ -26,7 +26,11 @@ def _moments(values: Sequence[float] | np.ndarray) -> np.ndarray:
 
 
 def _like(table: np.ndarray, W: Array) -> np.ndarray:
-    """``table`` in the real precision of ``W`` (a float32 state stays float32)."""
+    """``table`` (float64) in the real precision of ``W`` (a float32 state stays float32);
+    ``table`` itself for a double-precision ``W`` (no dtype promotion per call)."""
+    dtype = W.dtype if isinstance(W, np.ndarray) else np.asarray(W).dtype
+    if dtype.char in "dD":
+        return table
     return table.astype(np.result_type(np.asarray(W).real.dtype, np.float32), copy=False)
 
 
@@ -51,6 +55,10 @@ class GeneralizedRigidBody(IsospectralSystem):
 
     J: np.ndarray = attrs.field(default=(1.0, 1.3, 1.7, 2.2, 2.8), converter=_moments)
     weights: np.ndarray = attrs.field(init=False)
+    #: so(n), built once (``B`` and the schemes read it every iteration).
+    algebra: SO = attrs.field(init=False, repr=False)
+    #: ``-weights``: ``B(W) = W * factor``, bit for bit ``-W * weights``.
+    _factor: np.ndarray = attrs.field(init=False, repr=False)
     linear_B = True
     casimir_powers = (2, 4, 6)
 
@@ -58,12 +66,16 @@ class GeneralizedRigidBody(IsospectralSystem):
     def _weights(self) -> np.ndarray:
         return 1.0 / (self.J[:, None] + self.J[None, :])
 
-    @property
-    def algebra(self) -> SO:
+    @algebra.default
+    def _algebra(self) -> SO:
         return SO(self.J.size)
 
+    @_factor.default
+    def _negative_weights(self) -> np.ndarray:
+        return -self.weights
+
     def B(self, W: Array) -> Array:
-        return -W * _like(self.weights, W)
+        return W * _like(self._factor, W)
 
     @property
     def hadamard_factor(self) -> Array:
@@ -91,6 +103,10 @@ class RigidBody(IsospectralSystem):
 
     inertia: np.ndarray = attrs.field(default=(1.0, 2.0, 3.0), converter=_principal_moments)
     weights: np.ndarray = attrs.field(init=False)
+    #: so(3), built once (``B`` and the schemes read it every iteration).
+    algebra: SO = attrs.field(init=False, repr=False, factory=lambda: SO(3))
+    #: ``-weights``: ``B(W) = W * factor``, bit for bit ``-W * weights``.
+    _factor: np.ndarray = attrs.field(init=False, repr=False)
     linear_B = True
     casimir_powers = (2,)
 
@@ -102,12 +118,12 @@ class RigidBody(IsospectralSystem):
             w[i, j] = w[j, i] = inv[k]
         return w
 
-    @property
-    def algebra(self) -> SO:
-        return SO(3)
+    @_factor.default
+    def _negative_weights(self) -> np.ndarray:
+        return -self.weights
 
     def B(self, W: Array) -> Array:
-        return -W * _like(self.weights, W)
+        return W * _like(self._factor, W)
 
     @property
     def hadamard_factor(self) -> Array:

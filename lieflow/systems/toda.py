@@ -76,6 +76,8 @@ class PeriodicToda(IsospectralSystem):
     n: int = attrs.field(default=4, converter=_at_least_three)
     gl_gradient: bool = attrs.field(default=False, validator=attrs.validators.instance_of(bool))
     sign: np.ndarray = attrs.field(init=False)
+    #: gl(n), built once (the schemes read it every iteration).
+    algebra: GL = attrs.field(init=False, repr=False)
     linear_B = True
     casimir_powers = (1, 2, 3, 4)
 
@@ -94,11 +96,14 @@ class PeriodicToda(IsospectralSystem):
     def name(self) -> str:
         return "PeriodicToda(gl_gradient=True)" if self.gl_gradient else "PeriodicToda"
 
-    @property
-    def algebra(self) -> GL:
+    @algebra.default
+    def _algebra(self) -> GL:
         return GL(self.n)
 
     def _sign_like(self, W: Array) -> np.ndarray:
+        dtype = W.dtype if isinstance(W, np.ndarray) else np.asarray(W).dtype
+        if dtype.char in "dD":  # the table itself: no dtype promotion per call
+            return self.sign
         return self.sign.astype(np.result_type(np.asarray(W).real.dtype, np.float32), copy=False)
 
     def project(self, W: Array) -> Array:
@@ -106,7 +111,11 @@ class PeriodicToda(IsospectralSystem):
         W = np.asarray(W)
         if self.gl_gradient:
             return W
-        return 0.5 * (W + np.swapaxes(W, -1, -2))
+        out = W + W.swapaxes(-1, -2)
+        if out.dtype.kind not in "fc":  # integer data: a float result
+            return 0.5 * out
+        out *= 0.5  # in place: the bits of 0.5 * (W + W^T), one temporary fewer
+        return out
 
     def project_stage(self, W: Array) -> Array:
         """Same as :meth:`project`: the symmetric matrices are a linear space."""
