@@ -35,7 +35,7 @@ from . import tree
 from .algebras import Array
 from .errors import InputError
 from .schemes.base import Scheme
-from .solvers.base import Solver, squared_norm
+from .solvers.base import Solver, einsum, squared_norm
 from .solvers.fixed_point import FixedPoint
 from .systems.base import IsospectralSystem
 
@@ -128,9 +128,17 @@ def _matrix(points: int) -> np.ndarray:
     return C
 
 
-#: :func:`extrapolation_weights` and :func:`extrapolation_matrix` up to 16 points
-#: (read-only constants: building them costs more than a small step's extrapolation).
+def _vector(points: int) -> np.ndarray:
+    w = np.array(extrapolation_weights(points), dtype=float)
+    w.setflags(write=False)
+    return w
+
+
+#: :func:`extrapolation_weights` (as tuples and as read-only float64 vectors) and
+#: :func:`extrapolation_matrix` up to 16 points (read-only constants: building them costs
+#: more than a small step's extrapolation).
 _WEIGHTS = tuple(extrapolation_weights(m) for m in range(17))
+_VECTORS = tuple(_vector(m) for m in range(17))
 _MATRICES = tuple(_matrix(m) for m in range(17))
 
 
@@ -150,21 +158,29 @@ def _stacked(history: Sequence[Any]) -> np.ndarray | None:
     first = history[0]
     if not (isinstance(first, np.ndarray) and first.size * len(history) <= _STACKED):
         return None
+    shape = first.shape
     for x in history:
-        if not (isinstance(x, np.ndarray) and x.shape == first.shape):
+        if not (isinstance(x, np.ndarray) and x.shape == shape):
             return None
-    return np.stack(history).reshape(len(history), -1)
+    # np.array of equal-shape arrays: np.stack's values, without its Python layers
+    return np.array(history).reshape(len(history), -1)
 
 
-def _combine(weights: Sequence[int], history: Sequence[Any]) -> Any:
+def _combine(weights: Sequence[int], history: Sequence[Any], stack: Any = None) -> Any:
     """``sum_j weights[j] * history[j]`` leaf by leaf (the history's arrays are never
-    written)."""
-    if len(weights) == 1 and isinstance(history[0], np.ndarray):
+    written). ``stack``: :func:`_stacked` of a history that ``history`` begins, if the
+    caller has it (its first ``len(weights)`` rows are used)."""
+    m = len(weights)
+    if m == 1 and isinstance(history[0], np.ndarray):
         return history[0].copy()
-    stack = _stacked(history[: len(weights)])
+    if stack is None:
+        stack = _stacked(history[:m])
     if stack is not None:
-        w = np.array(weights, dtype=stack.real.dtype)
-        return (w @ stack).reshape(history[0].shape)
+        w = _VECTORS[m] if m < len(_VECTORS) else np.array(weights, dtype=float)
+        dtype = stack.real.dtype
+        if w.dtype != dtype:
+            w = w.astype(dtype)
+        return (w @ stack[:m]).reshape(history[0].shape)
 
     def leaf(*xs: Any) -> Any:
         acc = weights[0] * xs[0] if weights[0] != 1 else np.array(xs[0], copy=True)
@@ -172,13 +188,14 @@ def _combine(weights: Sequence[int], history: Sequence[Any]) -> Any:
             acc += w * x
         return acc
 
-    return tree.map_leaves(leaf, *history[: len(weights)])
+    return tree.map_leaves(leaf, *history[:m])
 
 
-def _prediction_errors(solved: Any, history: Sequence[Any]) -> list[float]:
+def _prediction_errors(solved: Any, history: Sequence[Any], stack: Any = None) -> list[float]:
     """``||solved - p_m||^2`` for the extrapolations ``p_m`` from ``m = 1 .. len(history)``
-    points."""
-    stack = _stacked(history)
+    points. ``stack``: :func:`_stacked` of ``history``, if the caller has it."""
+    if stack is None:
+        stack = _stacked(history)
     if stack is not None and isinstance(solved, np.ndarray) and solved.shape == history[0].shape:
         C = extrapolation_matrix(len(history))
         if stack.real.dtype != C.dtype:
@@ -186,7 +203,8 @@ def _prediction_errors(solved: Any, history: Sequence[Any]) -> list[float]:
         E = solved.reshape(1, -1) - C @ stack
         if E.dtype.kind == "c":
             E = E.view(E.real.dtype)
-        return [float(e) for e in np.einsum("ij,ij->i", E, E)]
+        errors: list[float] = einsum("ij,ij->i", E, E).tolist()
+        return errors
     return [
         tree.sum_of_squares(tree.map_leaves(np.subtract, solved, _combine(_weights(m), history)))
         for m in range(1, len(history) + 1)
@@ -293,18 +311,7 @@ class WarmStart:
         history, and ``trusted`` becomes the number of points whose prediction of
         ``solved`` was closest (ties: fewer points), plus one if that was all of them and
         one more is kept from now on."""
-        history = self.history()
-        best = 0
-        best_error = (
-            squared_norm(solved) if isinstance(solved, np.ndarray) else tree.sum_of_squares(solved)
-        )
-        if history:
-            for m, error in enumerate(_prediction_errors(solved, history), start=1):
-                if error < best_error:
-                    best, best_error = m, error
-        if best == len(history) and best < self.depth:
-            best += 1
-        return self.replaced([solved, *history], best)
+        return _advanced(self, solved, self.history(), None)
 
     def replaced(self, history: Sequence[Any], trusted: int) -> WarmStart:
         """A warm start of the same depth (and form) holding ``history`` (most recent
@@ -316,6 +323,22 @@ class WarmStart:
         else:
             previous = history[1] if len(history) > 1 else None
         return WarmStart(last, previous, trusted)
+
+
+def _advanced(state: WarmStart, solved: Any, history: list[Any], stack: Any) -> WarmStart:
+    """:meth:`WarmStart.advance` given ``state``'s history and, if the caller has it, its
+    :func:`_stacked` form ``stack`` (one stacking per step serves the guess and this)."""
+    best = 0
+    best_error = (
+        squared_norm(solved) if isinstance(solved, np.ndarray) else tree.sum_of_squares(solved)
+    )
+    if history:
+        for m, error in enumerate(_prediction_errors(solved, history, stack), start=1):
+            if error < best_error:
+                best, best_error = m, error
+    if best == len(history) and best < state.depth:
+        best += 1
+    return state.replaced([solved, *history], best)
 
 
 def _warm_depth(warm_start: bool | int) -> int:
@@ -378,9 +401,17 @@ class SchemeFlow:
         self, W: Array, t: float, h: float, state: WarmStart | None
     ) -> tuple[Array, WarmStart | None, StepStats]:
         """One step of the scheme (autonomous: ``t`` is not used)."""
-        guess = None if state is None else state.guess()
-        res = self.scheme.step(self.system, W, h, self.solver, guess)
-        new = None if state is None else state.advance(res.warm)
+        if state is None:
+            res = self.scheme.step(self.system, W, h, self.solver, None)
+            new = None
+        else:
+            # state.guess() and state.advance(...), with the history stacked once for both
+            history = state.history()
+            stack = _stacked(history) if history else None
+            m = min(int(state.trusted), len(history))
+            guess = _combine(_weights(m), history, stack) if m > 0 else None
+            res = self.scheme.step(self.system, W, h, self.solver, guess)
+            new = _advanced(state, res.warm, history, stack)
         return (
             self.system.project(res.W),
             new,
