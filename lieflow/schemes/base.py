@@ -9,9 +9,9 @@ from typing import TypeVar
 import attrs
 import numpy as np
 
-from ..algebras import Array, dagger
+from ..algebras import Array
 from ..errors import ConvergenceError
-from ..solvers.base import ImplicitProblem, Solver, SolveResult
+from ..solvers.base import ImplicitProblem, Solver, SolveResult, einsum
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau
 
@@ -127,15 +127,18 @@ class StageProblem:
         self.system = system
         self.W0 = W0
         self.skew = system.algebra.skew
+        # the system's maps, looked up once per problem rather than per iteration
+        self._B = system.B
+        self._project_stage = system.project_stage
 
     def B(self, stages: Array) -> Array:
         """``B(P(W_i))`` for stage values ``W_i`` (any leading axes)."""
-        return self.system.B(self.system.project_stage(stages))
+        return self._B(self._project_stage(stages))
 
     def B_derivative(self, stages: Array, dstages: Array) -> Array:
         """The derivative of :meth:`B` at ``stages`` in the direction ``dstages``
         (``P`` is linear: ``DB(P W)[P dW]``)."""
-        P = self.system.project_stage
+        P = self._project_stage
         return self.system.B_derivative(P(stages), P(dstages))
 
     def commutator_update(self, stages: Array, hb: Array) -> Array:
@@ -147,19 +150,20 @@ class StageProblem:
         # Few temporaries (a streamed run of a large system keeps ~20 states at most):
         # each is dropped as soon as it is used; W0 + (...) is evaluated as (...) += W0,
         # the same bits.
-        W = self.system.project_stage(stages)
-        B = self.system.B(W)
+        W = self._project_stage(stages)
+        B = self._B(W)
         if self.skew:
             C = B @ W
             del W, B
-            C = C - dagger(C)
+            C = C - _dagger(C)
         else:
             C = B @ W - W @ B
             del W, B
-        weights = np.asarray(hb, dtype=self.W0.real.dtype)
-        out = np.einsum("i,...iab->...ab", weights, C)
+        W0 = self.W0
+        weights = np.asarray(hb, dtype=W0.real.dtype)
+        out = einsum("i,...iab->...ab", weights, C)
         del C
-        out += self.W0
+        out += W0
         return out
 
 
@@ -193,4 +197,11 @@ def solve_right(rhs: Array, mat: Array) -> Array:
 
 def right_product(BM: Array, M: Array, B: Array, skew: bool) -> Array:
     """``M B``, computed as ``(B M)^†`` without a product when ``M`` and ``B`` are skew."""
-    return dagger(BM) if skew else M @ B
+    return _dagger(BM) if skew else M @ B
+
+
+def _dagger(X: Array) -> Array:
+    """:func:`~lieflow.algebras.dagger` of an array (the same values, a view for real
+    data) without its dispatch layers: a per-iteration call on small matrices."""
+    Xt = X.swapaxes(-1, -2)
+    return Xt.conj() if X.dtype.kind == "c" else Xt

@@ -47,7 +47,7 @@ class MidpointProblem(StageProblem):
         BMB = BM @ B
         MB = right_product(BM, M, B, self.skew)
         del B
-        out = np.subtract(BM, MB)
+        out = BM - MB
         del BM, MB
         q = self.half
         out *= q
@@ -114,13 +114,14 @@ class SyDIRK(Scheme):
         s = self.tableau.stages
         offsets = np.empty((*W0.shape[:-2], s, *W0.shape[-2:]), dtype=W0.dtype)
         iterations = 0
-        for i, bi in enumerate(self.tableau.b):
+        for i, bi in enumerate(self.tableau.b.tolist()):
 
             def build(guess: Array | None, W: Array = W, hi: float = bi * h) -> MidpointProblem:
                 return MidpointProblem(system, W, hi, guess)
 
             problem, res = solve(solver, build, None if warm is None else warm[..., i, :, :])
             iterations += res.iterations
-            np.subtract(res.x, W, out=offsets[..., i, :, :])
-            W = problem.update(res.x)
+            x = res.x
+            np.subtract(x, W, out=offsets[..., i, :, :])
+            W = problem.update(x)
         return StepResult(W, offsets, iterations, res.solver, res.residuals[-1])
