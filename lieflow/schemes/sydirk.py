@@ -10,7 +10,15 @@ from ..errors import TableauError
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau, midpoint
-from .base import Scheme, StageProblem, StepResult, right_product, solve, solve_right
+from .base import (
+    Scheme,
+    StageProblem,
+    StepResult,
+    real_scalar,
+    right_product,
+    solve,
+    solve_right,
+)
 
 
 class MidpointProblem(StageProblem):
@@ -32,6 +40,10 @@ class MidpointProblem(StageProblem):
         super().__init__(system, W0)
         self.half = 0.5 * float(h)
         self.warm = warm
+        # q and q^2 as 0-d arrays of W0's real precision: the values a Python float gives
+        # (NumPy rounds it to that precision too) at half the cost of a multiplication
+        q = self.half
+        self._q, self._qq = real_scalar(q, W0), real_scalar(q * q, W0)
 
     @property
     def x0(self) -> Array:
@@ -49,10 +61,9 @@ class MidpointProblem(StageProblem):
         del B
         out = BM - MB
         del BM, MB
-        q = self.half
-        out *= q
+        out *= self._q
         out += self.W0
-        BMB *= q * q
+        BMB *= self._qq
         out += BMB
         return out
 
