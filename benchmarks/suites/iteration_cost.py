@@ -1,10 +1,15 @@
-"""Large n: the time of one fixed-point iteration against the matrix products it needs.
+"""The time of one fixed-point iteration: at large n against the matrix products it needs,
+at small n (the Python and NumPy-call overhead) per update of a whole numpy-engine run.
 
 At large n an iteration should cost what its ``n×n`` products cost (the BLAS bound): the
 midpoint map needs 2 (``BM``, ``(BM)B``; ``MB = (BM)^T``), the reduced stage form ``3s``
 (``G_j B_j^T``, ``P_j B_j``, ``G_j^T P_j``), the block form ``3s²``. The iteration is timed
 through the scheme's :class:`~lieflow.solvers.ImplicitProblem` and ``FixedPoint.solve``
 (stopping-rule norms included), the products with ``np.matmul(a, b, out=c)``.
+
+At small n (issue 18) the products are negligible and what counts is everything around
+them: ``lieflow.integrate(..., engine="numpy", diagnostics=False)`` divided by the
+updates it took (warm starts, the step's update and projection and the driver included).
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import attrs
 import numpy as np
 
 import lieflow as lf
+from lieflow.app.reproduce import Case
 from lieflow.schemes import BlockProblem, MidpointProblem, ReducedProblem
 from lieflow.solvers import ImplicitProblem, SolveResult
 from lieflow.tableaus import gauss
@@ -30,7 +36,18 @@ from .rigid_body_scaling import grb_case
 #: Issue 6: an iteration within this factor of its products.
 TARGET_RATIO = 1.25
 
+#: Issue 18: seconds per update of a numpy-engine so(3) midpoint run (4x below ~40 µs).
+TARGET_SMALL = 8.5e-6
+
 H = 0.01
+
+#: Small-n runs: (label, reproduce system, n, h, scheme) — the paper's cases.
+SMALL_CASES: tuple[tuple[str, str, int, float, str], ...] = (
+    ("so(3) rigid body", "rigid_body", 3, 0.1, "midpoint"),
+    ("so(3) rigid body", "rigid_body", 3, 0.1, "gauss2"),
+    ("so(10) generalized rigid body", "generalized_rigid_body", 10, 0.01, "midpoint"),
+    ("so(10) generalized rigid body", "generalized_rigid_body", 10, 0.01, "gauss3"),
+)
 
 
 @attrs.frozen
@@ -126,8 +143,67 @@ def measure(ctx: BenchContext, n: int, form: Formulation) -> IterationRow:
     )
 
 
+@attrs.frozen
+class SmallRow:
+    """One small-n numpy-engine run: its updates and seconds per update."""
+
+    label: str
+    scheme: str
+    steps: int
+    updates: int
+    per_update: float
+
+
+def measure_small(ctx: BenchContext, case: tuple[str, str, int, float, str]) -> SmallRow:
+    """Time a whole numpy-engine run (``FixedPoint(rtol=1e-14)``, no diagnostics) and
+    divide by its updates; median of the repeats."""
+    label, name, n, h, scheme = case
+    steps = 50 if ctx.config.quick else 2000
+    system, W0 = Case(name, "", n, h, steps, 1e-14).build(ctx.seed)
+    solver = lf.solvers.FixedPoint(rtol=1e-14)
+
+    def once() -> lf.Solution:
+        return lf.integrate(system, lf.schemes.get(scheme), W0, h, steps=steps, solver=solver,
+                            engine="numpy", diagnostics=False)  # fmt: skip
+
+    timing = best_of(once, max(3, ctx.config.repeats))
+    sol = timing.value
+    assert isinstance(sol, lf.Solution)
+    updates = int(sol.iterations.sum())
+    return SmallRow(label, scheme, steps, updates, timing.median / updates)
+
+
+def small_n(ctx: BenchContext) -> tuple[Table, TargetCheck]:
+    """The small-n table and its target (issue 18: so(3) midpoint ≤ 8.5 µs per update)."""
+    rows = [measure_small(ctx, case) for case in SMALL_CASES]
+    cells = tuple(
+        (r.label, r.scheme, str(r.steps), f"{r.updates / r.steps:.2f}", seconds(r.per_update))
+        for r in rows
+    )
+    table = Table(
+        ("system", "scheme", "steps", "updates per step", "s/update"),
+        cells,
+        caption="Small n, numpy engine: a whole lieflow.integrate run (FixedPoint rtol 1e-14, "
+        "warm starts, diagnostics=False) divided by its fixed-point updates.",
+    )
+    so3 = rows[0]
+    met = so3.per_update <= TARGET_SMALL
+    target = TargetCheck(
+        target=f"small n (issue 18): so(3) midpoint, numpy engine, ≤ "
+        f"{seconds(TARGET_SMALL)} per update",
+        measured=", ".join(f"{r.label} {r.scheme}: {seconds(r.per_update)}" for r in rows),
+        met=met,
+        gap="" if met else f"{so3.per_update / TARGET_SMALL:.2f}x over",
+        limit="NumPy call overhead (~0.3-1 µs a call on 3×3 arrays): ~15 calls per update "
+        "(stage projection, B, two products, the combination, two norms), ~40 per step "
+        "(warm-start extrapolation and its error check, the commutator update, the "
+        "projection, the driver's per-step chunk)",
+    )
+    return table, target
+
+
 def run(ctx: BenchContext) -> Section:
-    """Every size and formulation; target: ratio ≤ 1.25 at n ≥ 256."""
+    """Every size and formulation; target: ratio ≤ 1.25 at n ≥ 256; and the small-n runs."""
     start = time.perf_counter()
     rows = [measure(ctx, n, f) for n in ctx.config.iteration_sizes for f in formulations()]
     header = [
@@ -200,11 +276,13 @@ def run(ctx: BenchContext) -> Section:
         "Peak working set: tracemalloc peak of the solve over the size of one n×n matrix; "
         "the number in brackets is the size of the unknown itself.",
     ]
+    small_table, small_target = small_n(ctx)
     return Section(
-        title="Large n: cost of one iteration vs its matrix products",
-        intro="Is the fixed-point iteration at the BLAS bound?",
-        tables=(table,),
-        targets=(target, alloc),
+        title="Large n: cost of one iteration vs its matrix products; small n: overhead",
+        intro="Is the fixed-point iteration at the BLAS bound? And at small n, how much "
+        "does everything around the products cost?",
+        tables=(table, small_table),
+        targets=(target, alloc, small_target),
         notes=tuple(notes),
         seconds=time.perf_counter() - start,
     )
