@@ -162,7 +162,9 @@ def _stacked(history: Sequence[Any]) -> np.ndarray | None:
     for x in history:
         if not (isinstance(x, np.ndarray) and x.shape == shape):
             return None
-    # np.array of equal-shape arrays: np.stack's values, without its Python layers
+    # np.stack's values without its Python layers: arrays of one shape end to end
+    if first.ndim:
+        return np.concatenate(history).reshape(len(history), -1)
     return np.array(history).reshape(len(history), -1)
 
 
