@@ -384,8 +384,9 @@ class HoppeYauLaplacian:
 
         One partitioned Thomas sweep over the packed layout (module docs) solves the
         ``2N-1`` tridiagonal systems of all matrices of the batch at once: O(N²) work,
-        compiled loops (numba) or ``O(√N)`` numpy calls, one fresh output buffer. complex64 input is solved in single
-        precision, anything else in double precision (real input gives complex output).
+        compiled loops (numba) or ``O(√N)`` numpy calls, one fresh output buffer.
+        complex64 input is solved in single precision, anything else in double precision
+        (real input gives complex output).
         Linear in ``W`` (the trace is projected out, not assumed zero), so it is also the
         derivative needed by Newton's method.
         """
