@@ -22,8 +22,8 @@ Array = NDArray[Any]
 
 def dagger(X: Array) -> Array:
     """Conjugate transpose of the last two axes, ``X^†`` (a view for real input)."""
-    Xt = np.swapaxes(X, -1, -2)
-    return np.conj(Xt) if np.iscomplexobj(X) else Xt
+    Xt = X.swapaxes(-1, -2)
+    return Xt.conj() if X.dtype.kind == "c" else Xt
 
 
 def frobenius_norm(X: Array) -> Array:
@@ -187,7 +187,7 @@ class SO(LieAlgebra):
 
     def project(self, X: ArrayLike) -> Array:
         X = np.asarray(X)
-        return _halved(X - np.swapaxes(X, -1, -2))
+        return _halved(X - X.swapaxes(-1, -2))
 
     @property
     def dimension(self) -> int:
