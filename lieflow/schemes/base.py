@@ -9,7 +9,7 @@ from typing import Any, TypeVar
 import attrs
 import numpy as np
 
-from ..algebras import Array
+from ..algebras import Array, dagger
 from ..errors import ConvergenceError
 from ..solvers.base import ImplicitProblem, Solver, SolveResult, einsum
 from ..systems.base import IsospectralSystem
@@ -155,7 +155,7 @@ class StageProblem:
         if self.skew:
             C = B @ W
             del W, B
-            C = C - _dagger(C)
+            C = C - dagger(C)
         else:
             C = B @ W - W @ B
             del W, B
@@ -198,7 +198,7 @@ def solve_right(rhs: Array, mat: Array) -> Array:
 
 def right_product(BM: Array, M: Array, B: Array, skew: bool) -> Array:
     """``M B``, computed as ``(B M)^†`` without a product when ``M`` and ``B`` are skew."""
-    return _dagger(BM) if skew else M @ B
+    return dagger(BM) if skew else M @ B
 
 
 def real_scalar(value: float, like: Array) -> Any:
@@ -212,10 +212,3 @@ def real_scalar(value: float, like: Array) -> Any:
     elif dtype.kind != "f":
         return value
     return np.array(value, dtype=dtype)
-
-
-def _dagger(X: Array) -> Array:
-    """:func:`~lieflow.algebras.dagger` of an array (the same values, a view for real
-    data) without its dispatch layers: a per-iteration call on small matrices."""
-    Xt = X.swapaxes(-1, -2)
-    return Xt.conj() if X.dtype.kind == "c" else Xt
