@@ -12,7 +12,7 @@ import numpy as np
 
 from ..algebras import Array
 from ..errors import InputError
-from .base import ImplicitProblem, SolveResult, batch_norm, einsum
+from .base import ImplicitProblem, SolveResult, batch_norm, einsum, squared_norm
 
 _EPS = float(np.finfo(float).eps)
 
@@ -200,18 +200,8 @@ class IterationMonitor:
         # ||new|| first: when it is finite, ``new - old`` raises no floating-point warning
         # (``old`` is the last finite iterate or the guess; inf or nan there propagate
         # quietly), so no ``np.errstate`` (a context switch per update) is needed.
-        # _sum_of_squares(new) and (new - old), inlined (a call is a tenth of one)
-        flat = new.ravel()
-        if flat.dtype.kind == "c":
-            flat = flat.view(flat.real.dtype)
-        size2 = float(einsum("i,i->", flat, flat))
-        if size2 < _INF:
-            flat = (new - old).ravel()
-            if flat.dtype.kind == "c":
-                flat = flat.view(flat.real.dtype)
-            step = math.sqrt(einsum("i,i->", flat, flat))
-        else:
-            step = _NAN
+        size2 = squared_norm(new)
+        step = math.sqrt(squared_norm(new - old)) if size2 < _INF else _NAN
         size = math.sqrt(size2)
         if not (step < _INF and size < _INF):
             self.residuals.append(_NAN)
