@@ -328,7 +328,14 @@ def run(ctx: BenchContext) -> Section:
                 target=f"Dask overhead ≤ {TARGET_DASK_OVERHEAD * 1e3:.0f} ms per run",
                 measured=f"{overhead * 1e3:.1f} ms per run ((Dask − pool) / {size.runs} runs, "
                 f"both warm; starting the LocalCluster took {seconds(dask.cluster_start)} "
-                "once)",
+                "once"
+                + (
+                    "; below zero: Dask was no slower than the pool, the difference is "
+                    "the machine's noise"
+                    if overhead < 0
+                    else ""
+                )
+                + ")",
                 met=overhead <= TARGET_DASK_OVERHEAD,
                 gap=""
                 if overhead <= TARGET_DASK_OVERHEAD
