@@ -177,7 +177,7 @@ class ReducedProblem(TableauProblem):
         return -B if self.skew else dagger(B)
 
     def _assemble(self, GB: Array, PB: Array, constant: Array | None) -> Array:
-        """``(h sum_j a_ij G_j B_j^†, -h sum_j a_ij PB_j) + constant`` from ``GB_j = G_j B_j``
+        """``(h sum_j a_ij G_j B_j^†, -h sum_j a_ij P_j B_j) + constant`` from ``GB_j = G_j B_j``
         (skew algebras: ``B^† = -B``, so the sign goes into the coefficients and no
         negated copy of a stack is made) or ``G_j B_j^†`` (others): one ``(s×s)@(s×n²)``
         product per half, written into the result."""
