@@ -108,13 +108,19 @@ def _c_einsum() -> Callable[..., Any]:
 einsum: Callable[..., Any] = _c_einsum()
 
 
-def squared_norm(x: Array) -> float:
-    """``||x||_F^2`` of a whole array as a float: a plain sum of squares (``einsum``, no
-    BLAS call, whose threading overhead dominates for small arrays)."""
+def sum_of_squares(x: Array) -> Any:
+    """``||x||_F^2`` of a whole array as a NumPy scalar of ``x``'s real precision: a plain
+    sum of squares (``einsum``, no BLAS call, whose threading overhead dominates for small
+    arrays)."""
     flat = x.ravel() if isinstance(x, np.ndarray) else np.ascontiguousarray(x).reshape(-1)
     if flat.dtype.kind == "c":
         flat = flat.view(flat.real.dtype)
-    return float(einsum("i,i->", flat, flat))
+    return einsum("i,i->", flat, flat)
+
+
+def squared_norm(x: Array) -> float:
+    """:func:`sum_of_squares` as a Python float."""
+    return float(sum_of_squares(x))
 
 
 def batch_norm(x: Array, core_ndim: int) -> Array:

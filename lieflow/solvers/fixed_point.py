@@ -12,7 +12,7 @@ import numpy as np
 
 from ..algebras import Array
 from ..errors import InputError
-from .base import ImplicitProblem, SolveResult, batch_norm, einsum, squared_norm
+from .base import ImplicitProblem, SolveResult, batch_norm, squared_norm, sum_of_squares
 
 _EPS = float(np.finfo(float).eps)
 
@@ -160,7 +160,7 @@ class IterationMonitor:
             # ||x0|| as batch_norm computes it (the same einsum kernel, a square root in
             # x0's precision), as a float; the lean check's reference size from its first
             # update on
-            norm2 = _sum_of_squares(x0)
+            norm2 = sum_of_squares(x0)
             self._size0f = math.sqrt(norm2) if eps == _EPS else float(np.sqrt(norm2))
             self._size0: Array | float = self._size0f
             # the rule as arguments of stopping_verdict (read once, not per update)
@@ -224,15 +224,6 @@ class IterationMonitor:
             if len(residuals) <= self._quiet and growth <= rule.divergence_factor:
                 return None
         return REASONS[stopping_verdict(residuals, len(residuals), met, growth, *self._args)]
-
-
-def _sum_of_squares(x: Array) -> Any:
-    """``||x||_F^2`` as a NumPy scalar of ``x``'s real precision: :func:`squared_norm`'s
-    (and :func:`batch_norm`'s) einsum, for an array."""
-    flat = x.ravel()
-    if flat.dtype.kind == "c":
-        flat = flat.view(flat.real.dtype)
-    return einsum("i,i->", flat, flat)
 
 
 _TINY = float(np.finfo(float).tiny)
