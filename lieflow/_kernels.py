@@ -13,18 +13,21 @@ One compiled driver and per-formulation map kernels:
   reduced stage form), each the numpy code path written out entry by entry.
 
 The system enters as compiled functions passed as *arguments* of the type
-:data:`MAP_TYPE` (``B(W, params, out)`` and ``project(W, params, out)``, see
+:func:`map_type` (``B(W, params, out)`` and ``project(W, params, out)``, see
 :meth:`lieflow.IsospectralSystem.compiled_B`): a typed first-class function keeps the loops
 in numba's on-disk cache whatever the system (an untyped dispatcher argument would make
 numba recompile them in every process). ``B`` is the stage-value ``B`` of
 :class:`~lieflow.schemes.base.StageProblem`, i.e. ``B(project_stage(W))``.
 
 numba's cache tracks this file only, not the files of the functions it inlines; the two
-entry points (:data:`sydirk_advance`, :data:`reduced_advance`) are therefore keyed by a hash
-of the stopping rule's source (:data:`RULE_KEY`), so editing the rule recompiles them.
+entry points (:func:`entry`: ``"sydirk_advance"``, ``"reduced_advance"``) are therefore keyed
+by a hash of the stopping rule's source (:data:`RULE_KEY`), so editing the rule recompiles
+them.
 
-Conventions: real ``float64`` data only; an ensemble is a ``(K, n, n)`` stack advanced
-trajectory by trajectory inside each step; solves return the number of updates, negated
+Conventions: ``float64`` or ``complex128`` data (one compilation of the loops for each; the
+complex one for skew-Hermitian algebras such as su(N), where every transpose of the real code
+is a conjugate transpose); an ensemble is a ``(K, n, n)`` stack advanced trajectory by
+trajectory inside each step; solves return the number of updates, negated
 when the stopping rule reports a failure (the caller then hands the step to numpy).
 Products of ``n×n`` matrices are plain loops up to ``n = 8`` and BLAS calls (``np.dot``
 from compiled code: no Python overhead) above.
@@ -63,15 +66,16 @@ RULE_KEY = hashlib.sha256(
     (inspect.getsource(fixed_point.stopping_verdict) + repr(fixed_point.REASONS)).encode()
 ).hexdigest()
 
-if numba is not None:
-    _MAT = numba.types.float64[:, ::1]
-    #: Signature of a system's compiled map: ``f(W, params, out)`` writes into ``out``
-    #: (``W``, ``out``: C-contiguous ``float64`` ``(n, n)``; ``params``: ``float64`` 1-D).
-    MAP_SIGNATURE: Any = numba.types.void(_MAT, numba.types.float64[::1], _MAT)
-    #: The first-class function type of :data:`MAP_SIGNATURE` (argument type of the loops).
-    MAP_TYPE: Any = numba.types.FunctionType(MAP_SIGNATURE)
-else:  # pragma: no cover
-    MAP_SIGNATURE = MAP_TYPE = None
+#: The data types the loops are compiled for.
+DTYPES = (np.dtype(np.float64), np.dtype(np.complex128))
+
+
+def map_signature(dtype: np.dtype) -> Any:
+    """Signature of a system's compiled map for data of ``dtype`` (one of :data:`DTYPES`):
+    ``f(W, params, out)`` writes into ``out`` (``W``, ``out``: C-contiguous ``(n, n)`` of
+    that dtype; ``params``: ``float64`` 1-D)."""
+    mat = numba.from_dtype(np.dtype(dtype))[:, ::1]
+    return numba.types.void(mat, numba.types.float64[::1], mat)
 
 
 def _jit(func: F) -> F:
@@ -121,8 +125,8 @@ def _helper(func: F) -> F:
 def compiled_map(func: F) -> F:
     """``func(W, params, out)`` as a system's compiled map (what
     :meth:`~lieflow.IsospectralSystem.compiled_B` may return): jitted with a disk cache,
-    compiled for :data:`MAP_SIGNATURE` when :func:`lieflow.compiled.plan` first asks for it
-    (not at import, so that importing this module stays cheap)."""
+    compiled for :func:`map_signature` of the data's dtype when :func:`lieflow.compiled.plan`
+    first asks for it (not at import, so that importing this module stays cheap)."""
     return _jit(func)
 
 
@@ -160,6 +164,41 @@ def _judge(
     return code, size0
 
 
+# ------------------------------------------------------------------ real or complex
+
+
+def _is_complex(x: Any) -> bool:
+    """Whether ``x`` (an array or a scalar) is complex: a constant of the compiled code."""
+    return bool(np.iscomplexobj(x))
+
+
+if numba is not None:
+
+    @numba.extending.overload(_is_complex, inline="always")
+    def _is_complex_compiled(x: Any) -> Any:
+        answer = isinstance(getattr(x, "dtype", x), numba.types.Complex)
+
+        def constant(x: Any) -> bool:  # the stub's signature, annotations included
+            return answer
+
+        return constant
+
+
+@_helper
+def _abs2(z: Any) -> float:
+    """``|z|²`` (``z * z`` for real ``z``); a real number for every ``z``, so that both
+    branches type alike (numba types the branch it does not take, too)."""
+    if _is_complex(z):
+        return z.real * z.real + z.imag * z.imag
+    return z.real * z.real
+
+
+@_helper
+def _finite(z: Any) -> bool:
+    """Whether ``z`` is finite (both parts of a complex number)."""
+    return math.isfinite(z.real) and math.isfinite(z.imag)
+
+
 # ------------------------------------------------------------------ products
 
 
@@ -188,15 +227,24 @@ def _matmul(A: Any, B: Any, out: Any) -> None:
 
 
 @_helper
-def _matmul_tn(A: Any, B: Any, out: Any) -> None:
-    """``out = A^T @ B`` (:func:`_matmul` on the transposed view)."""
-    _matmul(A.T, B, out)
+def _matmul_hn(A: Any, B: Any, out: Any, tmp: Any) -> None:
+    """``out = A^† @ B`` (:func:`_matmul` on the transposed view of ``A``, or of its
+    conjugate, written into the scratch matrix ``tmp``, for complex data)."""
+    if _is_complex(A):
+        np.conj(A, tmp)
+        _matmul(tmp.T, B, out)
+    else:
+        _matmul(A.T, B, out)
 
 
 @_helper
-def _matmul_nt(A: Any, B: Any, out: Any) -> None:
-    """``out = A @ B^T`` (:func:`_matmul` on the transposed view)."""
-    _matmul(A, B.T, out)
+def _matmul_nh(A: Any, B: Any, out: Any, tmp: Any) -> None:
+    """``out = A @ B^†`` (as :func:`_matmul_hn`)."""
+    if _is_complex(B):
+        np.conj(B, tmp)
+        _matmul(A, tmp.T, out)
+    else:
+        _matmul(A, B.T, out)
 
 
 @_helper
@@ -204,12 +252,12 @@ def _norm(xf: Any) -> float:
     """Euclidean norm of a 1-D array."""
     acc = 0.0
     for i in range(xf.size):
-        acc += xf[i] * xf[i]
+        acc += _abs2(xf[i])
     return math.sqrt(acc)
 
 
 # ------------------------------------------------------------------ systems' maps
-# Compiled forms of the built-in systems' B and projections (MAP_SIGNATURE); ``params`` is
+# Compiled forms of the built-in systems' B and projections (map_signature); ``params`` is
 # the flattened factor S for the Hadamard maps.
 
 
@@ -250,6 +298,26 @@ def symmetric_part(W: Any, params: Any, out: Any) -> None:
             a = 0.5 * (W[i, j] + W[j, i])
             out[i, j] = a
             out[j, i] = a
+
+
+@compiled_map
+def skew_hermitian_part(W: Any, params: Any, out: Any) -> None:
+    """``out = (W - W^†)/2``, then, if ``params[0]``, minus its trace over ``n`` on the
+    diagonal: the projection onto u(n), or su(N) (``out`` may be ``W``)."""
+    n = W.shape[0]
+    trace = 0.0j
+    for i in range(n):
+        d = 0.5 * (W[i, i] - np.conj(W[i, i]))
+        out[i, i] = d
+        trace += d
+        for j in range(i + 1, n):
+            a = 0.5 * (W[i, j] - np.conj(W[j, i]))
+            out[i, j] = a
+            out[j, i] = -np.conj(a)
+    if params[0] != 0.0:
+        trace = trace / n
+        for i in range(n):
+            out[i, i] -= trace
 
 
 #: How the loops evaluate ``B`` (the first entry of the ``params`` they are given; the
@@ -301,23 +369,26 @@ class _FunctionPointer(_Protocol):
     object of numba's wrapper address protocol hands over the address it holds.
     """
 
-    def __init__(self, function: Any) -> None:
+    def __init__(self, function: Any, dtype: np.dtype) -> None:
         from numba.experimental.function_type import _get_wrapper_address
 
         self.function = function  # keeps the compiled code alive
-        self.address = _get_wrapper_address(function, MAP_SIGNATURE)
+        self.dtype = np.dtype(dtype)
+        self.address = _get_wrapper_address(function, map_signature(self.dtype))
 
     def __wrapper_address__(self) -> int:
         return int(self.address)
 
     def signature(self) -> Any:
-        return MAP_SIGNATURE
+        return map_signature(self.dtype)
 
 
-def function_pointer(function: Any) -> Any:
-    """``function`` (a numba dispatcher compiled for :data:`MAP_SIGNATURE`) in the form the
-    loops take it, cheaply converted on every call."""
-    return function if isinstance(function, _FunctionPointer) else _FunctionPointer(function)
+def function_pointer(function: Any, dtype: np.dtype = DTYPES[0]) -> Any:
+    """``function`` (a numba dispatcher compiled for :func:`map_signature` of ``dtype``) in
+    the form the loops take it, cheaply converted on every call."""
+    if isinstance(function, _FunctionPointer) and function.dtype == dtype:
+        return function
+    return _FunctionPointer(function, dtype)
 
 
 # ------------------------------------------------------------------ formulations
@@ -331,8 +402,8 @@ def _midpoint_map(
     """One update of the midpoint map (SPEC §4.1), in place:
 
     ``M <- W0 + q (B M - M B) + q^2 B M B``, ``B = B(M)``, ``q = h/2``;
-    for skew algebras ``M B = (B M)^T`` (two products per update, SPEC §4.1), and for
-    small ``n`` only half of the skew ``B M B`` is formed. The new iterate overwrites ``x``
+    for skew algebras ``M B = (B M)^†`` (two products per update, SPEC §4.1), and for
+    small real ``n`` only half of the skew ``B M B`` is formed. The new iterate overwrites ``x``
     entry by entry once the products are formed; ``Bm``, ... ``MB`` are scratch matrices
     (separate arguments: unpacking a tuple of arrays costs reference counts). Returns the
     squared norms of the update and of the new iterate.
@@ -343,14 +414,13 @@ def _midpoint_map(
     _matmul(Bm, x, BM)
     step2 = 0.0
     size2 = 0.0
-    if skew and n <= _SMALL:
+    if skew and n <= _SMALL and not _is_complex(x):
         # B M B is skew for skew B, M: form its strict upper triangle only (its diagonal
         # is zero in exact arithmetic) and mirror it, half a product instead of one.
         for i in range(n):
             g = W0[i, i]
-            d = g - x[i, i]
-            step2 += d * d
-            size2 += g * g
+            step2 += _abs2(g - x[i, i])
+            size2 += _abs2(g)
             x[i, i] = g
             for j in range(i + 1, n):
                 bmb = 0.0
@@ -359,10 +429,8 @@ def _midpoint_map(
                 c1 = BM[i, j] - BM[j, i]
                 g = W0[i, j] + q * c1 + qq * bmb
                 gt = W0[j, i] - q * c1 - qq * bmb
-                d = g - x[i, j]
-                dt = gt - x[j, i]
-                step2 += d * d + dt * dt
-                size2 += g * g + gt * gt
+                step2 += _abs2(g - x[i, j]) + _abs2(gt - x[j, i])
+                size2 += _abs2(g) + _abs2(gt)
                 x[i, j] = g
                 x[j, i] = gt
     else:
@@ -371,11 +439,10 @@ def _midpoint_map(
             _matmul(x, Bm, MB)
         for i in range(n):
             for j in range(n):
-                mb = BM[j, i] if skew else MB[i, j]
+                mb = np.conj(BM[j, i]) if skew else MB[i, j]
                 g = W0[i, j] + q * (BM[i, j] - mb) + qq * BMB[i, j]
-                d = g - x[i, j]
-                step2 += d * d
-                size2 += g * g
+                step2 += _abs2(g - x[i, j])
+                size2 += _abs2(g)
                 x[i, j] = g
     return step2, size2
 
@@ -384,15 +451,15 @@ def _midpoint_map(
 def _commutator_add(
     W: Any, hb: float, skew: bool, M: Any, B: Any, params: Any, Bm: Any, BM: Any, MB: Any
 ) -> None:
-    """``W += hb [B(M), M]`` in place (one product for skew algebras); ``Bm``, ``BM``,
-    ``MB`` are scratch matrices."""
+    """``W += hb [B(M), M]`` in place (one product for skew algebras: ``M B = (B M)^†``);
+    ``Bm``, ``BM``, ``MB`` are scratch matrices."""
     n = W.shape[0]
     _apply_B(B, params, M, Bm)
     _matmul(Bm, M, BM)
     if skew:
         for i in range(n):
             for j in range(n):
-                MB[i, j] = BM[j, i]
+                MB[i, j] = np.conj(BM[j, i])
     else:
         _matmul(M, Bm, MB)
     for i in range(n):
@@ -408,14 +475,15 @@ def _reduced_map(
     """One update of the reduced stage form (SPEC §4.5), in place (``x[0] = G``,
     ``x[1] = P``, each ``(s, n, n)``):
 
-    ``G_i <- I + h sum_j a_ij G_j B_j^T``, ``P_i <- W0 - h sum_j a_ij P_j B_j``,
-    ``B_j = B(G_j^T P_j)``; for skew algebras ``B^T = -B``. ``3 s`` products per
-    update; ``Wst``, ... ``PB`` are scratch stacks ``(s, n, n)``. Returns the squared norms of the
-    update and of the new iterate.
+    ``G_i <- I + h sum_j a_ij G_j B_j^†``, ``P_i <- W0 - h sum_j a_ij P_j B_j``,
+    ``B_j = B(G_j^† P_j)``; for skew algebras ``B^† = -B``. ``3 s`` products per
+    update; ``Wst``, ... ``PB`` are scratch stacks ``(s, n, n)`` (``GB[j]`` and ``Wst[j]``
+    also hold the conjugates that complex data need, before they are overwritten). Returns
+    the squared norms of the update and of the new iterate.
     """
     s, n = hA.shape[0], W0.shape[0]
     for j in range(s):
-        _matmul_tn(x[0, j], x[1, j], Wst[j])
+        _matmul_hn(x[0, j], x[1, j], Wst[j], GB[j])
         _apply_B(B, params, Wst[j], Bs[j])
         if skew:
             _matmul(x[0, j], Bs[j], GB[j])
@@ -423,7 +491,7 @@ def _reduced_map(
                 for c in range(n):
                     GB[j, a, c] = -GB[j, a, c]
         else:
-            _matmul_nt(x[0, j], Bs[j], GB[j])
+            _matmul_nh(x[0, j], Bs[j], GB[j], Wst[j])
         _matmul(x[1, j], Bs[j], PB[j])
     step2 = 0.0
     size2 = 0.0
@@ -437,10 +505,8 @@ def _reduced_map(
                     accP += hA[i, j] * -PB[j, a, c]
                 gG = accG + (1.0 if a == c else 0.0)
                 gP = accP + W0[a, c]
-                dG = gG - x[0, i, a, c]
-                dP = gP - x[1, i, a, c]
-                step2 += dG * dG + dP * dP
-                size2 += gG * gG + gP * gP
+                step2 += _abs2(gG - x[0, i, a, c]) + _abs2(gP - x[1, i, a, c])
+                size2 += _abs2(gG) + _abs2(gP)
                 x[0, i, a, c] = gG
                 x[1, i, a, c] = gP
     return step2, size2
@@ -569,7 +635,7 @@ def _reduced_step(
     """One step of the reduced stage form of a symplectic tableau (SPEC §4.5) from ``cur``
     into ``out``: unknowns ``(G, P)``, cold guess ``(I, cur)``; ``solved``/``pred``: the
     ``(2, s, n, n)`` offsets, flattened. ``out = cur + sum_i hb_i [B(W_i), W_i]``,
-    ``W_i = G_i^T P_i``."""
+    ``W_i = G_i^† P_i``."""
     s, n = hb.shape[0], cur.shape[0]
     for i in range(s):
         for a in range(n):
@@ -585,7 +651,7 @@ def _reduced_step(
         for c in range(n):
             out[a, c] = cur[a, c]
     for i in range(s):
-        _matmul_tn(x[0, i], x[1, i], Wi)
+        _matmul_hn(x[0, i], x[1, i], Wi, WB)
         _commutator_add(out, hb[i], skew, Wi, B, params, Bi, BW, WB)
     return its
 
@@ -618,12 +684,11 @@ def _commit(solved: Any, hist: Any, flags: Any, weights: Any, acc: Any, err2: An
         err2[u] = 0.0
     for kk in range(K):
         for e in range(m):
-            err2[0] += solved[kk, e] * solved[kk, e]
+            err2[0] += _abs2(solved[kk, e])
         for u in range(1, nh + 1):
             _predict(hist, kk, u, weights, acc)
             for e in range(m):
-                d = solved[kk, e] - acc[e]
-                err2[u] += d * d
+                err2[u] += _abs2(solved[kk, e] - acc[e])
     best = 0
     for u in range(1, nh + 1):
         if err2[u] < err2[best]:
@@ -667,12 +732,12 @@ def _driver(fstep: Any, fviews: Any) -> Any:
         K, n, s = W.shape[0], W.shape[1], hb.shape[0]
         retry_cold, use_warm = irule[4] != 0, irule[5] != 0
         m = hist.shape[2]
-        solved = np.empty((K, m))
-        pred = np.zeros(m)
-        acc = np.empty(m)
+        solved = np.empty((K, m), dtype=W.dtype)
+        pred = np.zeros(m, dtype=W.dtype)
+        acc = np.empty(m, dtype=W.dtype)
         err2 = np.empty(hist.shape[0] + 1)
-        work = np.empty((2, 2, s, n, n))
-        scratch = np.empty((5, s, n, n))
+        work = np.empty((2, 2, s, n, n), dtype=W.dtype)
+        scratch = np.empty((5, s, n, n), dtype=W.dtype)
         res = np.empty(irule[0])
         x, x0, xf, x0f, m0, m1, m2, m3 = fviews(work, scratch)
         for step in range(states.shape[0]):
@@ -692,7 +757,7 @@ def _driver(fstep: Any, fviews: Any) -> Any:
                     P(out, pparams, out)
                 for a in range(n):
                     for c in range(n):
-                        if not math.isfinite(out[a, c]):
+                        if not _finite(out[a, c]):
                             return step
                 most = max(most, total)
             if use_warm:
@@ -734,16 +799,22 @@ def _entry_points(key: str) -> tuple[Any, Any]:
     return sydirk_advance, reduced_advance
 
 
-def _compile_entry(func: F) -> F:
-    """An entry point compiled for its one signature (loaded from the disk cache if there)."""
+def map_type(dtype: np.dtype) -> Any:
+    """The first-class function type of :func:`map_signature` (how the loops take a map)."""
+    return numba.types.FunctionType(map_signature(dtype))
+
+
+def _compile_entry(func: F, dtype: np.dtype) -> F:
+    """An entry point compiled for its one signature for data of ``dtype`` (loaded from the
+    disk cache if there)."""
     if numba is None:  # pragma: no cover
         return func
     t = numba.types
-    f8, i8 = t.float64, t.int64
+    f8, i8, d = t.float64, t.int64, numba.from_dtype(dtype)
+    M = map_type(dtype)
     sig = t.int64(
-        f8[:, :, ::1], f8[:, ::1], f8[::1], t.boolean, MAP_TYPE, f8[::1], MAP_TYPE, f8[::1],
-        t.boolean, f8[::1], i8[::1], f8[:, :, ::1], f8[:, ::1], i8[::1], f8[:, :, :, ::1],
-        i8[::1],
+        d[:, :, ::1], f8[:, ::1], f8[::1], t.boolean, M, f8[::1], M, f8[::1], t.boolean,
+        f8[::1], i8[::1], d[:, :, ::1], f8[:, ::1], i8[::1], d[:, :, :, ::1], i8[::1],
     )  # fmt: skip
 
     try:
@@ -754,15 +825,15 @@ def _compile_entry(func: F) -> F:
 
 _SYDIRK, _REDUCED = _entry_points(RULE_KEY)
 _ENTRY_SOURCES = {"sydirk_advance": _SYDIRK, "reduced_advance": _REDUCED}
-_ENTRIES: dict[str, Any] = {}
+_ENTRIES: dict[tuple[str, np.dtype], Any] = {}
 
 
-def __getattr__(name: str) -> Any:
-    """``sydirk_advance`` and ``reduced_advance``, compiled (or loaded from the disk cache)
-    on first use, so that importing this module (as :func:`lieflow.compiled.plan` does to
-    check a system's maps) does not load both loops."""
-    if name in _ENTRY_SOURCES:
-        if name not in _ENTRIES:
-            _ENTRIES[name] = _compile_entry(_ENTRY_SOURCES[name])
-        return _ENTRIES[name]
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+def entry(name: str, dtype: np.dtype = DTYPES[0]) -> Any:
+    """The entry point ``name`` (``"sydirk_advance"`` or ``"reduced_advance"``) for data of
+    ``dtype`` (one of :data:`DTYPES`), compiled (or loaded from the disk cache) on first use,
+    so that importing this module (as :func:`lieflow.compiled.plan` does to check a system's
+    maps) loads no loops, and a real run never loads the complex ones."""
+    key = (name, np.dtype(dtype))
+    if key not in _ENTRIES:
+        _ENTRIES[key] = _compile_entry(_ENTRY_SOURCES[name], key[1])
+    return _ENTRIES[key]

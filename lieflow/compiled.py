@@ -20,7 +20,8 @@ of steps per call, for the case where that is simple and exact:
 * the solver is plain :class:`~lieflow.solvers.FixedPoint` iteration (no Anderson, a
   subclass that keeps its map), or :class:`~lieflow.solvers.Auto` whose first solver is
   one (SPEC §5);
-* the data are real ``float64``.
+* the data are real ``float64``, or ``complex128`` on a skew-Hermitian algebra (u(n),
+  su(N): Euler–Zeitlin), where every transpose of the real loops is a conjugate transpose.
 
 Same maps, same stopping rule (the very function the numpy path calls,
 :func:`lieflow.solvers.fixed_point.stopping_verdict`, compiled), same warm starts
@@ -57,8 +58,10 @@ from .solvers.fixed_point import FixedPoint
 from .solvers.newton import Auto
 from .systems.base import IsospectralSystem
 
-#: ``engine="auto"`` picks the compiled engine for matrix sizes ``n <= AUTO_MAX_N`` ...
+#: ``engine="auto"`` picks the compiled engine for matrix sizes ``n <= AUTO_MAX_N`` (real
+#: data) or ``n <= AUTO_MAX_N_COMPLEX`` (complex data) ...
 AUTO_MAX_N = 128
+AUTO_MAX_N_COMPLEX = 96
 #: ... and runs of at least this many trajectory-steps (``steps * K``): below it, importing
 #: numba and loading the cached loops (~0.4 s) costs more than numpy's steps.
 AUTO_MIN_WORK = 1000
@@ -131,6 +134,7 @@ class CompiledPlan:
 
     kind: str
     n: int
+    dtype: np.dtype
     skew: bool
     A: Array = attrs.field(repr=False)
     b: Array = attrs.field(repr=False)
@@ -164,18 +168,18 @@ class CompiledPlan:
         batch, n = W.shape[:-2], self.n
         K = int(np.prod(batch, dtype=np.int64))
         core = self.warm_shape()
-        Wk = np.ascontiguousarray(W, dtype=np.float64).reshape(K, n, n)
+        Wk = np.ascontiguousarray(W, dtype=self.dtype).reshape(K, n, n)
         size = int(np.prod(core))
         keep = max(depth, 1)
-        hist = np.zeros((keep, K, size))
+        hist = np.zeros((keep, K, size), dtype=self.dtype)
         filled = min(len(history), keep) if depth else 0
         for j in range(filled):
-            hist[j] = np.asarray(history[j], dtype=np.float64).reshape(K, size)
+            hist[j] = np.asarray(history[j], dtype=self.dtype).reshape(K, size)
         flags = np.array([filled, int(trusted)], dtype=np.int64)
         irule = np.append(self.irule, np.int64(depth > 0))
-        states = np.empty((steps, K, n, n))
+        states = np.empty((steps, K, n, n), dtype=self.dtype)
         iters = np.zeros(steps, dtype=np.int64)
-        run = k.sydirk_advance if self.kind == "sydirk" else k.reduced_advance
+        run = k.entry(f"{self.kind}_advance", self.dtype)
         project = self.project is not None
         done = run(
             Wk, h * self.A, h * self.b, self.skew, self.B, self.params,
@@ -254,36 +258,46 @@ def _fixed_point_of(solver: Solver) -> tuple[FixedPoint, bool] | None:
 
 
 def _checked_map(
-    what: str, got: tuple[Any, Array] | None, checks: Sequence[tuple[Array, Array]]
+    what: str,
+    got: tuple[Any, Array] | None,
+    checks: Sequence[tuple[Array, Array]],
+    dtype: np.dtype,
 ) -> tuple[Any, Array] | str:
     """``(function, params)`` of a system's compiled map, compiled for
-    :data:`~lieflow._kernels.MAP_SIGNATURE` and checked on each ``(W, want)`` of ``checks``
-    against ``want`` (the numpy result) to roundoff; or the reason it cannot be used (which
-    names the check: ``"on W0"``, then ``"off W0"``)."""
+    :func:`~lieflow._kernels.map_signature` of ``dtype`` and checked on each ``(W, want)``
+    of ``checks`` against ``want`` (the numpy result) to roundoff; or the reason it cannot
+    be used (which names the check: ``"on W0"``, then ``"off W0"``)."""
     k = kernels()
     if not (isinstance(got, tuple) and len(got) == 2):
         return f"{what} must return (function, params), got {got!r}"
     fn, params = got
     params = np.array(params, dtype=np.float64, order="C").reshape(-1)  # a writable copy
+    signature = k.map_signature(dtype)
     for i, (W, want) in enumerate(checks):
         try:
             if (
                 i == 0
                 and hasattr(fn, "compile")
-                and not any(sig == k.MAP_SIGNATURE.args for sig in getattr(fn, "signatures", ()))
+                and not any(sig == signature.args for sig in getattr(fn, "signatures", ()))
             ):
-                fn.compile(k.MAP_SIGNATURE)
-            out = np.zeros_like(W)
-            fn(np.array(W, dtype=np.float64, order="C"), params, out)
+                fn.compile(signature)
+            out = np.zeros(W.shape, dtype=dtype)
+            fn(np.array(W, dtype=dtype, order="C"), params, out)
         except Exception as exc:
-            return f"{what} does not compile for (W, params, out): {type(exc).__name__}: {exc}"
+            return (
+                f"{what} does not compile for (W, params, out) with {dtype} data: "
+                f"{type(exc).__name__}: {exc}"
+            )
         scale = max(float(np.max(np.abs(want), initial=0.0)), np.finfo(float).tiny)
         if not float(np.max(np.abs(out - want), initial=0.0)) <= 1e-12 * scale:
             return f"{what} does not reproduce the numpy result {'on' if i == 0 else 'off'} W0"
     try:
-        return k.function_pointer(fn), params
+        return k.function_pointer(fn, dtype), params
     except Exception as exc:
-        return f"{what} does not compile for (W, params, out): {type(exc).__name__}: {exc}"
+        return (
+            f"{what} does not compile for (W, params, out) with {dtype} data: "
+            f"{type(exc).__name__}: {exc}"
+        )
 
 
 def plan(
@@ -296,8 +310,11 @@ def plan(
     ``system.project(W0)``, to roundoff, so that a subclass overriding ``B`` without its
     compiled form cannot be integrated wrongly.
     """
-    if W0.dtype != np.float64:
-        return f"only real float64 data are compiled, got {W0.dtype}"
+    dtype = np.dtype(W0.dtype)
+    if dtype == np.complex128 and not system.algebra.skew:
+        return "complex128 data are compiled on skew-Hermitian algebras only (u(n), su(N))"
+    if dtype not in (np.dtype(np.float64), np.dtype(np.complex128)):
+        return f"only float64 and complex128 data are compiled, got {dtype}"
     form = scheme.compiled_form()
     if form is None:
         return (
@@ -312,27 +329,36 @@ def plan(
         )
     try:
         kernels()
-        got_B = system.compiled_B()
     except ImportError as exc:
         return f"it needs numba: pip install 'lieflow[fast]' (importing it failed: {exc})"
+    try:
+        got_B = system.compiled_B()
+    except Exception as exc:  # a broken plugin: refuse the case, name the failure
+        return f"{system.name}.compiled_B() raised {type(exc).__name__}: {exc}"
     if got_B is None:
         hint = " (hadamard_factor is None)" if system.hadamard_factor is None else ""
         return f"{system.name} has no compiled B{hint}: see IsospectralSystem.compiled_B"
     W = np.ascontiguousarray(W0.reshape(-1, *W0.shape[-2:])[0])
-    Wp = W + 1e-3 * float(np.max(np.abs(W), initial=1.0)) * np.cos(np.arange(W.size)).reshape(
-        W.shape
-    )
+    wave = np.arange(W.size).reshape(W.shape)
+    off = np.cos(wave) + (1j * np.sin(wave) if dtype.kind == "c" else 0.0)
+    Wp = W + 1e-3 * float(np.max(np.abs(W), initial=1.0)) * off
     Bw = _checked_map(
         f"{system.name}.compiled_B()",
         got_B,
         [(V, system.B(system.project_stage(V))) for V in (W, Wp)],
+        dtype,
     )
     if isinstance(Bw, str):
         return Bw
-    got_P = system.compiled_project()
+    try:
+        got_P = system.compiled_project()
+    except Exception as exc:
+        return f"{system.name}.compiled_project() raised {type(exc).__name__}: {exc}"
     P: tuple[Any, Array] | None = None
     if got_P is not None:
-        Pw = _checked_map(f"{system.name}.compiled_project()", got_P, [(Wp, system.project(Wp))])
+        Pw = _checked_map(
+            f"{system.name}.compiled_project()", got_P, [(Wp, system.project(Wp))], dtype
+        )
         if isinstance(Pw, str):
             return Pw
         P = Pw
@@ -344,6 +370,7 @@ def plan(
     return CompiledPlan(
         kind=kind,
         n=int(W.shape[-1]),
+        dtype=dtype,
         skew=bool(system.algebra.skew),
         A=np.ascontiguousarray(A, dtype=np.float64),
         b=np.ascontiguousarray(b, dtype=np.float64),
@@ -357,10 +384,10 @@ def plan(
     )
 
 
-def wins(n: int, steps: int, trajectories: int = 1) -> bool:
+def wins(n: int, steps: int, trajectories: int = 1, complex_data: bool = False) -> bool:
     """Whether ``engine="auto"`` should pick the compiled engine for ``steps`` steps of
-    ``trajectories`` trajectories of ``n x n`` matrices: ``n <= AUTO_MAX_N`` and
-    ``steps * trajectories >= AUTO_MIN_WORK``.
+    ``trajectories`` trajectories of ``n x n`` matrices: ``n <= AUTO_MAX_N`` (complex data:
+    ``AUTO_MAX_N_COMPLEX``) and ``steps * trajectories >= AUTO_MIN_WORK``.
 
     A function of the run alone — not of what the process ran before — so that the same
     run gives the same bits wherever it runs (resume in another process, a sweep worker).
@@ -374,5 +401,11 @@ def wins(n: int, steps: int, trajectories: int = 1) -> bool:
     call BLAS for their products, so the gain at large n is numpy's per-call overhead and
     temporaries; it fades from n ~ 128 on, hence the cut there. Ensembles gain less (numpy
     batches their products): 1.2-1.7 for n = 10-64, 2-5 at n = 3.
+
+    Complex data (Euler–Zeitlin, rms-1 vorticity, h = 1/N, rtol 1e-14), the same ratios for
+    midpoint, Gauss-2, Gauss-4 with the Casimir shift: N = 32: 2.6, 2.0, 1.5; N = 64: 1.9,
+    1.4, 1.5; N = 96: 1.4, 1.2, 1.2; N = 128: 1.3, 1.1, 0.95 (a complex product costs four
+    real ones, so the overhead numpy adds fades sooner), hence the cut at 96.
     """
-    return n <= AUTO_MAX_N and steps * trajectories >= AUTO_MIN_WORK
+    top = AUTO_MAX_N_COMPLEX if complex_data else AUTO_MAX_N
+    return n <= top and steps * trajectories >= AUTO_MIN_WORK

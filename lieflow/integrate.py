@@ -167,7 +167,8 @@ def scheme_flow(
     if engine == "auto" and not compiled.available():
         return flow
     n = W0.shape[-1]
-    if engine == "auto" and not compiled.wins(n, steps, W0.size // max(n * n, 1)):
+    K = W0.size // max(n * n, 1)
+    if engine == "auto" and not compiled.wins(n, steps, K, np.iscomplexobj(W0)):
         return flow  # judged before plan(), which loads the system's compiled B
     plan = compiled.plan(system, scheme, solver, W0)
     if isinstance(plan, str):

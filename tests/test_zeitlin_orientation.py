@@ -135,6 +135,8 @@ def measured_rh_speed(
     a: float = 1.0,
     eps: float = 0.1,
     steps: int = 20,
+    engine: str = "auto",
+    casimir_shift: float | str = 0.0,
 ) -> tuple[float, float]:
     """Integrate the Rossby–Haurwitz wave over fluid time ``T`` (phase ``lcT = 1`` rad); return
     the measured eastward speed ``-arg(c_ll(T)/c_ll(0))/(lT)`` and the relative change of
@@ -150,7 +152,15 @@ def measured_rh_speed(
     h = T / steps / system.fluid_time_unit
     solver = lf.solvers.FixedPoint(rtol=1e-14)
     sol = lf.integrate(
-        system, lf.schemes.get(scheme), W0, h, steps=steps, solver=solver, save_every=steps
+        system,
+        lf.schemes.get(scheme),
+        W0,
+        h,
+        steps=steps,
+        solver=solver,
+        save_every=steps,
+        engine=engine,  # type: ignore[arg-type]
+        casimir_shift=casimir_shift,  # type: ignore[arg-type]
     )
     before = lz.matrix_to_sh(W_rel)[lz.lm_index(l, l)]
     after = lz.matrix_to_sh(system.relative(sol.W_final))[lz.lm_index(l, l)]
@@ -268,6 +278,35 @@ def test_rossby_haurwitz_speed_with_rotation_and_lamb_parameter(
     speed, amplitude = measured_rh_speed(system, "gauss2", l, steps=40)
     assert abs(speed - c) <= 5e-6 * abs(c), (speed, c)
     assert amplitude <= 1e-6
+
+
+@pytest.mark.parametrize(
+    ("scheme", "rotation", "lamb", "shift"),
+    [
+        ("gauss2", 0.0, 0.0, 0.0),
+        ("triple_jump", 0.0, 0.0, 0.0),
+        ("gauss2", 0.5, 4.0, 0.0),
+        ("gauss2", 0.5, 4.0, "auto"),
+        ("triple_jump", -0.4, 0.0, "auto"),
+    ],
+)
+def test_the_compiled_engine_moves_the_wave_at_the_exact_speed(
+    scheme: str, rotation: float, lamb: float, shift: float | str
+) -> None:
+    """The compiled engine's complex loops (and the plugin's compiled B, with rotation,
+    Lamb parameter and Casimir shift folded in) against the exact Rossby–Haurwitz speed,
+    with the numpy path's tolerances: a transpose left unconjugated, or a sign of B, moves
+    the wave at the wrong speed."""
+    pytest.importorskip("numba")
+    system = lz.EulerZeitlin(12, rotation=rotation, lamb=lamb)
+    c = rh_speed(1.0, 3, rotation, lamb)
+    speed, amplitude = measured_rh_speed(
+        system, scheme, 3, steps=40, engine="compiled", casimir_shift=shift
+    )
+    assert speed * c > 0
+    tolerance = 5e-6 if scheme == "gauss2" else TOLERANCE[scheme]
+    assert abs(speed - c) <= tolerance * abs(c), (speed, c)
+    assert amplitude <= 1e-5
 
 
 def test_relative_vorticity_helpers_round_trip() -> None:

@@ -69,23 +69,32 @@ class IsospectralSystem(ABC):
         """
         return None
 
-    def compiled_B(self) -> tuple[Any, Array] | None:
+    def compiled_B(self, shift: float = 0.0) -> tuple[Any, Array] | None:
         """``B`` of a stage value for the compiled engine (:mod:`lieflow.compiled`), or
         ``None`` (then the engine refuses the system and ``engine="auto"`` uses numpy).
 
         Returns ``(function, params)``: a numba-compiled ``function(W, params, out)`` that
-        writes ``B(project_stage(W))`` — what :class:`~lieflow.schemes.base.StageProblem`
-        evaluates — into ``out`` (``W``, ``out``: C-contiguous ``float64`` ``(n, n)``;
-        ``params``: a ``float64`` vector of the system's constants). It reaches the loops as
-        a typed first-class function, so numba's disk cache of the loops stays valid for
+        writes ``B(V) - shift V``, ``V = project_stage(W)`` — what
+        :class:`~lieflow.schemes.base.StageProblem` evaluates — into ``out`` (``W``,
+        ``out``: C-contiguous ``(n, n)`` of the data's dtype, ``float64`` or, on u(n) and
+        su(N), ``complex128``; ``params``: a ``float64`` vector of the system's constants).
+        ``shift`` is the Casimir shift ``c`` of
+        :class:`~lieflow.systems.shifted.CasimirShifted` (``B - cW``, the same flow); a
+        system whose map cannot fold one in returns ``None`` for ``shift != 0``, and so must
+        one whose stage values leave the span of its phase space under ``B - cW`` (the
+        loops' commutator update uses the stage value itself, the numpy path its
+        projection): the Toda lattice, where ``B - cW`` is not skew. It reaches the loops
+        as a typed first-class function, so numba's disk cache of the loops stays valid for
         every system; compile it with ``numba.njit(cache=True)`` at module level (or
         ``lieflow._kernels.compiled_map``) so that it is cached too. The engine checks it
         against :meth:`B` and :meth:`project_stage` on the initial state (to roundoff)
         before use. Importing numba inside this method keeps it optional.
 
         The default is derived from :attr:`hadamard_factor` ``S`` for the algebra's own
-        stage projection on so(n) (``S ⊙ (W - W^T)/2``) and gl(n) (``S ⊙ W``); ``None``
-        otherwise. The point-vortex plugin (``lieflow_vortices``) shows a nonlinear one.
+        stage projection on so(n) (``(S - shift) ⊙ (W - W^T)/2``) and gl(n)
+        (``(S - shift) ⊙ W``); ``None`` otherwise. The point-vortex plugin
+        (``lieflow_vortices``) shows a nonlinear one, the Euler–Zeitlin plugin
+        (``lieflow_zeitlin``) a complex one (a Laplacian solve).
         """
         from ..algebras import GL, SO
 
@@ -98,16 +107,24 @@ class IsospectralSystem(ABC):
         fn = _kernels.hadamard_B_skew if kind is SO else _kernels.hadamard_B if kind is GL else None
         if fn is None:
             return None
-        return fn, np.ascontiguousarray(S, dtype=np.float64).ravel()
+        return fn, np.ascontiguousarray(np.asarray(S) - shift, dtype=np.float64).ravel()
 
     def compiled_project(self) -> tuple[Any, Array] | None:
         """:meth:`project` for the compiled engine, applied to each new state inside its
         loops as the numpy path does; ``(function, params)`` as for :meth:`compiled_B`
         (``function(W, params, out)`` writes ``project(W)`` into ``out``, which may be
-        ``W``), or ``None`` (the default): the engine then projects each chunk's states with
+        ``W``), or ``None``: the engine then projects each chunk's states with
         :meth:`project` once the chunk is done — exact when the loops keep states on the
-        phase space anyway (so(n), gl(n))."""
-        return None
+        phase space anyway (so(n), gl(n), the default there). On u(n) and su(N) the default
+        is the algebra's projection, compiled (skew-Hermitian part, trace removed on su(N)),
+        when :meth:`project` is the algebra's."""
+        from ..algebras import SU, U
+
+        if type(self).project is not IsospectralSystem.project or not isinstance(self.algebra, U):
+            return None
+        from .. import _kernels
+
+        return _kernels.skew_hermitian_part, np.array([isinstance(self.algebra, SU)], float)
 
     def B_derivative(self, W: Array, dW: Array) -> Array:
         """Fréchet derivative ``B'(W)[dW]``; needed by Newton's method (SPEC §5).

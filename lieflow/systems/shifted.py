@@ -112,18 +112,10 @@ class CasimirShifted(IsospectralSystem):
         S = self.base.hadamard_factor
         return None if S is None else np.asarray(S) - self.c
 
-    def compiled_B(self) -> tuple[Any, Array] | None:
-        """``base``'s compiled entrywise-product ``B`` with ``S - c``; ``None`` for other
-        compiled maps (their steps then run on the numpy engine)."""
-        got = self.base.compiled_B()
-        S = self.base.hadamard_factor
-        if got is None or S is None:
-            return None
-        from .. import _kernels
-
-        if got[0] not in (_kernels.hadamard_B_skew, _kernels.hadamard_B):
-            return None
-        return got[0], np.ascontiguousarray(np.asarray(S) - self.c, dtype=np.float64).ravel()
+    def compiled_B(self, shift: float = 0.0) -> tuple[Any, Array] | None:
+        """``base``'s compiled ``B`` with the shift ``c`` folded in (``None`` where ``base``
+        cannot fold one: its steps then run on the numpy engine)."""
+        return self.base.compiled_B(shift=self.c + shift)
 
     def compiled_project(self) -> tuple[Any, Array] | None:
         return self.base.compiled_project()

@@ -138,10 +138,13 @@ class PeriodicToda(IsospectralSystem):
         gradient extension (``B̃(W) = S ⊙ W^T`` is not of that form)."""
         return None if self.gl_gradient else self.sign.copy()
 
-    def compiled_B(self) -> tuple[Any, Array] | None:
-        """``S ⊙ (W + W^T)/2`` compiled: ``B`` of the symmetric part of a stage value
-        (``None`` for the gradient extension)."""
-        if self.gl_gradient:
+    def compiled_B(self, shift: float = 0.0) -> tuple[Any, Array] | None:
+        """``S ⊙ (W + W^T)/2`` compiled: ``B`` of the symmetric part of a stage value.
+
+        ``None`` for the gradient extension, and with a Casimir shift: ``B - cW`` is not
+        skew, so the stage values are not symmetric, and the loops' commutator update uses
+        the stage value where the numpy path uses its symmetric part."""
+        if self.gl_gradient or shift != 0.0:
             return None
         from .. import _kernels
 

@@ -252,9 +252,12 @@ class PointVortices(lieflow.IsospectralSystem):
         """Orthogonal projection onto so(3)^K, the linear span of the phase space."""
         return self.algebra.project(W)
 
-    def compiled_B(self) -> tuple[Any, Array] | None:
+    def compiled_B(self, shift: float = 0.0) -> tuple[Any, Array] | None:
         """``B`` compiled with numba for lieflow's compiled engine (``engine="compiled"``):
-        ``(vortex_B, strengths)``, see :meth:`lieflow.IsospectralSystem.compiled_B`."""
+        ``(vortex_B, strengths)``, see :meth:`lieflow.IsospectralSystem.compiled_B`;
+        ``None`` with a Casimir shift (``shift != 0``: such runs use the numpy engine)."""
+        if shift != 0.0:
+            return None
         from ._compiled import vortex_B
 
         return vortex_B, np.ascontiguousarray(self.strengths, dtype=np.float64)

@@ -269,6 +269,18 @@ class EulerZeitlin(lieflow.IsospectralSystem):
         r"""``σ (Δ_N - F)^{-1}(W - F_f)`` (``σ`` times the stream matrix), broadcasting."""
         return self.laplacian.solve(self._anomaly(W))
 
+    def compiled_B(self, shift: float = 0.0) -> tuple[Any, Array] | None:
+        r"""``B`` for lieflow's compiled engine (complex128 data): the su(N) projection of a
+        stage value, the same Laplacian sweeps as :meth:`B`, compiled, minus ``shift``
+        times the projection (:mod:`lieflow_zeitlin._compiled`; see
+        :meth:`lieflow.IsospectralSystem.compiled_B`)."""
+        from . import _compiled
+
+        lap = self.laplacian
+        factor = lap._double  # the double-precision factors of the sweeps
+        factors = (factor.lower, factor.upper, factor.carry_fwd, factor.carry_bwd, factor.dinv)
+        return _compiled.zeitlin_B, _compiled.params(shift, self.planetary, factors)
+
     def B_derivative(self, W: Array, dW: Array) -> Array:
         """``B'(W)[dW] = σ (Δ_N - F)^{-1} dW`` (``B`` is affine)."""
         return self.laplacian.solve(dW)

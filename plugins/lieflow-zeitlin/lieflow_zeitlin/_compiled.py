@@ -1,0 +1,97 @@
+r"""Compiled ``B`` of :class:`~lieflow_zeitlin.EulerZeitlin` for lieflow's compiled engine
+(imported only by :meth:`EulerZeitlin.compiled_B`, so numba stays optional).
+
+It follows lieflow's compiled-map convention ``f(W, params, out)`` (see
+:meth:`lieflow.IsospectralSystem.compiled_B`) for ``complex128`` data: ``W`` and ``out`` are
+C-contiguous ``(N, N)``, and :func:`zeitlin_B` writes
+
+.. math:: B(V) - c V,\qquad B(V) = \sigma (\Delta_N - F)^{+}(V - F_f),\qquad
+          V = \tfrac12 (W - W^\dagger) - \tfrac{\operatorname{tr}}{N} I
+
+(``V``: the su(N) projection of the stage value; ``c``: a Casimir shift). The solve is
+:meth:`HoppeYauLaplacian.solve <lieflow_zeitlin.HoppeYauLaplacian.solve>` written out: the
+trace removed, the ``N²`` entries copied into the packed ``(N, N+1)`` layout, the same
+partitioned Thomas sweeps (:func:`lieflow_zeitlin.laplacian._sweep_loops`, compiled) with the
+same factors (``σ`` is in them), the trace removed again.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numba
+import numpy as np
+
+from .laplacian import _sweep_compiled
+
+#: ``params = [c, nb, b, Im diag F_f (N entries), lower, upper, carry_fwd, carry_bwd, dinv]``
+#: (each factor ``(nb, b, 2(N+1))``, flattened; :func:`params`).
+HEADER = 3
+
+
+def params(shift: float, planetary: Any, factors: tuple[Any, ...]) -> Any:
+    """The ``params`` vector of :func:`zeitlin_B`: the shift ``c``, the block layout of the
+    factors, the imaginary diagonal of the planetary vorticity matrix ``F_f`` and the five
+    double-precision factor arrays of the partitioned sweeps."""
+    nb, b = factors[0].shape[:2]
+    parts = [np.array([shift, nb, b], dtype=float), np.imag(np.diagonal(planetary))]
+    return np.concatenate(parts + [np.ravel(f) for f in factors]).astype(np.float64)
+
+
+@numba.njit(cache=True)
+def _factor(params: Any, k: int, N: int, nb: int, b: int) -> Any:
+    """The ``k``-th factor array ``(nb, b, 2(N+1))`` of ``params`` (a view)."""
+    size = nb * b * 2 * (N + 1)
+    start = HEADER + N + k * size
+    return params[start : start + size].reshape(nb, b, 2 * (N + 1))
+
+
+@numba.njit(cache=True)
+def zeitlin_B(W: Any, params: Any, out: Any) -> None:
+    """``out = B(V) - c V`` for the su(N) projection ``V`` of ``W`` (module docs)."""
+    N = W.shape[0]
+    C = N + 1
+    shift = params[0]
+    nb, b = int(params[1]), int(params[2])
+    # V, the su(N) projection, into out (lieflow.SU.project)
+    trace = 0.0j
+    for i in range(N):
+        d = 0.5 * (W[i, i] - np.conj(W[i, i]))
+        out[i, i] = d
+        trace += d
+        for j in range(i + 1, N):
+            a = 0.5 * (W[i, j] - np.conj(W[j, i]))
+            out[i, j] = a
+            out[j, i] = -np.conj(a)
+    trace = trace / N
+    for i in range(N):
+        out[i, i] -= trace
+    # the right-hand side V - F_f in the packed layout, trace removed (solve)
+    buf = np.zeros(nb * b * C, dtype=np.complex128)
+    for i in range(N):
+        for j in range(N):
+            buf[i * N + j] = out[i, j]
+    mean = 0.0j
+    for i in range(N):
+        buf[i * C] -= 1j * params[HEADER + i]
+        mean += buf[i * C]
+    mean = mean / N
+    for i in range(N):
+        buf[i * C] -= mean
+    _sweep_compiled(
+        buf.view(np.float64).reshape(1, nb, b, 2 * C),
+        _factor(params, 0, N, nb, b),
+        _factor(params, 1, N, nb, b),
+        _factor(params, 2, N, nb, b),
+        _factor(params, 3, N, nb, b),
+        _factor(params, 4, N, nb, b),
+    )
+    mean = 0.0j
+    for i in range(N):
+        mean += buf[i * C]
+    mean = mean / N
+    for i in range(N):
+        buf[i * C] -= mean
+    for i in range(N):
+        for j in range(N):
+            out[i, j] = buf[i * N + j] - shift * out[i, j]
