@@ -70,12 +70,21 @@ RULE_KEY = hashlib.sha256(
 DTYPES = (np.dtype(np.float64), np.dtype(np.complex128))
 
 
+def _signature(dtype: np.dtype) -> Any:
+    mat = numba.from_dtype(dtype)[:, ::1]
+    return numba.types.void(mat, numba.types.float64[::1], mat)
+
+
+#: The signatures of :func:`map_signature`, made once (numba types are immutable; making one
+#: costs ~80 µs, and numba asks for a function argument's on every call of the loops).
+_SIGNATURES = {} if numba is None else {dtype: _signature(dtype) for dtype in DTYPES}
+
+
 def map_signature(dtype: np.dtype) -> Any:
     """Signature of a system's compiled map for data of ``dtype`` (one of :data:`DTYPES`):
     ``f(W, params, out)`` writes into ``out`` (``W``, ``out``: C-contiguous ``(n, n)`` of
     that dtype; ``params``: ``float64`` 1-D)."""
-    mat = numba.from_dtype(np.dtype(dtype))[:, ::1]
-    return numba.types.void(mat, numba.types.float64[::1], mat)
+    return _SIGNATURES[np.dtype(dtype)]
 
 
 def _jit(func: F) -> F:
@@ -374,13 +383,14 @@ class _FunctionPointer(_Protocol):
 
         self.function = function  # keeps the compiled code alive
         self.dtype = np.dtype(dtype)
-        self.address = _get_wrapper_address(function, map_signature(self.dtype))
+        self._signature = map_signature(self.dtype)
+        self.address = _get_wrapper_address(function, self._signature)
 
     def __wrapper_address__(self) -> int:
         return int(self.address)
 
     def signature(self) -> Any:
-        return map_signature(self.dtype)
+        return self._signature
 
 
 def function_pointer(function: Any, dtype: np.dtype = DTYPES[0]) -> Any:
