@@ -201,6 +201,17 @@ def right_product(BM: Array, M: Array, B: Array, skew: bool) -> Array:
     return dagger(BM) if skew else M @ B
 
 
+def scratch(held: Array | None, count: int, shape: tuple[int, ...], dtype: Any) -> Array:
+    """``count`` scratch arrays of ``shape`` and ``dtype``, as one ``(count, *shape)`` array:
+    ``held`` if it is that, else a new one. A stage problem keeps its scratch for its step,
+    so that its iterations write their products into the same memory (at large ``n`` fresh
+    temporaries cost page faults and cache misses comparable to the products); scratch never
+    leaves the problem, whose maps return new arrays."""
+    if held is None or held.shape != (count, *shape) or held.dtype != dtype:
+        held = np.empty((count, *shape), dtype=dtype)
+    return held
+
+
 def real_scalar(value: float, like: Array) -> Any:
     """``value`` as a 0-d array of ``like``'s real precision, for in-place products with
     arrays like ``like``: the result NumPy gives for the Python float (which it rounds to

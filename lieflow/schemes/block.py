@@ -17,6 +17,7 @@ from .base import (
     Scheme,
     StepResult,
     TableauProblem,
+    scratch,
     solve,
     solve_right,
     symplectic,
@@ -162,6 +163,8 @@ class ReducedProblem(TableauProblem):
         trivial[..., 1, :, :, :] = W0[..., None, :, :]
         self.trivial = trivial
         self.warm = warm
+        self._stages: Array | None = None
+        self._products: Array | None = None
 
     @property
     def x0(self) -> Array:
@@ -196,9 +199,17 @@ class ReducedProblem(TableauProblem):
         return G @ (B if self.skew else dagger(B))
 
     def map(self, x: Array) -> Array:
+        # the products go into scratch kept for the step (:func:`scratch`): an iteration
+        # allocates only B and its result
         G, P = x[..., 0, :, :, :], x[..., 1, :, :, :]
-        B = self.B(dagger(G) @ P)
-        return self._assemble(self._times_B(G, B), P @ B, self.trivial)
+        (W,) = self._stages = scratch(self._stages, 1, G.shape, x.dtype)
+        B = self.B(np.matmul(dagger(G), P, out=W))
+        dtype = np.result_type(x, B)
+        GB, PB = self._products = scratch(self._products, 2, G.shape, dtype)
+        np.matmul(G, B if self.skew else dagger(B), out=GB)
+        np.matmul(P, B, out=PB)
+        del B
+        return self._assemble(GB, PB, self.trivial)
 
     def map_derivative(self, x: Array, dx: Array) -> Array:
         G, P = x[..., 0, :, :, :], x[..., 1, :, :, :]

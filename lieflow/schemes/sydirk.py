@@ -16,6 +16,7 @@ from .base import (
     StepResult,
     real_scalar,
     right_product,
+    scratch,
     solve,
     solve_right,
 )
@@ -44,6 +45,7 @@ class MidpointProblem(StageProblem):
         # (NumPy rounds it to that precision too) at half the cost of a multiplication
         q = self.half
         self._q, self._qq = real_scalar(q, W0), real_scalar(q * q, W0)
+        self._scratch: Array | None = None
 
     @property
     def x0(self) -> Array:
@@ -52,15 +54,17 @@ class MidpointProblem(StageProblem):
         return self.W0 + self.warm if self.warm is not None else self.W0.copy()
 
     def map(self, M: Array) -> Array:
-        # W0 + q (BM - MB) + q^2 BMB with the same roundings (``x += y`` is ``y + x``), each
-        # temporary dropped once used: a streamed run of a large system keeps ~20 states.
+        # W0 + q (BM - MB) + q^2 BMB with the same roundings (``x += y`` is ``y + x``); the
+        # products go into two scratch matrices kept for the step (:func:`scratch`), so an
+        # iteration allocates only B and its result.
         B = self.B(M)
-        BM = B @ M
-        BMB = BM @ B
+        BM, BMB = self._scratch = scratch(self._scratch, 2, M.shape, np.result_type(B, M))
+        np.matmul(B, M, out=BM)
+        np.matmul(BM, B, out=BMB)
         MB = right_product(BM, M, B, self.skew)
         del B
-        out = BM - MB
-        del BM, MB
+        out = np.subtract(BM, MB)
+        del MB
         out *= self._q
         out += self.W0
         BMB *= self._qq
