@@ -101,7 +101,7 @@ def full() -> BenchConfig:
         ensemble_steps=20,
         ensemble_loop_size=50,
         iteration_sizes=(256, 512),
-        zeitlin_sizes=(128, 256, 512),
+        zeitlin_sizes=(64, 128, 256, 512),
         zeitlin_paper_max_n=128,
         wp_n=50,
         wp_time=1.0,
