@@ -432,14 +432,15 @@ def integrate(
         (any system, scheme, solver, dtype). ``"compiled"``: loops compiled with numba
         (``pip install 'lieflow[fast]'``) that advance many steps per call, for systems
         that supply a compiled ``B`` (:meth:`~lieflow.IsospectralSystem.compiled_B`: the
-        rigid bodies, the periodic Toda lattice, point vortices, and any system with
-        ``B(W) = S ⊙ W``), schemes with a compiled form (SyDIRK, reduced-form BlockGauss),
-        real float64 data, and ``FixedPoint`` (or ``Auto``) solvers; same
+        rigid bodies, the periodic Toda lattice, point vortices, Euler–Zeitlin, and any
+        system with ``B(W) = S ⊙ W``), schemes with a compiled form (SyDIRK, reduced-form
+        BlockGauss), float64 data or complex128 data on u(n)/su(N), and ``FixedPoint`` (or
+        ``Auto``) solvers; same
         iterations and stopping rule, results equal to roundoff, and a step it cannot
         finish is handed to the numpy path (see :mod:`lieflow.compiled`); raises
         :class:`InputError` if numba is missing or the case is not supported. ``"auto"``
         (default): compiled where supported, numba is installed, and it is faster
-        (``n <= 128`` and at least 1000 trajectory-steps, see
+        (``n <= 128``, complex ``n <= 96``, and at least 1000 trajectory-steps, see
         :func:`lieflow.compiled.wins`: a function of the run alone, so the same run gives
         the same bits in any process), else numpy.
     out : str or path, optional

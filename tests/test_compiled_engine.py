@@ -219,29 +219,38 @@ def test_a_complete_chunk_is_not_followed_by_a_numpy_step() -> None:
     assert all(np.isnan(c.residuals).all() for c in chunks)  # every step compiled
 
 
+@pytest.mark.parametrize(
+    ("system", "scheme", "h"),
+    [
+        ('name = "rigid_body"\nparams = { inertia = [1.0, 2.0, 3.0] }', "midpoint", 0.1),
+        ('name = "euler_zeitlin"\nparams = { N = 8 }', "gauss2", 0.05),  # complex loops
+    ],
+    ids=["rigid_body", "euler_zeitlin"],
+)
 def test_compiled_run_interrupted_and_resumed_is_bit_for_bit(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, system: str, scheme: str, h: float
 ) -> None:
+    if "zeitlin" in system:
+        pytest.importorskip("lieflow_zeitlin")
     config = tmp_path / "run.toml"
     config.write_text(
         textwrap.dedent(
             """
             [system]
-            name = "rigid_body"
-            params = { inertia = [1.0, 2.0, 3.0] }
+            {system}
             [initial]
             random = true
             seed = 0
             [scheme]
-            name = "midpoint"
+            name = "{scheme}"
             [run]
-            h = 0.1
+            h = {h}
             steps = 2500
             save_every = 250
             engine = "compiled"
             output = "a.h5"
             """
-        ),
+        ).format(system=system, scheme=scheme, h=h),
         encoding="utf-8",
     )
     assert main(["run", str(config), "--no-progress", "--out", str(tmp_path / "ref.h5")]) == 0

@@ -161,8 +161,8 @@ def run(ctx: BenchContext) -> Section:
         tuple(header),
         tuple(cells),
         caption='Euler–Zeitlin, time="fluid", h = 1/N of fluid time, rtol 1e-14, '
-        f"max(2, {STEPS_TIMES_N}/N) steps from lieflow_zeitlin.random_vorticity(N, degree=8, seed={ctx.seed}) (rms vorticity "
-        "1, as in examples/euler_n128.toml).",
+        f"max(2, {STEPS_TIMES_N}/N) steps from lieflow_zeitlin.random_vorticity(N, degree=8, "
+        f"seed={ctx.seed}) (rms vorticity 1, as in examples/euler_n128.toml).",
     )
     notes = [
         "‘s/step in complex N×N products’: seconds per step divided by the time of one "
