@@ -22,11 +22,14 @@ from typing import Any
 import numba
 import numpy as np
 
+from lieflow._kernels import skew_hermitian_part
+
 from .laplacian import _sweep_compiled
 
-#: ``params = [c, nb, b, Im diag F_f (N entries), lower, upper, carry_fwd, carry_bwd, dinv]``
-#: (each factor ``(nb, b, 2(N+1))``, flattened; :func:`params`).
-HEADER = 3
+#: ``params = [c, nb, b, 1, Im diag F_f (N entries), lower, upper, carry_fwd, carry_bwd,
+#: dinv]`` (each factor ``(nb, b, 2(N+1))``, flattened; :func:`params`); the ``1`` is the
+#: parameter of :func:`lieflow._kernels.skew_hermitian_part` that removes the trace.
+HEADER = 4
 
 
 def params(shift: float, planetary: Any, factors: tuple[Any, ...]) -> Any:
@@ -34,7 +37,7 @@ def params(shift: float, planetary: Any, factors: tuple[Any, ...]) -> Any:
     factors, the imaginary diagonal of the planetary vorticity matrix ``F_f`` and the five
     double-precision factor arrays of the partitioned sweeps."""
     nb, b = factors[0].shape[:2]
-    parts = [np.array([shift, nb, b], dtype=float), np.imag(np.diagonal(planetary))]
+    parts = [np.array([shift, nb, b, 1.0], dtype=float), np.imag(np.diagonal(planetary))]
     return np.concatenate(parts + [np.ravel(f) for f in factors]).astype(np.float64)
 
 
@@ -53,19 +56,7 @@ def zeitlin_B(W: Any, params: Any, out: Any) -> None:
     C = N + 1
     shift = params[0]
     nb, b = int(params[1]), int(params[2])
-    # V, the su(N) projection, into out (lieflow.SU.project)
-    trace = 0.0j
-    for i in range(N):
-        d = 0.5 * (W[i, i] - np.conj(W[i, i]))
-        out[i, i] = d
-        trace += d
-        for j in range(i + 1, N):
-            a = 0.5 * (W[i, j] - np.conj(W[j, i]))
-            out[i, j] = a
-            out[j, i] = -np.conj(a)
-    trace = trace / N
-    for i in range(N):
-        out[i, i] -= trace
+    skew_hermitian_part(W, params[3:4], out)  # V, the su(N) projection, into out
     # the right-hand side V - F_f in the packed layout, trace removed (solve)
     buf = np.zeros(nb * b * C, dtype=np.complex128)
     for i in range(N):
