@@ -393,7 +393,7 @@ class _FunctionPointer(_Protocol):
         return self._signature
 
 
-def function_pointer(function: Any, dtype: np.dtype = DTYPES[0]) -> Any:
+def function_pointer(function: Any, dtype: np.dtype) -> Any:
     """``function`` (a numba dispatcher compiled for :func:`map_signature` of ``dtype``) in
     the form the loops take it, cheaply converted on every call."""
     if isinstance(function, _FunctionPointer) and function.dtype == dtype:
