@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 import lieflow as lf
@@ -69,3 +71,24 @@ steps = {steps}
 save_every = {save_every}
 engine = "numpy"
 """
+
+
+def damage_last_chunk(path: Path, name: str) -> None:
+    """Flip a bit in the last chunk of the dataset ``name`` of an HDF5 trajectory file: what a
+    process killed while it rewrote that chunk leaves (its Fletcher-32 checksum is wrong)."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        found: list[str] = []
+        f.visititems(
+            lambda key, obj: (
+                found.append(key)
+                if isinstance(obj, h5py.Dataset) and key.split("/")[-1] == name
+                else None
+            )
+        )
+        ds = f[found[0]]
+        offset = int(ds.id.get_chunk_info(ds.id.get_num_chunks() - 1).byte_offset)
+    data = bytearray(path.read_bytes())
+    data[offset + 3] ^= 1
+    path.write_bytes(bytes(data))

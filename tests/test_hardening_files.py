@@ -13,6 +13,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from helpers import damage_last_chunk
 
 import lieflow as lf
 from lieflow.app import io
@@ -248,6 +249,23 @@ def test_a_bit_flipped_in_the_checkpoint_is_refused_without_writing(
     assert main(["plot", str(out)]) == 2  # a one-line error, not an h5py traceback
     err = capsys.readouterr().err
     assert err.startswith("lieflow: error: ") and "is damaged" in err and err.count("\n") == 1
+
+
+def test_a_chunk_a_killed_write_left_unreadable_is_refused_on_resume(
+    finished: tuple[Path, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A process killed while it rewrote a chunk leaves the chunk's checksum wrong, and rows
+    before the checkpoint can share that chunk. Resume used to find it only at the next
+    write, as h5py's "filter returned failure during read" (seen when a Dask worker was
+    SIGKILLed): now it is refused, before any step is computed, with the fix."""
+    config, out = finished
+    config.write_text(CONFIG.format(seed=0, steps=80), encoding="utf-8")
+    damage_last_chunk(out, "iterations")  # not read by the checkpoint's checks
+    assert main(["run", str(config), "--no-progress", "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "is damaged" in err and "killed while it wrote" in err and "Traceback" not in err
+    with pytest.raises(io.DamagedOutputError):
+        io.run(build(load_config(config)), resume=True)
 
 
 def test_a_rewritten_checkpoint_fails_its_sha256(finished: tuple[Path, Path]) -> None:

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers import damage_last_chunk
 
 import lieflow as lf
 from lieflow.app import io
@@ -528,6 +529,26 @@ def test_a_file_created_by_another_attempt_meanwhile_is_retried_not_failed(
             "output": str(spec.output)}  # fmt: skip
     out = run_task(task)
     assert out["status"] == "busy" and "already exists" in out["error"]
+
+
+def test_a_file_a_killed_worker_left_damaged_is_run_again_from_the_start(
+    tmp_path: Path,
+) -> None:
+    """A Dask worker SIGKILLed while it wrote can leave the run's file unreadable past its
+    checkpoint; the task that takes the run over starts it again (the run is deterministic:
+    the same bits as a run never interrupted)."""
+    from lieflow.app.sweeps import run_task
+
+    spec = load_sweep(write_grid(tmp_path, '"initial.seed" = [0]')).runs[0]
+    io.run(build(spec.config))
+    ref = io.read_trajectory(spec.output)
+    damage_last_chunk(spec.output, "iterations")
+    task = {"text": spec.config.text, "source": "g", "base_dir": str(tmp_path),
+            "output": str(spec.output)}  # fmt: skip
+    out = run_task(task)
+    assert out["status"] == "complete" and "is damaged" in out["restarted"], out
+    again = io.read_trajectory(spec.output)
+    assert np.array_equal(again.W, ref.W) and np.array_equal(again.iterations, ref.iterations)
 
 
 def test_an_executor_that_refuses_work_stops_the_sweep_with_the_manifest_written(

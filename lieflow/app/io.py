@@ -170,6 +170,11 @@ class OutputBusyError(LieflowError):
     """Another process is writing the output file (or holds its lock)."""
 
 
+class DamagedOutputError(LieflowError):
+    """The output file's bytes are damaged: a checksum does not match, its structure is
+    broken, or a process killed during a write left part of it unreadable."""
+
+
 @attrs.frozen(eq=False)
 class TrajectoryHeader:
     """What a :class:`TrajectoryWriter` needs to know about a run: the file's header.
@@ -418,10 +423,11 @@ def _open(path: Path, mode: str, fix: str = _READ_FIX) -> h5py.File:
         ) from None
 
 
-def _damaged(path: Path, exc: BaseException) -> LieflowError:
-    return LieflowError(
+def _damaged(path: Path, exc: BaseException) -> DamagedOutputError:
+    return DamagedOutputError(
         f"{_where(path)} is damaged: reading it failed ({type(exc).__name__}: {exc}). Its "
-        "bytes were changed on disk (a checksum did not match, or its structure is broken). "
+        "bytes were changed on disk (a checksum did not match, e.g. after a process was "
+        "killed while it wrote, or its structure is broken). "
         "To fix: restore it from a backup, or run the configuration again (--force)."
     )
 
@@ -1644,12 +1650,22 @@ def _truncate(f: h5py.File, k: int, layout: _Layout) -> None:
     n = int(np.searchsorted(f[at["saved_step"]][()], k, side="right"))
     for name in ("saved_step", "time", "W"):
         f[at[name]].resize(n, axis=0)
+    kept = [f[at[name]] for name in (*per_step, *_PER_UPDATE, "saved_step", "time", "W")]
     group = f.get(_EXTRA)
     if group is not None:
         n = int(np.searchsorted(group["step"][()], k, side="right"))
         for ds in group.values():
             if not _is_scale(ds):
                 ds.resize(n, axis=0)
+                kept.append(ds)
+    # A process killed while it rewrote a chunk (SIGKILL, power loss) leaves that chunk's
+    # checksum wrong; rows before the checkpoint may share it with rows after. Read the last
+    # chunk of every dataset now, so that a damaged one is refused here, with its fix, and
+    # not found by the next write (h5py: "filter returned failure during read").
+    for ds in kept:
+        rows, chunk = ds.shape[0], (ds.chunks or (1,))[0]
+        if rows:
+            ds[(rows - 1) // chunk * chunk : rows]
     f.attrs["completed_steps"] = k
 
 

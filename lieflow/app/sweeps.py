@@ -636,7 +636,15 @@ def run_task(task: Mapping[str, Any]) -> dict[str, Any]:
         setup = build(config, output=task["output"], replace=False)
         monitor = _ProgressFile(Path(task["progress"])) if task.get("progress") else None
         try:
-            summary = io.run(setup, resume=True, monitor=monitor)
+            try:
+                summary = io.run(setup, resume=True, monitor=monitor)
+            except io.DamagedOutputError as exc:
+                # a worker killed during a write (the lost attempt of a Dask task) can leave
+                # the file unreadable past its last good checkpoint; the run is deterministic,
+                # so running it again from the start gives the same bits
+                out["restarted"] = str(exc)
+                setup = build(config, output=task["output"], replace=True)
+                summary = io.run(setup, monitor=monitor)
         except LieflowError:
             _store_run(task, out)  # a failed run: its steps before the failure
             raise
