@@ -297,11 +297,11 @@ def run(ctx: BenchContext) -> Section:
         TargetCheck(
             target=f"a sweep of {size.runs} small runs on the local pool ≥ {TARGET_SPEEDUP}× "
             f"faster than one after another on {WORKERS} cores",
-            measured=f"{speedup:.2f}× (median of {size.repeats} interleaved rounds; "
+            measured=f"{speedup:.3f}× (median of {size.repeats} interleaved rounds; "
             f"{seconds(seq / size.runs)} of work per run; {speedup / ceiling:.0%} of the "
             f"{ceiling:.2f}× that two CPU-bound processes got)",
             met=speedup >= TARGET_SPEEDUP,
-            gap="" if speedup >= TARGET_SPEEDUP else f"{TARGET_SPEEDUP / speedup:.2f}× short",
+            gap="" if speedup >= TARGET_SPEEDUP else f"{TARGET_SPEEDUP / speedup:.3f}× short",
             limit=f"two CPU-bound processes got {ceiling:.2f} cores' worth when measured "
             "(the machine's other jobs share its 2 cores), the ceiling of any pool's "
             "speed-up; the pool's start (spawned interpreters importing lieflow) is paid "
