@@ -31,6 +31,14 @@ trajectory inside each step; solves return the number of updates, negated
 when the stopping rule reports a failure (the caller then hands the step to numpy).
 Products of ``n×n`` matrices are plain loops up to ``n = 8`` and BLAS calls (``np.dot``
 from compiled code: no Python overhead) above.
+
+The entry points are compiled without numba's reference counting (``_nrt=False``): every
+view the loops take of an array (a trajectory, a stage, a scratch matrix) otherwise costs an
+atomic increment and decrement, which were 80% of the time of a so(3) midpoint step
+(measured with ``perf``: 2.0 µs per step with them, 0.45 µs without; the same bits). Code
+compiled that way cannot allocate, so the work arrays come from :func:`workspace`, and the
+BLAS products, which need reference counting inside ``np.dot``, are a function of their
+own (:func:`_gemm`) passed to the loops like a system's map (:func:`gemm`).
 """
 
 from __future__ import annotations
@@ -75,9 +83,16 @@ def _signature(dtype: np.dtype) -> Any:
     return numba.types.void(mat, numba.types.float64[::1], mat)
 
 
-#: The signatures of :func:`map_signature`, made once (numba types are immutable; making one
-#: costs ~80 µs, and numba asks for a function argument's on every call of the loops).
+def _product_signature(dtype: np.dtype) -> Any:
+    mat = numba.from_dtype(dtype)[:, ::1]
+    return numba.types.void(mat, mat, mat, numba.types.boolean, numba.types.boolean)
+
+
+#: The signatures of :func:`map_signature` and of :func:`_gemm`, made once (numba types are
+#: immutable; making one costs ~80 µs, and numba asks for a function argument's on every
+#: call of the loops).
 _SIGNATURES = {} if numba is None else {dtype: _signature(dtype) for dtype in DTYPES}
+_PRODUCT_SIGNATURES = {} if numba is None else {d: _product_signature(d) for d in DTYPES}
 
 
 def map_signature(dtype: np.dtype) -> Any:
@@ -211,14 +226,28 @@ def _finite(z: Any) -> bool:
 # ------------------------------------------------------------------ products
 
 
-@_helper
-def _matmul(A: Any, B: Any, out: Any) -> None:
-    """``out = A @ B``: unrolled for ``n = 3``, in ``i, k, j`` order (vectorisable) up to
-    ``_SMALL``, else BLAS."""
-    n = A.shape[0]
-    if n > _SMALL:
+def _gemm(A: Any, B: Any, out: Any, transpose_a: bool, transpose_b: bool) -> None:
+    """``out = op(A) @ op(B)`` by BLAS (``np.dot``), ``op(X) = X^T`` where its flag is set:
+    the products of the loops above ``n = _SMALL``.
+
+    Compiled on its own, with numba's reference counting (``np.dot`` needs it), and handed
+    to the loops — compiled without it — as a function argument (:func:`gemm`).
+    """
+    if transpose_a and transpose_b:
+        np.dot(A.T, B.T, out)
+    elif transpose_a:
+        np.dot(A.T, B, out)
+    elif transpose_b:
+        np.dot(A, B.T, out)
+    else:
         np.dot(A, B, out)
-        return
+
+
+@_helper
+def _loops(A: Any, B: Any, out: Any) -> None:
+    """``out = A @ B`` in plain loops: unrolled for ``n = 3``, else in ``i, k, j`` order
+    (vectorisable)."""
+    n = A.shape[0]
     if n == 3:
         for i in range(3):
             a0, a1, a2 = A[i, 0], A[i, 1], A[i, 2]
@@ -236,24 +265,46 @@ def _matmul(A: Any, B: Any, out: Any) -> None:
 
 
 @_helper
-def _matmul_hn(A: Any, B: Any, out: Any, tmp: Any) -> None:
-    """``out = A^† @ B`` (:func:`_matmul` on the transposed view of ``A``, or of its
-    conjugate, written into the scratch matrix ``tmp``, for complex data)."""
-    if _is_complex(A):
-        np.conj(A, tmp)
-        _matmul(tmp.T, B, out)
-    else:
-        _matmul(A.T, B, out)
+def _conj_into(A: Any, out: Any) -> None:
+    """``out = conj(A)``, entry by entry."""
+    n = A.shape[0]
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = np.conj(A[i, j])
 
 
 @_helper
-def _matmul_nh(A: Any, B: Any, out: Any, tmp: Any) -> None:
+def _matmul(A: Any, B: Any, out: Any, gemm: Any) -> None:
+    """``out = A @ B``: :func:`_loops` up to ``n = _SMALL``, else ``gemm`` (BLAS)."""
+    if A.shape[0] > _SMALL:
+        gemm(A, B, out, False, False)
+    else:
+        _loops(A, B, out)
+
+
+@_helper
+def _matmul_hn(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> None:
+    """``out = A^† @ B``: the product with the transpose of ``A``, or of its conjugate
+    (written into the scratch matrix ``tmp``) for complex data."""
+    if _is_complex(A):
+        _conj_into(A, tmp)
+        A = tmp
+    if A.shape[0] > _SMALL:
+        gemm(A, B, out, True, False)
+    else:
+        _loops(A.T, B, out)
+
+
+@_helper
+def _matmul_nh(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> None:
     """``out = A @ B^†`` (as :func:`_matmul_hn`)."""
     if _is_complex(B):
-        np.conj(B, tmp)
-        _matmul(A, tmp.T, out)
+        _conj_into(B, tmp)
+        B = tmp
+    if A.shape[0] > _SMALL:
+        gemm(A, B, out, False, True)
     else:
-        _matmul(A, B.T, out)
+        _loops(A, B.T, out)
 
 
 @_helper
@@ -378,12 +429,12 @@ class _FunctionPointer(_Protocol):
     object of numba's wrapper address protocol hands over the address it holds.
     """
 
-    def __init__(self, function: Any, dtype: np.dtype) -> None:
+    def __init__(self, function: Any, dtype: np.dtype, signature: Any = None) -> None:
         from numba.experimental.function_type import _get_wrapper_address
 
         self.function = function  # keeps the compiled code alive
         self.dtype = np.dtype(dtype)
-        self._signature = map_signature(self.dtype)
+        self._signature = map_signature(self.dtype) if signature is None else signature
         self.address = _get_wrapper_address(function, self._signature)
 
     def __wrapper_address__(self) -> int:
@@ -407,21 +458,21 @@ def function_pointer(function: Any, dtype: np.dtype) -> Any:
 @_inner
 def _midpoint_map(
     W0: Any, q: float, x: Any, Bm: Any, BM: Any, BMB: Any, MB: Any, B: Any, params: Any,
-    skew: bool,
+    skew: bool, gemm: Any,
 ) -> tuple[float, float]:  # fmt: skip
     """One update of the midpoint map (SPEC §4.1), in place:
 
     ``M <- W0 + q (B M - M B) + q^2 B M B``, ``B = B(M)``, ``q = h/2``;
     for skew algebras ``M B = (B M)^†`` (two products per update, SPEC §4.1), and for
     small real ``n`` only half of the skew ``B M B`` is formed. The new iterate overwrites ``x``
-    entry by entry once the products are formed; ``Bm``, ... ``MB`` are scratch matrices
-    (separate arguments: unpacking a tuple of arrays costs reference counts). Returns the
-    squared norms of the update and of the new iterate.
+    entry by entry once the products are formed; ``Bm``, ... ``MB`` are scratch matrices,
+    ``gemm`` the products above ``n = _SMALL`` (:func:`gemm`). Returns the squared norms of
+    the update and of the new iterate.
     """
     n = W0.shape[0]
     qq = q * q
     _apply_B(B, params, x, Bm)
-    _matmul(Bm, x, BM)
+    _matmul(Bm, x, BM, gemm)
     step2 = 0.0
     size2 = 0.0
     if skew and n <= _SMALL and not _is_complex(x):
@@ -444,9 +495,9 @@ def _midpoint_map(
                 x[i, j] = g
                 x[j, i] = gt
     else:
-        _matmul(BM, Bm, BMB)
+        _matmul(BM, Bm, BMB, gemm)
         if not skew:
-            _matmul(x, Bm, MB)
+            _matmul(x, Bm, MB, gemm)
         for i in range(n):
             for j in range(n):
                 mb = np.conj(BM[j, i]) if skew else MB[i, j]
@@ -459,19 +510,20 @@ def _midpoint_map(
 
 @_inner
 def _commutator_add(
-    W: Any, hb: float, skew: bool, M: Any, B: Any, params: Any, Bm: Any, BM: Any, MB: Any
-) -> None:
+    W: Any, hb: float, skew: bool, M: Any, B: Any, params: Any, Bm: Any, BM: Any, MB: Any,
+    gemm: Any,
+) -> None:  # fmt: skip
     """``W += hb [B(M), M]`` in place (one product for skew algebras: ``M B = (B M)^†``);
     ``Bm``, ``BM``, ``MB`` are scratch matrices."""
     n = W.shape[0]
     _apply_B(B, params, M, Bm)
-    _matmul(Bm, M, BM)
+    _matmul(Bm, M, BM, gemm)
     if skew:
         for i in range(n):
             for j in range(n):
                 MB[i, j] = np.conj(BM[j, i])
     else:
-        _matmul(M, Bm, MB)
+        _matmul(M, Bm, MB, gemm)
     for i in range(n):
         for j in range(n):
             W[i, j] = W[i, j] + hb * (BM[i, j] - MB[i, j])
@@ -480,7 +532,7 @@ def _commutator_add(
 @_inner
 def _reduced_map(
     W0: Any, hA: Any, x: Any, Wst: Any, Bs: Any, GB: Any, PB: Any, B: Any, params: Any,
-    skew: bool,
+    skew: bool, gemm: Any,
 ) -> tuple[float, float]:  # fmt: skip
     """One update of the reduced stage form (SPEC §4.5), in place (``x[0] = G``,
     ``x[1] = P``, each ``(s, n, n)``):
@@ -493,16 +545,16 @@ def _reduced_map(
     """
     s, n = hA.shape[0], W0.shape[0]
     for j in range(s):
-        _matmul_hn(x[0, j], x[1, j], Wst[j], GB[j])
+        _matmul_hn(x[0, j], x[1, j], Wst[j], GB[j], gemm)
         _apply_B(B, params, Wst[j], Bs[j])
         if skew:
-            _matmul(x[0, j], Bs[j], GB[j])
+            _matmul(x[0, j], Bs[j], GB[j], gemm)
             for a in range(n):
                 for c in range(n):
                     GB[j, a, c] = -GB[j, a, c]
         else:
-            _matmul_nh(x[0, j], Bs[j], GB[j], Wst[j])
-        _matmul(x[1, j], Bs[j], PB[j])
+            _matmul_nh(x[0, j], Bs[j], GB[j], Wst[j], gemm)
+        _matmul(x[1, j], Bs[j], PB[j], gemm)
     step2 = 0.0
     size2 = 0.0
     for i in range(s):
@@ -532,7 +584,7 @@ def _solver(fmap: Any) -> Any:
 
     def iterate(
         W0: Any, coef: Any, x: Any, xf: Any, m0: Any, m1: Any, m2: Any, m3: Any, B: Any,
-        params: Any, skew: bool, res: Any, rule: Any, irule: Any,
+        params: Any, skew: bool, gemm: Any, res: Any, rule: Any, irule: Any,
     ) -> int:  # fmt: skip
         """Fixed-point iteration ``x <- fmap(x)`` from the guess in ``x`` (``xf``: its flat
         view) until the stopping rule stops it: the number of updates (``x`` holds the
@@ -540,7 +592,7 @@ def _solver(fmap: Any) -> Any:
         size0 = _norm(xf)
         k = 0
         while True:
-            step2, size2 = fmap(W0, coef, x, m0, m1, m2, m3, B, params, skew)
+            step2, size2 = fmap(W0, coef, x, m0, m1, m2, m3, B, params, skew, gemm)
             k += 1
             code, size0 = _judge(step2, size2, k, size0, res, rule, irule)
             if code == _CONVERGED or code == _ROUNDOFF:
@@ -553,7 +605,7 @@ def _solver(fmap: Any) -> Any:
     def solve(
         W0: Any, coef: Any, x: Any, xf: Any, x0f: Any, pred: Any, solved: Any, off: int,
         guessing: bool, retry_cold: bool, m0: Any, m1: Any, m2: Any, m3: Any, B: Any,
-        params: Any, skew: bool, res: Any, rule: Any, irule: Any,
+        params: Any, skew: bool, gemm: Any, res: Any, rule: Any, irule: Any,
     ) -> int:  # fmt: skip
         """Solve from the warm guess ``x0 + pred[off:]`` (when ``guessing``), retried from
         the cold guess ``x0`` if that fails and ``retry_cold``
@@ -566,14 +618,14 @@ def _solver(fmap: Any) -> Any:
         if guessing:
             for e in range(m):
                 xf[e] = x0f[e] + pred[off + e]
-            its = iterate(W0, coef, x, xf, m0, m1, m2, m3, B, params, skew, res, rule, irule)
+            its = iterate(W0, coef, x, xf, m0, m1, m2, m3, B, params, skew, gemm, res, rule, irule)
             if its < 0 and not retry_cold:
                 return -1
             total = abs(its)
         if its <= 0:
             for e in range(m):
                 xf[e] = x0f[e]
-            its = iterate(W0, coef, x, xf, m0, m1, m2, m3, B, params, skew, res, rule, irule)
+            its = iterate(W0, coef, x, xf, m0, m1, m2, m3, B, params, skew, gemm, res, rule, irule)
             if its < 0:
                 return -1
             total += its
@@ -601,7 +653,7 @@ def _sydirk_views(work: Any, scratch: Any) -> Any:
 def _sydirk_step(
     cur: Any, out: Any, pred: Any, solved: Any, guessing: bool, retry_cold: bool, hA: Any,
     hb: Any, x: Any, x0: Any, xf: Any, x0f: Any, m0: Any, m1: Any, m2: Any, m3: Any, B: Any,
-    params: Any, skew: bool, res: Any, rule: Any, irule: Any,
+    params: Any, skew: bool, gemm: Any, res: Any, rule: Any, irule: Any,
 ) -> int:  # fmt: skip
     """One step of a composition of midpoint steps of sizes ``hb`` (SPEC §4.2) from
     ``cur`` into ``out``; ``solved``/``pred``: the ``(s, n, n)`` offsets, flattened."""
@@ -617,12 +669,12 @@ def _sydirk_step(
                 x0[a, c] = out[a, c]
         its = _solve_midpoint(
             x0, 0.5 * hb[i], x, xf, x0f, pred, solved, i * nn, guessing, retry_cold, m0, m1,
-            m2, m3, B, params, skew, res, rule, irule,
+            m2, m3, B, params, skew, gemm, res, rule, irule,
         )  # fmt: skip
         if its < 0:
             return -1
         total += its
-        _commutator_add(out, hb[i], skew, x, B, params, m0, m1, m3)
+        _commutator_add(out, hb[i], skew, x, B, params, m0, m1, m3, gemm)
     return total
 
 
@@ -640,7 +692,7 @@ def _reduced_views(work: Any, scratch: Any) -> Any:
 def _reduced_step(
     cur: Any, out: Any, pred: Any, solved: Any, guessing: bool, retry_cold: bool, hA: Any,
     hb: Any, x: Any, x0: Any, xf: Any, x0f: Any, m0: Any, m1: Any, m2: Any, m3: Any, B: Any,
-    params: Any, skew: bool, res: Any, rule: Any, irule: Any,
+    params: Any, skew: bool, gemm: Any, res: Any, rule: Any, irule: Any,
 ) -> int:  # fmt: skip
     """One step of the reduced stage form of a symplectic tableau (SPEC §4.5) from ``cur``
     into ``out``: unknowns ``(G, P)``, cold guess ``(I, cur)``; ``solved``/``pred``: the
@@ -653,7 +705,7 @@ def _reduced_step(
                 x0[0, i, a, c] = 1.0 if a == c else 0.0
                 x0[1, i, a, c] = cur[a, c]
     its = _solve_reduced(cur, hA, x, xf, x0f, pred, solved, 0, guessing, retry_cold, m0, m1,
-                         m2, m3, B, params, skew, res, rule, irule)  # fmt: skip
+                         m2, m3, B, params, skew, gemm, res, rule, irule)  # fmt: skip
     if its < 0:
         return -1
     Wi, Bi, BW, WB = m0[0], m1[0], m2[0], m3[0]
@@ -661,8 +713,8 @@ def _reduced_step(
         for c in range(n):
             out[a, c] = cur[a, c]
     for i in range(s):
-        _matmul_hn(x[0, i], x[1, i], Wi, WB)
-        _commutator_add(out, hb[i], skew, Wi, B, params, Bi, BW, WB)
+        _matmul_hn(x[0, i], x[1, i], Wi, WB, gemm)
+        _commutator_add(out, hb[i], skew, Wi, B, params, Bi, BW, WB, gemm)
     return its
 
 
@@ -724,7 +776,7 @@ def _driver(fstep: Any, fviews: Any) -> Any:
     def advance(
         W: Any, hA: Any, hb: Any, skew: bool, B: Any, params: Any, P: Any,
         pparams: Any, project: bool, rule: Any, irule: Any, hist: Any, weights: Any,
-        flags: Any, states: Any, iters: Any,
+        flags: Any, states: Any, iters: Any, gemm: Any, buf: Any, fbuf: Any,
     ) -> int:  # fmt: skip
         """Advance the stack ``W`` (``(K, n, n)``) by up to ``states.shape[0]`` steps of
         ``fstep``.
@@ -735,20 +787,24 @@ def _driver(fstep: Any, fviews: Any) -> Any:
         (:class:`~lieflow.flows.WarmStart`), updated in place after every completed step.
         ``irule`` holds ``(max_iter, patience, window, project, retry_cold, use_warm)``.
         Each new state is mapped by ``P`` (the system's compiled projection) when
-        ``project``. Writes each step's states and its iteration count (max over the
-        stack) and returns how many steps completed; fewer than asked means the next step
-        failed and nothing of it was committed.
+        ``project``. ``gemm``: the products above ``n = _SMALL`` (:func:`gemm`); ``buf``,
+        ``fbuf``: the work arrays (:func:`workspace`). Writes each step's states and its
+        iteration count (max over the stack) and returns how many steps completed; fewer
+        than asked means the next step failed and nothing of it was committed.
         """
         K, n, s = W.shape[0], W.shape[1], hb.shape[0]
         retry_cold, use_warm = irule[4] != 0, irule[5] != 0
         m = hist.shape[2]
-        solved = np.empty((K, m), dtype=W.dtype)
-        pred = np.zeros(m, dtype=W.dtype)
-        acc = np.empty(m, dtype=W.dtype)
-        err2 = np.empty(hist.shape[0] + 1)
-        work = np.empty((2, 2, s, n, n), dtype=W.dtype)
-        scratch = np.empty((5, s, n, n), dtype=W.dtype)
-        res = np.empty(irule[0])
+        # the work arrays, carved out of buf and fbuf as workspace() sizes them
+        solved = buf[: K * m].reshape((K, m))
+        pred = buf[K * m : K * m + m]
+        acc = buf[K * m + m : K * m + 2 * m]
+        o = K * m + 2 * m
+        work = buf[o : o + 4 * s * n * n].reshape((2, 2, s, n, n))
+        scratch = buf[o + 4 * s * n * n : o + 9 * s * n * n].reshape((5, s, n, n))
+        depth = hist.shape[0]
+        err2 = fbuf[: depth + 1]
+        res = fbuf[depth + 1 : depth + 1 + irule[0]]
         x, x0, xf, x0f, m0, m1, m2, m3 = fviews(work, scratch)
         for step in range(states.shape[0]):
             points = min(flags[0], flags[1])
@@ -760,7 +816,8 @@ def _driver(fstep: Any, fviews: Any) -> Any:
                 cur = W[kk] if step == 0 else states[step - 1, kk]
                 out = states[step, kk]
                 total = fstep(cur, out, pred, solved[kk], guessing, retry_cold, hA, hb, x, x0, xf,
-                              x0f, m0, m1, m2, m3, B, params, skew, res, rule, irule)  # fmt: skip
+                              x0f, m0, m1, m2, m3, B, params, skew, gemm, res, rule,
+                              irule)  # fmt: skip
                 if total < 0:
                     return step
                 if project:
@@ -789,22 +846,23 @@ def _entry_points(key: str) -> tuple[Any, Any]:
     def sydirk_advance(
         W: Any, hA: Any, hb: Any, skew: bool, B: Any, params: Any, P: Any, pparams: Any,
         project: bool, rule: Any, irule: Any, hist: Any, weights: Any, flags: Any,
-        states: Any, iters: Any,
+        states: Any, iters: Any, gemm: Any, buf: Any, fbuf: Any,
     ) -> int:  # fmt: skip
         """The chunk loop of compositions of midpoint steps, ``hb = h b``."""
         key  # noqa: B018 - part of the cache key
         return _advance_sydirk(W, hA, hb, skew, B, params, P, pparams, project, rule, irule,
-                               hist, weights, flags, states, iters)  # fmt: skip
+                               hist, weights, flags, states, iters, gemm, buf, fbuf)  # fmt: skip
 
     def reduced_advance(
         W: Any, hA: Any, hb: Any, skew: bool, B: Any, params: Any, P: Any, pparams: Any,
         project: bool, rule: Any, irule: Any, hist: Any, weights: Any, flags: Any,
-        states: Any, iters: Any,
+        states: Any, iters: Any, gemm: Any, buf: Any, fbuf: Any,
     ) -> int:  # fmt: skip
         """The chunk loop of the reduced stage form, ``hA = h A``, ``hb = h b``."""
         key  # noqa: B018 - part of the cache key
         return _advance_reduced(W, hA, hb, skew, B, params, P, pparams, project, rule,
-                                irule, hist, weights, flags, states, iters)  # fmt: skip
+                                irule, hist, weights, flags, states, iters, gemm, buf,
+                                fbuf)  # fmt: skip
 
     return sydirk_advance, reduced_advance
 
@@ -822,20 +880,51 @@ def _compile_entry(func: F, dtype: np.dtype) -> F:
     t = numba.types
     f8, i8, d = t.float64, t.int64, numba.from_dtype(dtype)
     M = map_type(dtype)
+    G = numba.types.FunctionType(_PRODUCT_SIGNATURES[np.dtype(dtype)])
     sig = t.int64(
         d[:, :, ::1], f8[:, ::1], f8[::1], t.boolean, M, f8[::1], M, f8[::1], t.boolean,
-        f8[::1], i8[::1], d[:, :, ::1], f8[:, ::1], i8[::1], d[:, :, :, ::1], i8[::1],
+        f8[::1], i8[::1], d[:, :, ::1], f8[:, ::1], i8[::1], d[:, :, :, ::1], i8[::1], G,
+        d[::1], f8[::1],
     )  # fmt: skip
-
+    # without reference counting (see the module's docstring)
+    options = {"error_model": "numpy", "_nrt": False}
     try:
-        return cast(F, numba.njit(sig, cache=True, error_model="numpy")(func))
+        return cast(F, numba.njit(sig, cache=True, **options)(func))
     except RuntimeError:  # pragma: no cover - no writable cache location
-        return cast(F, numba.njit(sig, error_model="numpy")(func))
+        return cast(F, numba.njit(sig, **options)(func))
 
 
 _SYDIRK, _REDUCED = _entry_points(RULE_KEY)
 _ENTRY_SOURCES = {"sydirk_advance": _SYDIRK, "reduced_advance": _REDUCED}
 _ENTRIES: dict[tuple[str, np.dtype], Any] = {}
+
+
+def gemm(dtype: np.dtype) -> Any:
+    """:func:`_gemm` for data of ``dtype``, compiled (or loaded from the disk cache) on first
+    use, as the loops take it (an address, like a system's map)."""
+    key = ("gemm", np.dtype(dtype))
+    if key not in _ENTRIES:
+        signature = _PRODUCT_SIGNATURES[key[1]]
+        try:
+            compiled = numba.njit(signature, cache=True, error_model="numpy")(_gemm)
+        except RuntimeError:  # pragma: no cover - no writable cache location
+            compiled = numba.njit(signature, error_model="numpy")(_gemm)
+        _ENTRIES[key] = _FunctionPointer(compiled, key[1], signature)
+    return _ENTRIES[key]
+
+
+def workspace(
+    dtype: np.dtype, K: int, m: int, s: int, n: int, depth: int, max_iter: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The work arrays of the loops (``buf``, ``fbuf`` of :func:`_driver`), which allocate
+    nothing themselves: ``solved (K, m)``, ``pred (m)``, ``acc (m)``, ``work (2, 2, s, n,
+    n)`` and ``scratch (5, s, n, n)`` end to end in ``dtype``, then ``err2 (depth + 1)`` and
+    the residual history ``res (max_iter)`` in float64; ``m``: one trajectory's warm
+    offsets, ``depth``: the history's length (``hist.shape[0]``)."""
+    return (
+        np.zeros(K * m + 2 * m + 9 * s * n * n, dtype=dtype),
+        np.zeros(depth + 1 + max_iter),
+    )
 
 
 def entry(name: str, dtype: np.dtype = DTYPES[0]) -> Any:

@@ -179,12 +179,15 @@ class CompiledPlan:
         irule = np.append(self.irule, np.int64(depth > 0))
         states = np.empty((steps, K, n, n), dtype=self.dtype)
         iters = np.zeros(steps, dtype=np.int64)
+        s = self.b.size
+        buf, fbuf = k.workspace(self.dtype, K, size, s, n, keep, int(self.irule[0]))
         run = k.entry(f"{self.kind}_advance", self.dtype)
         project = self.project is not None
         done = run(
             Wk, h * self.A, h * self.b, self.skew, self.B, self.params,
             self.project if project else self.B, self.pparams, project, self.rule,
             irule, hist, np.array(extrapolation_matrix(keep)), flags, states, iters,
+            k.gemm(self.dtype), buf, fbuf,
         )  # fmt: skip
         shape = (*batch, *core)
         return Chunk(
