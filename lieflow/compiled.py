@@ -397,13 +397,14 @@ def wins(n: int, steps: int, trajectories: int = 1, complex_data: bool = False) 
     For a short run in a process that has the loops loaded already, pass
     ``engine="compiled"``.
 
-    Measured on the generalized rigid body (fixed point at rtol 1e-14, h = 0.01), numpy
-    time / compiled time per step for midpoint, Gauss-3, 7-stage SyDIRK: n = 10: 42, 18,
-    107; n = 20: 16, 5.8, 25; n = 50: 4.9, 2.2, 5.4; n = 64: 3.1, 1.9, 4.5; n = 96: 2.2,
-    1.6, 2.6; n = 128: 2.5, 1.0, 1.7; n = 256: 1.4, 1.2, 1.2. Above n = 8 the compiled loops
-    call BLAS for their products, so the gain at large n is numpy's per-call overhead and
-    temporaries; it fades from n ~ 128 on, hence the cut there. Ensembles gain less (numpy
-    batches their products): 1.2-1.7 for n = 10-64, 2-5 at n = 3.
+    Measured on the rigid body (n = 3) and the generalized rigid body (fixed point at rtol
+    1e-14, h = 0.01, one BLAS thread, an idle machine), numpy time / compiled time per step
+    for midpoint, Gauss-3, 7-stage SyDIRK: n = 3: 78, 50, 127; n = 10: 27, 9.0, 22;
+    n = 20: 8.1, 3.3, 6.1; n = 64: 2.5, 1.4, 1.9; n = 128: 1.3, 1.2, 1.4; n = 256 and 400:
+    1.1. Above n = 8 the compiled loops call BLAS for their products, so the gain at large n
+    is numpy's per-call overhead and temporaries; it fades from n ~ 128 on, hence the cut
+    there. Ensembles gain less (numpy batches their products): 2.3 for K = 10,000 at
+    n = 3 (midpoint, h = 0.1).
 
     Complex data (Euler–Zeitlin, rms-1 vorticity, h = 1/N, rtol 1e-14), the same ratios for
     midpoint, Gauss-2, Gauss-4 with the Casimir shift: N = 32: 2.6, 2.0, 1.5; N = 64: 1.9,
