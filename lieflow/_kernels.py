@@ -540,8 +540,9 @@ def _reduced_map(
     ``G_i <- I + h sum_j a_ij G_j B_j^†``, ``P_i <- W0 - h sum_j a_ij P_j B_j``,
     ``B_j = B(G_j^† P_j)``; for skew algebras ``B^† = -B``. ``3 s`` products per
     update; ``Wst``, ... ``PB`` are scratch stacks ``(s, n, n)`` (``GB[j]`` and ``Wst[j]``
-    also hold the conjugates that complex data need, before they are overwritten). Returns
-    the squared norms of the update and of the new iterate.
+    also hold the conjugates that complex data need, before they are overwritten; ``Wst``
+    and ``Bs`` then the stage sums, formed matrix by matrix, each in the order ``j = 1..s``
+    as before). Returns the squared norms of the update and of the new iterate.
     """
     s, n = hA.shape[0], W0.shape[0]
     for j in range(s):
@@ -555,18 +556,26 @@ def _reduced_map(
         else:
             _matmul_nh(x[0, j], Bs[j], GB[j], Wst[j], gemm)
         _matmul(x[1, j], Bs[j], PB[j], gemm)
+    # the stage sums over whole matrices (vectorisable), into Wst and Bs, free by now
+    for i in range(s):
+        accG, accP = Wst[i], Bs[i]
+        for a in range(n):
+            for c in range(n):
+                accG[a, c] = 0.0
+                accP[a, c] = 0.0
+        for j in range(s):
+            w = hA[i, j]
+            for a in range(n):
+                for c in range(n):
+                    accG[a, c] += w * GB[j, a, c]
+                    accP[a, c] += w * -PB[j, a, c]
     step2 = 0.0
     size2 = 0.0
     for i in range(s):
         for a in range(n):
             for c in range(n):
-                accG = 0.0
-                accP = 0.0
-                for j in range(s):
-                    accG += hA[i, j] * GB[j, a, c]
-                    accP += hA[i, j] * -PB[j, a, c]
-                gG = accG + (1.0 if a == c else 0.0)
-                gP = accP + W0[a, c]
+                gG = Wst[i, a, c] + (1.0 if a == c else 0.0)
+                gP = Bs[i, a, c] + W0[a, c]
                 step2 += _abs2(gG - x[0, i, a, c]) + _abs2(gP - x[1, i, a, c])
                 size2 += _abs2(gG) + _abs2(gP)
                 x[0, i, a, c] = gG
