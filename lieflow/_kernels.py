@@ -227,15 +227,13 @@ def _finite(z: Any) -> bool:
 
 
 def _gemm(A: Any, B: Any, out: Any, transpose_a: bool, transpose_b: bool) -> None:
-    """``out = op(A) @ op(B)`` by BLAS (``np.dot``), ``op(X) = X^T`` where its flag is set:
-    the products of the loops above ``n = _SMALL``.
+    """``out = op(A) @ op(B)`` by BLAS (``np.dot``), ``op(X) = X^T`` where its flag is set
+    (the loops set one at most): the products of the loops above ``n = _SMALL``.
 
     Compiled on its own, with numba's reference counting (``np.dot`` needs it), and handed
     to the loops — compiled without it — as a function argument (:func:`gemm`).
     """
-    if transpose_a and transpose_b:
-        np.dot(A.T, B.T, out)
-    elif transpose_a:
+    if transpose_a:
         np.dot(A.T, B, out)
     elif transpose_b:
         np.dot(A, B.T, out)
