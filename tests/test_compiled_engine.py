@@ -36,6 +36,25 @@ def _agree(ref: lf.Solution, fast: lf.Solution, atol: float = 1e-12) -> None:
     assert np.max(np.abs(fast.iterations - ref.iterations), initial=0) <= 1
 
 
+# ------------------------------------------------------------------ products by BLAS
+
+
+@pytest.mark.parametrize("scheme", ["midpoint", "gauss2"])
+@pytest.mark.parametrize(
+    "system",
+    [lf.systems.GeneralizedRigidBody.random_inertia(12, seed=4), lf.systems.PeriodicToda(12)],
+    ids=["so(12)", "toda-12"],
+)
+def test_blas_products_above_n_8_agree_with_numpy(
+    system: lf.IsospectralSystem, scheme: str
+) -> None:
+    """Above n = 8 the loops multiply through ``_kernels.gemm`` (BLAS), with ``A^T B`` for
+    the reduced form's stage values and, on the symmetric Toda states, ``A B^T``."""
+    W0 = 0.8 * system.random_state(seed=2)
+    ref, fast = _both(system, lf.schemes.get(scheme), W0, 0.02, steps=40)
+    _agree(ref, fast, atol=1e-13)
+
+
 # ------------------------------------------------------------------ B from the system
 
 
