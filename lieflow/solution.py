@@ -7,7 +7,6 @@ from typing import Any
 
 import attrs
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 from .algebras import Array
 from .errors import ConvergenceError
@@ -98,6 +97,8 @@ class Solution:
         Eigenvalues of ``W_k`` are matched to those of ``W_0`` by a minimum-cost assignment,
         so clusters and roundoff-level real parts cannot mis-pair them.
         """
+        from scipy.optimize import linear_sum_assignment  # 0.1-0.3 s to import: on first use
+
         lam = np.linalg.eigvals(self.W)
         flat = lam.reshape(lam.shape[0], -1, lam.shape[-1])
         out = np.empty(flat.shape[:2])

@@ -6,7 +6,6 @@ import math
 
 import attrs
 import numpy as np
-import scipy.sparse.linalg as spla
 
 from ..algebras import Array
 from ..errors import InputError
@@ -144,6 +143,8 @@ class Newton:
     @staticmethod
     def _gmres_step(problem: ImplicitProblem, x: Array, rhs: Array, core: int, rel: float) -> Array:
         """Matrix-free GMRES on ``(I - F'(x)) d = rhs`` for the whole batch at once."""
+        import scipy.sparse.linalg as spla  # 0.1 s to import: on first use
+
         r = _to_real(rhs, core)
         shape = r.shape
 
