@@ -47,7 +47,6 @@ from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import gammaln
 
 Array = NDArray[Any]
 F = TypeVar("F", bound=Callable[..., Any])
@@ -97,6 +96,8 @@ def _unit_log(logv: Array) -> Array:
 def harmonic_start(N: int, m: int) -> tuple[Array, Array]:
     """Starting rows: ``T_mm`` on diagonal ``m`` (sign ``(-1)^m``) and ``|T_{N-1,m}|``,
     unit norm, floored at ``1e-300`` in magnitude."""
+    from scipy.special import gammaln  # 0.1 s to import: on first use, not with the plugin
+
     n = N - m
     j = np.arange(1, N, dtype=float)
     cum = np.concatenate([[0.0], np.cumsum(0.5 * (np.log(j) + np.log(N - j)))])

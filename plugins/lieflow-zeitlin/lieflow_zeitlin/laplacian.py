@@ -80,7 +80,6 @@ from typing import Any
 import attrs
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.linalg import eigh_tridiagonal
 
 import lieflow
 
@@ -465,6 +464,8 @@ def harmonics(N: int) -> Iterator[tuple[int, Array]]:
     Each diagonal costs one ``eigh_tridiagonal`` (O((N-m)²)); only two ``V`` are held
     at a time, so memory is O(N²).
     """
+    from scipy.linalg import eigh_tridiagonal  # 0.1 s to import: on first use
+
     N = matrix_size(N)
     prev: Array | None = None
     for m in range(N - 1, -1, -1):

@@ -89,7 +89,6 @@ from typing import Any, Literal
 import attrs
 import numpy as np
 from numpy.typing import ArrayLike, DTypeLike, NDArray
-from scipy.special import sph_legendre_p_all
 
 import lieflow
 
@@ -399,6 +398,8 @@ class SphereGrid:
 
 def _legendre_chunks(N: int, theta: Array) -> Any:
     """Yield ``(slice, P)`` with ``P[l, m, j] = Y_lm(θ_j, 0)`` for ``0 <= m <= l < N``."""
+    from scipy.special import sph_legendre_p_all  # 0.1 s to import: on first use
+
     chunk = max(1, _CHUNK_VALUES // (N * (2 * N - 1)))
     for start in range(0, theta.size, chunk):
         sl = slice(start, min(start + chunk, theta.size))
