@@ -8,6 +8,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from lieflow import IsospectralSystem
+from lieflow.app import reproduce
 from lieflow.app.reproduce import Case
 
 from .contenders import Contender, RunStats
@@ -15,7 +16,11 @@ from .timing import Timing, compare, peak_memory
 
 
 def warm_up(contenders: Sequence[Contender]) -> None:
-    """Two untimed steps of every contender on a tiny problem (first-call costs)."""
+    """Two untimed steps of every contender on a tiny problem, after the paper's schemes on
+    both engines (:func:`lieflow.app.reproduce.warm_up`): first-call costs, numba's
+    compilation or cache load of the loops included, which a contender's two steps would
+    not pay (``engine="auto"`` runs them on numpy)."""
+    reproduce.warm_up(0)
     system, W0 = Case("generalized_rigid_body", "warm-up", 4, 0.01, 2, 1e-14).build(0)
     for contender in contenders:
         contender.run(system, W0, 0.01, 2)

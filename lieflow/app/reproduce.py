@@ -286,7 +286,7 @@ def run_paper_algorithm(case: Case, scheme: str, seed: int) -> RunRecord:
     return RunRecord.from_solution(case, scheme, sol)
 
 
-def _warm_up(seed: int) -> None:
+def warm_up(seed: int) -> None:
     """A few untimed steps of every scheme on each engine the timed runs may use, so the
     first timed run pays no first-call costs (numba's compilation or cache load included)."""
     case = Case("rigid_body", "warm-up", 3, 0.1, 3, 1e-15)
@@ -404,7 +404,7 @@ def reproduce(
     cases = paper_cases(quick)
     total = len(cases) * len(SCHEMES)
     start = time.perf_counter()
-    _warm_up(seed)
+    warm_up(seed)
     records: list[RunRecord] = []
     for case in cases:
         for scheme, label in SCHEMES:
