@@ -893,8 +893,12 @@ def _compile_entry(func: F, dtype: np.dtype) -> F:
         f8[::1], i8[::1], d[:, :, ::1], f8[:, ::1], i8[::1], d[:, :, :, ::1], i8[::1], G,
         d[::1], f8[::1],
     )  # fmt: skip
-    # without reference counting (see the module's docstring)
-    options = {"error_model": "numpy", "_nrt": False}
+    # without reference counting (see the module's docstring) where this numba has the
+    # (private) option; with it the same loops are correct, only slower
+    options: dict[str, Any] = {"error_model": "numpy"}
+    cpu = importlib.import_module("numba.core.cpu")
+    if hasattr(getattr(cpu, "CPUTargetOptions", None), "_nrt"):
+        options["_nrt"] = False
     try:
         return cast(F, numba.njit(sig, cache=True, **options)(func))
     except RuntimeError:  # pragma: no cover - no writable cache location
