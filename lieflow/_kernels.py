@@ -226,6 +226,7 @@ def _finite(z: Any) -> bool:
 # ------------------------------------------------------------------ products
 
 
+@_jit
 def _gemm(A: Any, B: Any, out: Any, transpose_a: bool, transpose_b: bool) -> None:
     """``out = op(A) @ op(B)`` by BLAS (``np.dot``), ``op(X) = X^T`` where its flag is set
     (the loops set one at most): the products of the loops above ``n = _SMALL``.
@@ -916,11 +917,8 @@ def gemm(dtype: np.dtype) -> Any:
     key = ("gemm", np.dtype(dtype))
     if key not in _ENTRIES:
         signature = _PRODUCT_SIGNATURES[key[1]]
-        try:
-            compiled = numba.njit(signature, cache=True, error_model="numpy")(_gemm)
-        except RuntimeError:  # pragma: no cover - no writable cache location
-            compiled = numba.njit(signature, error_model="numpy")(_gemm)
-        _ENTRIES[key] = _FunctionPointer(compiled, key[1], signature)
+        cast(Any, _gemm).compile(signature)  # a numba dispatcher (_jit)
+        _ENTRIES[key] = _FunctionPointer(_gemm, key[1], signature)
     return _ENTRIES[key]
 
 
