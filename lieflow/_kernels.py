@@ -435,12 +435,23 @@ class _FunctionPointer(_Protocol):
         self.dtype = np.dtype(dtype)
         self._signature = map_signature(self.dtype) if signature is None else signature
         self.address = _get_wrapper_address(function, self._signature)
+        self.numba_type = numba.core.types.FunctionType(self._signature)
 
     def __wrapper_address__(self) -> int:
         return int(self.address)
 
     def signature(self) -> Any:
         return self._signature
+
+
+if numba is not None:
+
+    @numba.extending.typeof_impl.register(_FunctionPointer)
+    def _typeof_function_pointer(value: _FunctionPointer, _context: Any) -> Any:
+        """The numba type of a :class:`_FunctionPointer` argument, built once: numba's
+        own typing of the protocol builds a new ``FunctionType`` on every call (~12 µs
+        per argument and call, three arguments per chunk)."""
+        return value.numba_type
 
 
 def function_pointer(function: Any, dtype: np.dtype) -> Any:

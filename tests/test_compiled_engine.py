@@ -73,6 +73,14 @@ def test_a_plugin_system_runs_compiled(scheme: str) -> None:
     # each new state is put back on the spheres |m_i| = |Γ_i| inside the loops
     assert float(system.phase_space_distance(fast.W).max()) < 1e-15
 
+    # a pointer is typed with the numba type it was built with (numba's typing of the
+    # protocol rebuilds it from signature() on every call: ~12 µs per argument and chunk)
+    def rebuilt() -> None:
+        raise AssertionError("typed from signature() again")
+
+    plan.B.signature = rebuilt
+    assert numba.typeof(plan.B) == numba.core.types.FunctionType(plan.B._signature)
+
 
 def _cubic_B(W: np.ndarray, params: np.ndarray, out: np.ndarray) -> None:
     """``B(W) = S ⊙ W (1 + c |W|²)`` of the skew part of ``W``: a nonlinear B."""
