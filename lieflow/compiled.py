@@ -42,6 +42,7 @@ trust is decided for the whole stack, as numpy does.
 from __future__ import annotations
 
 import importlib.util
+import math
 from collections.abc import Sequence
 from types import ModuleType
 from typing import Any
@@ -166,10 +167,10 @@ class CompiledPlan:
         (``trusted``), as in :class:`~lieflow.flows.WarmStart`."""
         k = kernels()
         batch, n = W.shape[:-2], self.n
-        K = int(np.prod(batch, dtype=np.int64))
+        K = math.prod(batch)
         core = self.warm_shape()
         Wk = np.ascontiguousarray(W, dtype=self.dtype).reshape(K, n, n)
-        size = int(np.prod(core))
+        size = math.prod(core)
         keep = max(depth, 1)
         hist = np.zeros((keep, K, size), dtype=self.dtype)
         filled = min(len(history), keep) if depth else 0
