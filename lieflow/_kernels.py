@@ -551,34 +551,33 @@ def _reduced_map(
     ``B_j = B(G_j^† P_j)``; for skew algebras ``B^† = -B``. ``3 s`` products per
     update; ``Wst``, ... ``PB`` are scratch stacks ``(s, n, n)`` (``GB[j]`` and ``Wst[j]``
     also hold the conjugates that complex data need, before they are overwritten; ``Wst``
-    and ``Bs`` then the stage sums, formed matrix by matrix, each in the order ``j = 1..s``
-    as before). Returns the squared norms of the update and of the new iterate.
+    and ``Bs`` then the stage sums, each entry summed in the order ``j = 1..s``). Returns
+    the squared norms of the update and of the new iterate.
     """
     s, n = hA.shape[0], W0.shape[0]
+    nn = n * n
     for j in range(s):
         _matmul_hn(x[0, j], x[1, j], Wst[j], GB[j], gemm)
         _apply_B(B, params, Wst[j], Bs[j])
-        if skew:
+        if skew:  # G_j B_j, whose sign goes into the coefficients below (B^† = -B)
             _matmul(x[0, j], Bs[j], GB[j], gemm)
-            for a in range(n):
-                for c in range(n):
-                    GB[j, a, c] = -GB[j, a, c]
         else:
             _matmul_nh(x[0, j], Bs[j], GB[j], Wst[j], gemm)
         _matmul(x[1, j], Bs[j], PB[j], gemm)
-    # the stage sums over whole matrices (vectorisable), into Wst and Bs, free by now
+    # the stage sums, into Wst and Bs (free by now), over the n² entries of each matrix as
+    # one flat loop (vectorised whatever n): w (-Y) and (-w) Y are the same numbers
+    GBf, PBf = GB.reshape((s, nn)), PB.reshape((s, nn))
+    accG, accP = Wst.reshape((s, nn)), Bs.reshape((s, nn))
+    sign = -1.0 if skew else 1.0
     for i in range(s):
-        accG, accP = Wst[i], Bs[i]
-        for a in range(n):
-            for c in range(n):
-                accG[a, c] = 0.0
-                accP[a, c] = 0.0
+        for e in range(nn):
+            accG[i, e] = 0.0
+            accP[i, e] = 0.0
         for j in range(s):
-            w = hA[i, j]
-            for a in range(n):
-                for c in range(n):
-                    accG[a, c] += w * GB[j, a, c]
-                    accP[a, c] += w * -PB[j, a, c]
+            wG, wP = sign * hA[i, j], -hA[i, j]
+            for e in range(nn):
+                accG[i, e] += wG * GBf[j, e]
+                accP[i, e] += wP * PBf[j, e]
     step2 = 0.0
     size2 = 0.0
     for i in range(s):
