@@ -456,10 +456,21 @@ if numba is not None:
 
 def function_pointer(function: Any, dtype: np.dtype) -> Any:
     """``function`` (a numba dispatcher compiled for :func:`map_signature` of ``dtype``) in
-    the form the loops take it, cheaply converted on every call."""
+    the form the loops take it, cheaply converted on every call.
+
+    The maps of this module (the built-in systems' ``B`` and projections: objects that live
+    as long as the process and are compiled once) are resolved once per process, like
+    :func:`gemm`; any other function on every call (~15 µs), since its dispatcher could be
+    recompiled."""
     if isinstance(function, _FunctionPointer) and function.dtype == dtype:
         return function
-    return _FunctionPointer(function, dtype)
+    name = getattr(getattr(function, "py_func", None), "__name__", "")
+    if globals().get(name) is not function:
+        return _FunctionPointer(function, dtype)
+    key = (f"map {name}", np.dtype(dtype))
+    if key not in _ENTRIES or _ENTRIES[key].function is not function:
+        _ENTRIES[key] = _FunctionPointer(function, key[1])
+    return _ENTRIES[key]
 
 
 # ------------------------------------------------------------------ formulations

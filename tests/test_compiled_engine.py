@@ -80,6 +80,17 @@ def test_a_plugin_system_runs_compiled(scheme: str) -> None:
 
     plan.B.signature = rebuilt
     assert numba.typeof(plan.B) == numba.core.types.FunctionType(plan.B._signature)
+    # a plugin's map is resolved afresh for every plan (its dispatcher could be recompiled),
+    # lieflow's own maps once per process
+    again = compiled.plan(system, lf.schemes.get(scheme), lf.solvers.FixedPoint(), W0)
+    assert isinstance(again, compiled.CompiledPlan) and again.B is not plan.B
+    body = lf.systems.GeneralizedRigidBody.random_inertia(5, seed=1)
+    plans = [
+        compiled.plan(body, lf.schemes.get(scheme), lf.solvers.FixedPoint(), body.random_state(k))
+        for k in (1, 2)
+    ]
+    assert all(isinstance(p, compiled.CompiledPlan) for p in plans)
+    assert plans[0].B is plans[1].B  # type: ignore[union-attr]
 
 
 def _cubic_B(W: np.ndarray, params: np.ndarray, out: np.ndarray) -> None:
