@@ -27,6 +27,7 @@ from .suites import (
     rigid_body_scaling,
     scipy_work_precision,
     so3_throughput,
+    splitting,
     streaming_memory,
     sweeps,
     work_precision,
@@ -41,6 +42,7 @@ SUITES: tuple[tuple[str, Callable[[BenchContext], Section]], ...] = (
     ("so3", so3_throughput.run),
     ("iteration_cost", iteration_cost.run),
     ("zeitlin", euler_zeitlin.run),
+    ("splitting", splitting.run),
     ("memory", streaming_memory.run),
     ("sweeps", sweeps.run),
 )

@@ -52,7 +52,7 @@ import numpy as np
 
 from . import driver
 from .algebras import Array
-from .flows import DEFAULT_DEPTH, SchemeFlow, WarmStart, extrapolation_matrix
+from .flows import DEFAULT_DEPTH, SchemeFlow, StepStats, WarmStart, extrapolation_matrix
 from .schemes.base import Scheme
 from .solvers.base import Solver
 from .solvers.fixed_point import FixedPoint
@@ -215,6 +215,23 @@ class CompiledSchemeFlow(SchemeFlow):
     """
 
     plan: CompiledPlan = attrs.field(kw_only=True)
+
+    def step(
+        self, W: Array, t: float, h: float, state: WarmStart | None
+    ) -> tuple[Array, WarmStart | None, StepStats]:
+        """One step on the compiled loops (a chunk of one step), so that the flow stays
+        compiled wherever it is stepped alone — inside a :class:`~lieflow.flows.Splitting`
+        or a :class:`~lieflow.flows.Projected`, whose sub-steps are taken one at a time; a
+        step the loops do not accept is taken by the numpy path
+        (:meth:`SchemeFlow.step <lieflow.flows.SchemeFlow.step>`) from the same state."""
+        chunk = self.step_many(W, 0, h, 1, state)
+        if not chunk.size:
+            return SchemeFlow.step(self, W, t, h, state)
+        return (
+            chunk.W[0],
+            chunk.state,
+            StepStats(int(chunk.iterations[0]), chunk.solvers[0], math.nan),
+        )
 
     def step_many(
         self, W: Array, start: int, h: float, steps: int, state: WarmStart | None

@@ -207,3 +207,14 @@ def test_stiffness_of_the_rigid_body_matches_its_linearisation() -> None:
     st = stiffness(problem)
     assert st.frequency == pytest.approx(rho, rel=1e-10)
     assert 0 < st.norm_shifted <= st.norm_B
+
+
+def test_splitting_suite_quick_reports_the_target(tmp_path: Path) -> None:
+    """The forced-dissipative splitting suite (issue 26.3) runs and gives a verdict."""
+    pytest.importorskip("numba")
+    pytest.importorskip("lieflow_zeitlin")
+    out = tmp_path / "benchmarks.md"
+    assert cli.main(["--quick", "--only", "splitting", "--out", str(out)]) == 0
+    page = out.read_text(encoding="utf-8")
+    assert "forced, dissipative: drag + forcing (compiled)" in page
+    assert re.search(r"^- \*\*(met|not met)\*\* — forced, dissipative", page, re.MULTILINE)

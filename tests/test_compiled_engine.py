@@ -257,6 +257,122 @@ def test_a_complete_chunk_is_not_followed_by_a_numpy_step() -> None:
     assert all(np.isnan(c.residuals).all() for c in chunks)  # every step compiled
 
 
+# ------------------------------------------------------------------ inside a Splitting
+
+
+@attrs.frozen
+class _Drag:
+    """``dW/dt = -mu W``, exactly (a stateless sub-flow)."""
+
+    mu: float = 0.3
+    name: str = "drag"
+
+    def init(self, W0: np.ndarray) -> None:
+        return None
+
+    def step(self, W: np.ndarray, t: float, h: float, state: None) -> Any:
+        return W * np.exp(-self.mu * h), None, lf.StepStats()
+
+
+def _split_run(flow: lf.Flow, W0: np.ndarray, h: float, steps: int) -> tuple[Any, Any]:
+    chunks = list(driver.advance(flow, W0, h, steps))
+    return np.concatenate([c.W for c in chunks]), np.concatenate([c.iterations for c in chunks])
+
+
+def _numpy_steps(monkeypatch: pytest.MonkeyPatch, scheme: lf.Scheme) -> list[int]:
+    """Count the scheme's numpy steps (``Scheme.step``) from now on."""
+    calls: list[int] = []
+    numpy_step = type(scheme).step
+
+    def counted(*args: Any, **kwargs: Any) -> Any:
+        calls.append(1)
+        return numpy_step(*args, **kwargs)
+
+    monkeypatch.setattr(type(scheme), "step", counted)
+    return calls
+
+
+@pytest.mark.parametrize("scheme_name", ["midpoint", "gauss2"])
+def test_a_compiled_flow_stays_compiled_inside_a_splitting(
+    monkeypatch: pytest.MonkeyPatch, scheme_name: str
+) -> None:
+    """Issue 26.3: the sub-steps of a compiled scheme flow inside a Splitting (and a
+    Projected) are taken by the compiled loops — the scheme's numpy step never runs — and
+    agree with the numpy engine's to roundoff (the reference: the same splitting on numpy)."""
+    from lieflow.integrate import scheme_flow
+
+    body = lf.systems.RigidBody(inertia=(1.0, 2.0, 3.0))
+    W0 = body.random_state(3)
+    scheme, solver = lf.schemes.get(scheme_name), lf.solvers.FixedPoint(rtol=1e-14)
+    flows = {e: scheme_flow(body, scheme, solver, W0, 10, engine=e) for e in ("numpy", "compiled")}
+    assert isinstance(flows["compiled"], compiled.CompiledSchemeFlow)
+    ref = _split_run(lf.Splitting.strang(_Drag(), flows["numpy"]), W0, 0.1, 60)
+    calls = _numpy_steps(monkeypatch, scheme)
+    got = _split_run(lf.Splitting.strang(_Drag(), flows["compiled"]), W0, 0.1, 60)
+    projected = _split_run(lf.Projected(flows["compiled"], body), W0, 0.1, 5)
+    assert calls == []  # fails when the splitting steps the compiled flow through numpy
+    np.testing.assert_allclose(got[0], ref[0], rtol=0, atol=1e-14)
+    assert np.max(np.abs(got[1] - ref[1])) <= 1
+    assert np.all(np.isfinite(projected[0]))
+    # a step the loops do not accept still goes to the numpy path (max_iter = 2 fails)
+    strict = lf.solvers.FixedPoint(rtol=1e-14, max_iter=2)
+    flow = scheme_flow(body, scheme, strict, W0, 10, engine="compiled")
+    with pytest.raises(lf.ConvergenceError):
+        _split_run(lf.Splitting.strang(_Drag(), flow), W0, 0.1, 3)
+    assert calls  # the failed step was retried on numpy, which raised
+
+
+def test_a_forced_dissipative_euler_zeitlin_run_is_compiled(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``lieflow run`` of a [splitting] configuration with engine = "compiled" (drag,
+    stochastic forcing and the isospectral step on complex data) never takes a numpy step,
+    and agrees with engine = "numpy" to roundoff."""
+    pytest.importorskip("lieflow_zeitlin")
+    from lieflow.app.config import build, parse_config
+
+    forcing = '{ name = "zeitlin_forcing", params = { amplitude = 0.2, l1 = 2, l2 = 4, seed = 1 } }'
+
+    def setup(engine: str) -> Any:
+        text = f"""
+            [system]
+            name = "euler_zeitlin"
+            params = {{ N = 8, time = "fluid" }}
+            [initial]
+            random = true
+            seed = 2
+            [scheme]
+            name = "midpoint"
+            [solver]
+            name = "fixed_point"
+            params = {{ rtol = 1e-14 }}
+            [splitting]
+            method = "strang"
+            flows = [
+              {{ name = "zeitlin_drag", params = {{ mu = 0.1 }} }},
+              {forcing},
+            ]
+            [run]
+            h = 0.05
+            steps = 40
+            engine = "{engine}"
+            """
+        return build(
+            parse_config(textwrap.dedent(text), source="forced.toml"), output=tmp_path / "x.h5"
+        )
+
+    fast, slow = setup("compiled"), setup("numpy")
+    ref = _split_run(slow.flow(), slow.W0, 0.05, 40)
+    flow = fast.flow()
+    assert isinstance(flow, lf.Splitting)
+    assert isinstance(flow.flows[-1], compiled.CompiledSchemeFlow)
+    calls = _numpy_steps(monkeypatch, fast.scheme)
+    got = _split_run(flow, fast.W0, 0.05, 40)
+    assert calls == []
+    np.testing.assert_allclose(got[0], ref[0], rtol=0, atol=1e-13 * np.abs(ref[0]).max())
+    assert np.max(np.abs(got[1] - ref[1])) <= 1
+
+
 @pytest.mark.parametrize(
     ("system", "scheme", "h"),
     [
