@@ -145,21 +145,31 @@ def run(ctx: BenchContext) -> Section:
     forced = runs[2]
     slow_step = forced.per_step / base.per_step
     slow_update = forced.per_update / base.per_update
-    target = TargetCheck(
+    numpy_step = runs[3].per_step / base.per_step
+    per_step = TargetCheck(
         target=f"forced, dissipative Euler–Zeitlin N = {N} on the compiled engine within "
         f"{TARGET}× the conservative compiled run's time per step",
-        measured=f"{slow_step:.2f}× per step, {slow_update:.2f}× per fixed-point update "
-        f"({forced.updates:.2f} against {base.updates:.2f} updates per step)",
+        measured=f"{slow_step:.2f}× ({forced.updates:.2f} against {base.updates:.2f} "
+        "fixed-point updates per step)",
         met=slow_step <= TARGET,
-        gap="" if slow_step <= TARGET else f"{slow_step / TARGET:.2f}× over per step",
-        limit="the forcing's random kicks cost the warm start updates (per update the "
-        "splitting is the conservative run's engine plus its O(N²) sub-steps); the numpy "
-        f"scheme inside the same splitting: {runs[3].per_step / base.per_step:.2f}× per step",
+        gap="" if slow_step <= TARGET else f"{slow_step / TARGET:.2f}× over",
+        limit="the forcing's random kicks move the state off the path the warm start "
+        "extrapolates along, so its steps need more updates (the engine's cost per update "
+        f"is the next target); the numpy scheme inside the same splitting: {numpy_step:.2f}×",
+    )
+    per_update = TargetCheck(
+        target=f"the same at equal solver work: within {TARGET}× the conservative compiled "
+        "run's time per fixed-point update",
+        measured=f"{slow_update:.2f}× (numpy scheme: {runs[3].per_update / base.per_update:.2f}×)",
+        met=slow_update <= TARGET,
+        gap="" if slow_update <= TARGET else f"{slow_update / TARGET:.2f}× over",
+        limit="the compiled loops take every isospectral sub-step, a call per step; the "
+        "drag and forcing sub-steps are O(N²) (the forcing: one batched product)",
     )
     return Section(
         title=title,
         intro=__doc__.split("\n\n", 1)[1].strip() if __doc__ else "",
         tables=(table,),
-        targets=(target,),
+        targets=(per_step, per_update),
         seconds=time.perf_counter() - start,
     )

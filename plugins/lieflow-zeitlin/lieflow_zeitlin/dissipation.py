@@ -367,6 +367,57 @@ def _band(_inst: Any, _attr: attrs.Attribute, value: int) -> None:
         raise lieflow.InputError(f"forcing degrees must be integers, got {value!r}")
 
 
+#: The forcing's padded eigenvectors (:func:`_forcing_plan`) hold at most this many numbers
+#: per block of diagonals (32 MB); a wide band at large N takes several blocks.
+FORCING_BLOCK = 1 << 22
+
+
+@functools.lru_cache(maxsize=8)
+def _forcing_plan(N: int, l1: int, l2: int) -> tuple[tuple[Array, ...], ...]:
+    """What :meth:`StochasticForcing.noise` needs to build ``Q(η)`` in a few numpy calls,
+    in blocks of consecutive diagonals ``m`` (one block unless the band is wide), each
+    ``(basis, real, imag, scale, lower, upper)``, row ``j`` for diagonal ``m``, padded to
+    ``count = l2 - l1 + 1`` degrees and ``N`` entries: the eigenvectors ``V_m`` of the
+    forced degrees ``(rows, N, count)``; indices into ``η`` (index ``modes``: zero) of the
+    real and imaginary parts of ``ω_lm`` (``m = 0``: ``η`` itself; ``m > 0``:
+    ``(a + ib)/√2`` from the next ``2 count`` numbers, in the order they are drawn); their
+    scale; the flat indices of diagonal ``-m`` (``(i + m, i)``) and ``+m`` (``m > 0``),
+    ``N²`` for padding. Read-only."""
+    count = l2 - l1 + 1
+    modes = (l2 + 1) ** 2 - l1**2
+    per_block = max(1, FORCING_BLOCK // (N * count))
+    eigenbasis = _eigenbasis(N)
+    blocks = []
+    pos = 0
+    for first in range(0, l2 + 1, per_block):
+        ms = range(first, min(first + per_block, l2 + 1))
+        rows = len(ms)
+        basis = np.zeros((rows, N, count))
+        real = np.full((rows, count), modes)
+        imag = np.full((rows, count), modes)
+        scale = np.ones((rows, 1))
+        lower = np.full((rows, N), N * N)
+        upper = np.full((rows, N), N * N)
+        for j, m in enumerate(ms):
+            lo = max(l1, m)
+            k = l2 - lo + 1
+            basis[j, : N - m, :k] = eigenbasis[m][:, lo - m : l2 - m + 1]
+            i = np.arange(N - m)
+            lower[j, : N - m] = (i + m) * N + i
+            real[j, :k] = np.arange(pos, pos + k)
+            pos += k
+            if m:
+                upper[j, : N - m] = i * N + i + m
+                imag[j, :k] = np.arange(pos, pos + k)
+                pos += k
+                scale[j] = 1 / math.sqrt(2)
+        block = (basis, real, imag, scale, lower, upper)
+        for x in block:
+            x.setflags(write=False)
+        blocks.append(block)
+    return tuple(blocks)
+
+
 @attrs.frozen(eq=False)
 class StochasticForcing:
     r"""Additive white-in-time noise in the degrees ``l1 <= l <= l2``.
@@ -445,29 +496,18 @@ class StochasticForcing:
         if k < 0:
             raise lieflow.InputError(f"stochastic forcing needs t >= 0, got t = {t!r}")
         rng = np.random.default_rng([self.seed, k])
-        N, l1, l2 = self.system.N, self.l1, self.l2
+        N = self.system.N
         z = rng.standard_normal(self.modes)
-        out = np.zeros((N, N), dtype=np.complex128)
+        zz = np.append(z, 0.0)  # index ``modes``: the padding
         factor = 1j * kappa(N)
-        basis = _eigenbasis(N)
-        pos = 0
-        # coefficients ω_lm, l = l1..l2, diagonal by diagonal: m = 0 real, m > 0 complex
-        for m in range(l2 + 1):
-            lo = max(l1, m)
-            count = l2 - lo + 1
-            V = basis[m][:, lo - m : l2 - m + 1]
-            i = np.arange(N - m)
-            if m == 0:
-                c = z[pos : pos + count]
-                pos += count
-                out[i, i] = factor * (V @ c)
-            else:
-                a, b = z[pos : pos + count], z[pos + count : pos + 2 * count]
-                pos += 2 * count
-                c = (a + 1j * b) / math.sqrt(2)
-                out[i + m, i] = factor * (V @ c)
-                out[i, i + m] = factor * (V @ np.conj(c))  # ω_{l,-m} = (-1)^m conj(ω_lm)
-        return out
+        out = np.zeros(N * N + 1, dtype=np.complex128)  # the last entry takes the padding
+        for basis, real, imag, scale, lower, upper in _forcing_plan(N, self.l1, self.l2):
+            # real and imaginary parts of ω_lm (row: diagonal m, column: degree l)
+            parts = np.stack([zz[real], zz[imag]], axis=-1) * scale[..., None]
+            values = basis @ parts  # V_m ω_m, real and imaginary parts, all m at once
+            out[lower] = factor * (values[..., 0] + 1j * values[..., 1])
+            out[upper] = factor * (values[..., 0] - 1j * values[..., 1])  # V_m conj(ω_m)
+        return out[:-1].reshape(N, N)
 
     def step(self, W: Array, t: float, h: float, state: None) -> tuple[Array, None, StepStats]:
         """``W -> W + σ √τ Q(η_k)``."""
