@@ -25,7 +25,7 @@ of steps per call, for the case where that is simple and exact:
 
 Same maps, same stopping rule (the very function the numpy path calls,
 :func:`lieflow.solvers.fixed_point.stopping_verdict`, compiled), same warm starts
-(:class:`~lieflow.flows.WarmStart`) and the same per-step projection onto the phase space
+(:class:`~lieflow.warm_start.WarmStart`) and the same per-step projection onto the phase space
 (:meth:`IsospectralSystem.compiled_project <lieflow.IsospectralSystem.compiled_project>`;
 without one, each chunk's states are projected by ``system.project`` afterwards) as the
 numpy path. A step the
@@ -52,12 +52,13 @@ import numpy as np
 
 from . import driver
 from .algebras import Array
-from .flows import DEFAULT_DEPTH, SchemeFlow, StepStats, WarmStart, extrapolation_matrix
+from .flows import SchemeFlow, StepStats
 from .schemes.base import Scheme
 from .solvers.base import Solver
 from .solvers.fixed_point import FixedPoint
 from .solvers.newton import Auto
 from .systems.base import IsospectralSystem
+from .warm_start import DEFAULT_DEPTH, WarmStart, extrapolation_matrix
 
 #: ``engine="auto"`` picks the compiled engine for matrix sizes ``n <= AUTO_MAX_N`` (real
 #: data) or ``n <= AUTO_MAX_N_COMPLEX`` (complex data) ...
@@ -97,7 +98,7 @@ class Chunk:
         Fixed-point updates per completed step (max over an ensemble), ``(done,)``.
     history : tuple of ndarray
         The warm-start offsets of the last completed steps, most recent first
-        (:meth:`WarmStart.history <lieflow.flows.WarmStart.history>`).
+        (:meth:`WarmStart.history <lieflow.warm_start.WarmStart.history>`).
     trusted : int
         How many of them the next step's prediction extrapolates from.
     complete : bool
@@ -164,7 +165,7 @@ class CompiledPlan:
         """Advance ``W`` (``(*batch, n, n)``) by up to ``steps`` steps of size ``h`` from the
         warm-start state: the kept solutions ``history`` (most recent first), how many are
         kept (``depth``; 0: no warm starts) and how many the next prediction uses
-        (``trusted``), as in :class:`~lieflow.flows.WarmStart`."""
+        (``trusted``), as in :class:`~lieflow.warm_start.WarmStart`."""
         k = kernels()
         batch, n = W.shape[:-2], self.n
         K = math.prod(batch)

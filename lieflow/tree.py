@@ -3,7 +3,7 @@
 A *state tree* is ``None``, an array, a Python scalar or string (a *leaf*), or a container
 of state trees: a ``tuple``, a ``list``, a ``dict`` with string keys, or an ``attrs``
 instance (its fields, in order). A :class:`~lieflow.flows.SchemeFlow` keeps its warm start
-(:class:`~lieflow.flows.WarmStart`) as one; a :class:`~lieflow.flows.Splitting` keeps a
+(:class:`~lieflow.warm_start.WarmStart`) as one; a :class:`~lieflow.flows.Splitting` keeps a
 tuple of its sub-steps' states. Containers keep their shape from step to step; leaves may
 change (``None`` before the first step, an array after).
 """

@@ -12,7 +12,7 @@ import pytest
 import lieflow as lf
 from lieflow import driver
 from lieflow.app.reproduce import Case
-from lieflow.flows import (
+from lieflow.warm_start import (
     DEFAULT_DEPTH,
     WarmStart,
     extrapolation_matrix,
