@@ -3,7 +3,7 @@
 One compiled driver and per-formulation map kernels:
 
 * :func:`_driver` is the chunk loop: warm-start extrapolation and trust
-  (:class:`~lieflow.warm_start.WarmStart`), the cold retry of a failed warm solve
+  (:class:`~lieflow.flows.WarmStart`), the cold retry of a failed warm solve
   (:func:`lieflow.schemes.base.solve`), the per-step phase-space projection and the
   finiteness check; :func:`_solver` is the fixed-point loop, judged by
   :func:`lieflow.solvers.fixed_point.stopping_verdict` — the same function object the numpy
@@ -750,7 +750,7 @@ def _reduced_step(
 @_helper
 def _predict(hist: Any, kk: int, points: int, weights: Any, out: Any) -> None:
     """The warm-start prediction from the last ``points`` solutions of trajectory ``kk``
-    (:meth:`WarmStart.prediction <lieflow.warm_start.WarmStart.prediction>`):
+    (:meth:`WarmStart.prediction <lieflow.flows.WarmStart.prediction>`):
     ``out = sum_j weights[points - 1, j] hist[j, kk]``, 1-D."""
     m = out.size
     w0 = weights[points - 1, 0]
@@ -764,7 +764,7 @@ def _predict(hist: Any, kk: int, points: int, weights: Any, out: Any) -> None:
 
 @_helper
 def _commit(solved: Any, hist: Any, flags: Any, weights: Any, acc: Any, err2: Any) -> None:
-    """:meth:`WarmStart.advance <lieflow.warm_start.WarmStart.advance>` for the whole stack:
+    """:meth:`WarmStart.advance <lieflow.flows.WarmStart.advance>` for the whole stack:
     the squared errors of the predictions of ``solved`` from ``0 .. nh`` points (summed
     over the stack), the best number of points (ties: fewer; one more if it was all of
     them and ``hist`` holds more) into ``flags[1]``, and ``solved`` into the history
@@ -813,7 +813,7 @@ def _driver(fstep: Any, fviews: Any) -> Any:
         ``hist`` (``(depth, K, m)``: the last ``depth`` solutions' warm offsets of each
         trajectory, flattened, most recent first), ``flags = (filled, trusted)`` and the
         extrapolation weights (row ``p - 1``: from ``p`` points) are the warm-start state
-        (:class:`~lieflow.warm_start.WarmStart`), updated in place after every completed step.
+        (:class:`~lieflow.flows.WarmStart`), updated in place after every completed step.
         ``irule`` holds ``(max_iter, patience, window, project, retry_cold, use_warm)``.
         Each new state is mapped by ``P`` (the system's compiled projection) when
         ``project``. ``gemm``: the products above ``n = _SMALL`` (:func:`gemm`); ``buf``,
