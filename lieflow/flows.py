@@ -37,6 +37,7 @@ from .schemes.base import Scheme
 from .solvers.base import Solver
 from .solvers.fixed_point import FixedPoint
 from .systems.base import IsospectralSystem
+from .tableaus import COMPOSITIONS, composition_weights
 
 # WarmStart and DEFAULT_DEPTH: importable from here as before (lieflow.WarmStart too)
 from .warm_start import WarmStart, warm_depth
@@ -176,32 +177,6 @@ def _merge(sequence: Sequence[tuple[int, float]]) -> tuple[tuple[int, float], ..
     return tuple(out)
 
 
-#: Symmetric compositions of a second-order symmetric step (Strang): coefficients
-#: ``gamma_k`` of ``S(gamma_m h) ... S(gamma_1 h)`` and the order reached.
-#: ``triple_jump``: Yoshida (1990), Suzuki (1990), order 4;
-#: ``suzuki5``: Suzuki's five-stage fractal, order 4 (smaller error constant).
-_COMPOSITIONS: dict[str, tuple[tuple[float, ...], int]] = {
-    "triple_jump": (
-        (
-            1 / (2 - 2 ** (1 / 3)),
-            -(2 ** (1 / 3)) / (2 - 2 ** (1 / 3)),
-            1 / (2 - 2 ** (1 / 3)),
-        ),
-        4,
-    ),
-    "suzuki5": (
-        (
-            1 / (4 - 4 ** (1 / 3)),
-            1 / (4 - 4 ** (1 / 3)),
-            1 - 4 / (4 - 4 ** (1 / 3)),
-            1 / (4 - 4 ** (1 / 3)),
-            1 / (4 - 4 ** (1 / 3)),
-        ),
-        4,
-    ),
-}
-
-
 def _sequence(seq: Sequence[tuple[int, float]]) -> tuple[tuple[int, float], ...]:
     return tuple((int(i), float(c)) for i, c in seq)
 
@@ -211,7 +186,7 @@ def _flows(flows: Sequence[Flow]) -> tuple[Flow, ...]:
 
 
 #: The splittings by name (:meth:`Splitting.named`, ``[splitting] method``).
-SPLITTINGS = ("lie", "strang", *_COMPOSITIONS)
+SPLITTINGS = ("lie", "strang", *COMPOSITIONS)
 
 
 @attrs.frozen(eq=False)
@@ -290,17 +265,15 @@ class Splitting:
         same flow merged (Hairer, Lubich & Wanner, *Geometric Numerical Integration*,
         §II.4 and §V.3).
 
-        ``method`` is ``"triple_jump"`` (Yoshida 1990, order 4), ``"suzuki5"`` (order 4),
-        or symmetric coefficients ``gamma`` summing to 1 (order 2 claimed; raise it with
+        ``method`` names a composition of :data:`lieflow.tableaus.COMPOSITIONS`
+        (``"triple_jump"``: Yoshida 1990, order 4; ``"suzuki5"``: order 4; ``"yoshida6"``:
+        order 6; the coefficients of :func:`lieflow.tableaus.composition_weights`, which
+        the SyDIRK schemes of the same names are made of), or gives symmetric coefficients
+        ``gamma`` summing to 1 (order 2 claimed; raise it with
         ``attrs.evolve(split, order=...)`` when the coefficients are known to do better).
         """
         if isinstance(method, str):
-            if method not in _COMPOSITIONS:
-                raise InputError(
-                    f"unknown composition {method!r}; choose one of {sorted(_COMPOSITIONS)} "
-                    "or give the coefficients"
-                )
-            gammas, order = _COMPOSITIONS[method]
+            gammas, order = composition_weights(method)
         else:
             gammas, order = tuple(float(g) for g in method), 2
             if not np.allclose(gammas, gammas[::-1], rtol=0, atol=1e-14):
@@ -310,13 +283,13 @@ class Splitting:
 
     @classmethod
     def named(cls, method: str, *flows: Flow) -> Splitting:
-        """:meth:`lie`, :meth:`strang`, or :meth:`composition` with ``method``
-        (``"triple_jump"``, ``"suzuki5"``), by name."""
+        """:meth:`lie`, :meth:`strang`, or :meth:`composition` with ``method`` (one of
+        :data:`lieflow.tableaus.COMPOSITIONS`), by name."""
         if method == "lie":
             return cls.lie(*flows)
         if method == "strang":
             return cls.strang(*flows)
-        if method in _COMPOSITIONS:
+        if method in COMPOSITIONS:
             return cls.composition(*flows, method=method)
         raise InputError(f"unknown splitting {method!r}; choose one of {', '.join(SPLITTINGS)}")
 

@@ -323,12 +323,57 @@ def _decimal_root(x: int, k: int) -> Decimal:
     return Decimal(x) ** (Decimal(1) / Decimal(k))
 
 
-def triple_jump() -> ButcherTableau:
-    """Triple jump, order 4: ``b = (x, 1 - 2x, x)``, ``x = 1 / (2 - 2^{1/3})``."""
+def _triple_jump() -> tuple[Decimal, ...]:
+    x = 1 / (2 - _decimal_root(2, 3))
+    return (x, 1 - 2 * x, x)
+
+
+def _suzuki5() -> tuple[Decimal, ...]:
+    p = 1 / (4 - _decimal_root(4, 3))
+    return (p, p, 1 - 4 * p, p, p)
+
+
+def _yoshida6() -> tuple[Decimal, ...]:
+    w1 = Decimal("-1.17767998417887100694641568096")
+    w2 = Decimal("0.235573213359358133684793182979")
+    w3 = Decimal("0.784513610477557263819497633866")
+    w0 = 1 - 2 * (w1 + w2 + w3)
+    return (w3, w2, w1, w0, w1, w2, w3)
+
+
+#: Symmetric compositions :math:`S_{\gamma_m h} \circ \dots \circ S_{\gamma_1 h}` of a
+#: symmetric second-order step :math:`S`, by name: the weights (in 50-digit arithmetic) and
+#: the order reached (Hairer, Lubich & Wanner, *Geometric Numerical Integration*, §V.3).
+#: ``triple_jump``: Yoshida (1990), Suzuki (1990), order 4; ``suzuki5``: Suzuki's
+#: five-stage fractal, order 4 (smaller error constant); ``yoshida6``: Yoshida's 7-stage
+#: solution A, order 6. The same coefficients make the SyDIRK schemes (compositions of
+#: midpoint steps, :func:`triple_jump`, ...) and the splittings of flows
+#: (:meth:`lieflow.Splitting.composition`).
+_COMPOSITIONS: dict[str, tuple[Callable[[], tuple[Decimal, ...]], int]] = {
+    "triple_jump": (_triple_jump, 4),
+    "suzuki5": (_suzuki5, 4),
+    "yoshida6": (_yoshida6, 6),
+}
+
+#: The names of :func:`composition_weights`.
+COMPOSITIONS = tuple(_COMPOSITIONS)
+
+
+@functools.cache
+def composition_weights(name: str) -> tuple[tuple[float, ...], int]:
+    """The weights ``gamma`` (rounded once to float64) and the order of the symmetric
+    composition ``name`` (one of :data:`COMPOSITIONS`)."""
+    if name not in _COMPOSITIONS:
+        raise InputError(f"unknown composition {name!r}; choose one of {', '.join(COMPOSITIONS)}")
+    weights, order = _COMPOSITIONS[name]
     with localcontext() as ctx:
         ctx.prec = _DIGITS
-        x = 1 / (2 - _decimal_root(2, 3))
-        return composition([float(x), float(1 - 2 * x), float(x)], 4, "triple_jump")
+        return tuple(float(w) for w in weights()), order
+
+
+def triple_jump() -> ButcherTableau:
+    """Triple jump, order 4: ``b = (x, 1 - 2x, x)``, ``x = 1 / (2 - 2^{1/3})``."""
+    return composition(*composition_weights("triple_jump"), "triple_jump")
 
 
 def suzuki5() -> ButcherTableau:
@@ -336,23 +381,12 @@ def suzuki5() -> ButcherTableau:
 
     ``b = (p, p, 1 - 4p, p, p)`` with ``p = 1 / (4 - 4^{1/3})``.
     """
-    with localcontext() as ctx:
-        ctx.prec = _DIGITS
-        p = 1 / (4 - _decimal_root(4, 3))
-        q = float(1 - 4 * p)
-        return composition([float(p), float(p), q, float(p), float(p)], 4, "suzuki5")
+    return composition(*composition_weights("suzuki5"), "suzuki5")
 
 
 def yoshida6() -> ButcherTableau:
     """Yoshida's 7-stage order-6 composition (solution A), the paper's 7s-SyDIRK (SPEC §4.2)."""
-    with localcontext() as ctx:
-        ctx.prec = _DIGITS
-        w1 = Decimal("-1.17767998417887100694641568096")
-        w2 = Decimal("0.235573213359358133684793182979")
-        w3 = Decimal("0.784513610477557263819497633866")
-        w0 = 1 - 2 * (w1 + w2 + w3)
-        w = [w3, w2, w1, w0, w1, w2, w3]
-        return composition([float(x) for x in w], 6, "sydirk7")
+    return composition(*composition_weights("yoshida6"), "sydirk7")
 
 
 def midpoint() -> ButcherTableau:

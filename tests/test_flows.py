@@ -75,6 +75,7 @@ def reference(system: lf.IsospectralSystem, W0: np.ndarray, T: float) -> np.ndar
         (lambda a, b: Splitting.strang(a, b), "gauss2", 2),
         (lambda a, b: Splitting.composition(a, b, method="triple_jump"), "gauss2", 4),
         (lambda a, b: Splitting.composition(a, b, method="suzuki5"), "gauss2", 4),
+        (lambda a, b: Splitting.composition(a, b, method="yoshida6"), "gauss3", 6),
     ],
 )
 def test_splitting_order_against_an_independent_reference(
@@ -85,7 +86,8 @@ def test_splitting_order_against_an_independent_reference(
     T = 2.0
     ref = reference(system, W0, T)
     errors = []
-    hs = [T / 20, T / 40, T / 80]
+    # sixth order reaches roundoff by h = T/20: larger steps there
+    hs = [T / 4, T / 6, T / 8, T / 10] if order == 6 else [T / 20, T / 40, T / 80]
     for h in hs:
         split = make(Drag(), lf.SchemeFlow(system, lf.schemes.get(scheme)))
         sol = lf.integrate(system, split, W0, h, t_final=T, diagnostics=False)
@@ -128,6 +130,23 @@ def test_composition_sub_steps_and_checks() -> None:
         Splitting.strang(a, lf.schemes.get("midpoint"))  # type: ignore[arg-type]
     with pytest.raises(lf.InputError, match="unknown splitting"):
         Splitting.named("yoshida8", a, b)
+
+
+@pytest.mark.parametrize("method", lf.tableaus.COMPOSITIONS)
+def test_splittings_and_sydirk_schemes_share_the_composition_coefficients(method: str) -> None:
+    """One table of composition weights (lieflow.tableaus): a composition splitting's inner
+    (last) flow takes exactly the SyDIRK tableau's sub-steps ``b``, and the weights are the
+    50-digit values rounded once (triple jump: ``x = 1/(2 - 2^{1/3})``)."""
+    split = Splitting.composition(Drag(), Clock(), method=method)
+    inner = [c for i, c in split.sequence if i == 1]
+    scheme = lf.schemes.get("sydirk7" if method == "yoshida6" else method)
+    assert tuple(inner) == tuple(scheme.tableau.b)
+    assert split.order == scheme.order
+    if method == "triple_jump":
+        x = 1 / (2 - 2 ** (1 / 3))
+        np.testing.assert_allclose(inner, [x, 1 - 2 * x, x], rtol=1e-15)
+    with pytest.raises(lf.InputError, match="unknown composition"):
+        Splitting.composition(Drag(), Clock(), method="yoshida8")
 
 
 def test_a_flow_with_solver_options_is_refused() -> None:
