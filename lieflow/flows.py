@@ -37,6 +37,7 @@ from .schemes.base import Scheme
 from .solvers.base import Solver
 from .solvers.fixed_point import FixedPoint
 from .systems.base import IsospectralSystem
+from .systems.shifted import CasimirShifted
 from .tableaus import COMPOSITIONS, composition_weights
 
 # WarmStart and DEFAULT_DEPTH: importable from here as before (lieflow.WarmStart too)
@@ -128,6 +129,12 @@ class SchemeFlow:
     def depth(self) -> int:
         """How many solutions the warm start keeps (0: no warm starts)."""
         return warm_depth(self.warm_start)
+
+    @property
+    def projects_onto(self) -> IsospectralSystem:
+        """The system whose projection ends each step (:class:`Projected` does not
+        project again)."""
+        return self.system
 
     def init(self, W0: Array) -> WarmStart | None:
         """An empty warm start (``None`` without warm starts)."""
@@ -323,7 +330,12 @@ class Splitting:
 class Projected:
     """``flow`` followed by ``system``'s phase-space projection
     (:meth:`~lieflow.IsospectralSystem.project`), e.g. after a sub-flow that does not keep
-    the state on the phase space by construction."""
+    the state on the phase space by construction.
+
+    One projection per step: a flow whose steps already end with that projection (a
+    :class:`SchemeFlow` on the same system, or on its Casimir-shifted form; a
+    :class:`Projected` onto it) is not projected again — its :attr:`projects_onto` says
+    so, as any flow of one's own may."""
 
     flow: Flow
     system: IsospectralSystem
@@ -336,11 +348,30 @@ class Projected:
         """``"projected(<flow>)"``."""
         return f"projected({self.flow.name})"
 
+    @property
+    def projects_onto(self) -> IsospectralSystem:
+        """The system whose projection ends each step."""
+        return self.system
+
+    @property
+    def projects_again(self) -> bool:
+        """Whether :meth:`step` projects (``False`` when the wrapped flow's steps end with
+        the same projection already)."""
+        inner = getattr(self.flow, "projects_onto", None)
+        return inner is None or _phase_space(inner) is not _phase_space(self.system)
+
     def init(self, W0: Array) -> Any:
         """The wrapped flow's state."""
         return self.flow.init(W0)
 
     def step(self, W: Array, t: float, h: float, state: Any) -> tuple[Array, Any, StepStats]:
-        """A step of the wrapped flow, projected."""
+        """A step of the wrapped flow, projected (once: see the class docstring)."""
         W, state, stats = self.flow.step(W, t, h, state)
-        return self.system.project(W), state, stats
+        return (self.system.project(W) if self.projects_again else W), state, stats
+
+
+def _phase_space(system: IsospectralSystem) -> IsospectralSystem:
+    """The system whose projection ``system`` uses (a Casimir-shifted system: its base's)."""
+    while isinstance(system, CasimirShifted):
+        system = system.base
+    return system

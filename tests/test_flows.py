@@ -19,6 +19,7 @@ import lieflow as lf
 from lieflow import driver, tree
 from lieflow.app.config import build, parse_config
 from lieflow.flows import Splitting, StepStats
+from lieflow.systems.shifted import CasimirShifted
 
 MU = 0.3
 
@@ -189,6 +190,36 @@ def test_projected_flow_lands_on_the_phase_space() -> None:
     W2, _, _ = lf.Projected(Skew(), toda).step(W0, 0.0, 0.1, None)
     assert toda.phase_space_distance(W2) == 0.0  # ... and the projection brings it back
     assert np.max(np.abs(W2 - W0)) == pytest.approx(5e-10, rel=1e-6)
+
+
+def test_projected_scheme_flow_projects_once_per_step() -> None:
+    """One projection policy: a SchemeFlow's steps end with its system's projection, so
+    ``Projected`` of it (on the same system, or the Casimir-shifted one it steps) adds none
+    — bit-for-bit the scheme flow alone, one ``project`` call per step — while a flow that
+    does not project is projected."""
+
+    @attrs.frozen(eq=False)
+    class Counting(lf.systems.RigidBody):  # type: ignore[misc]
+        calls: list[int] = attrs.field(factory=list)
+
+        def project(self, W: Any) -> Any:
+            self.calls.append(1)
+            return super().project(W)
+
+    system = Counting(inertia=(1.0, 2.0, 3.0))
+    W0 = system.random_state(1)
+    flow = lf.SchemeFlow(system, lf.schemes.get("midpoint"))
+    alone = [c.W for c in driver.advance(flow, W0, 0.1, 5)]
+    system.calls.clear()
+    wrapped = [c.W for c in driver.advance(lf.Projected(flow, system), W0, 0.1, 5)]
+    assert len(system.calls) == 5
+    np.testing.assert_array_equal(np.concatenate(wrapped), np.concatenate(alone))
+    shifted = CasimirShifted(system, 0.5)
+    assert not lf.Projected(
+        lf.SchemeFlow(shifted, lf.schemes.get("midpoint")), system
+    ).projects_again
+    assert lf.Projected(Drag(), system).projects_again
+    assert not lf.Projected(lf.Projected(Drag(), system), system).projects_again
 
 
 def test_tree_round_trip() -> None:
