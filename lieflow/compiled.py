@@ -43,9 +43,9 @@ from __future__ import annotations
 
 import importlib.util
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from types import ModuleType
-from typing import Any
+from typing import Any, TypeVar
 
 import attrs
 import numpy as np
@@ -84,6 +84,58 @@ def kernels() -> ModuleType:
     if _kernels.numba is None:
         raise ImportError("No module named 'numba'")
     return _kernels
+
+
+# ------------------------------------------------------------ a system's compiled maps
+
+#: lieflow's own compiled maps ``f(W, params, out)``, attributes of this module (loaded,
+#: with numba, on first use) for a system's :meth:`~lieflow.IsospectralSystem.compiled_B`
+#: and :meth:`~lieflow.IsospectralSystem.compiled_project` to return, or for its own
+#: compiled map to call: ``hadamard_B`` (``out = S ⊙ W``, ``params = S.ravel()``),
+#: ``hadamard_B_skew`` (``S ⊙ (W - W^T)/2``), ``hadamard_B_symmetric``
+#: (``S ⊙ (W + W^T)/2``), ``symmetric_part`` (``(W + W^T)/2``) and ``skew_hermitian_part``
+#: (``(W - W^†)/2``, minus its trace over ``n`` on the diagonal if ``params[0]``: the
+#: projection onto u(n) or su(N)). The engine evaluates the Hadamard maps inline.
+MAPS = (
+    "hadamard_B",
+    "hadamard_B_skew",
+    "hadamard_B_symmetric",
+    "symmetric_part",
+    "skew_hermitian_part",
+)
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def compiled_map(func: _F) -> _F:
+    """Decorator: ``func(W, params, out)`` as a system's compiled map — what
+    :meth:`~lieflow.IsospectralSystem.compiled_B` and
+    :meth:`~lieflow.IsospectralSystem.compiled_project` return with their ``params``.
+
+    ``func`` writes its result into ``out``; ``W`` and ``out`` are C-contiguous ``(n, n)``
+    arrays of the run's dtype (``float64``, or ``complex128`` on u(n) and su(N));
+    ``params`` is a ``float64`` vector of the system's constants. It is compiled with numba
+    and cached on disk like lieflow's own loops, for :func:`map_signature` of the dtype when
+    :func:`plan` first asks for it (not at import). Decorate at module level, in a module
+    that the system's hook imports (numba stays optional). Raises ``ImportError`` without
+    numba.
+    """
+    decorated: _F = kernels().compiled_map(func)
+    return decorated
+
+
+def map_signature(dtype: Any) -> Any:
+    """numba's signature of a compiled map for data of ``dtype`` (``float64`` or
+    ``complex128``): ``(W, params, out)`` with ``W``, ``out`` C-contiguous 2-D arrays of
+    ``dtype`` and ``params`` a 1-D ``float64`` array; returns nothing."""
+    return kernels().map_signature(np.dtype(dtype))
+
+
+def __getattr__(name: str) -> Any:
+    """lieflow's own compiled maps (:data:`MAPS`), loaded with the loops on first use."""
+    if name in MAPS:
+        return getattr(kernels(), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 @attrs.frozen

@@ -143,3 +143,66 @@ def test_importing_lieflow_and_loading_the_plugins_leaves_heavy_scipy_modules_un
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]", out.stdout
+
+
+def _private_lieflow_uses(source: str) -> list[str]:
+    """Every private lieflow name a module's source reaches: an imported module or name
+    with a part starting with ``_`` under ``lieflow`` (``lieflow._kernels``,
+    ``from lieflow.x import _y``), or such an attribute of an imported ``lieflow`` module
+    (``lieflow._kernels.f``)."""
+    import ast
+
+    def private(dotted: str) -> bool:
+        parts = dotted.split(".")
+        return parts[0] == "lieflow" and any(p.startswith("_") for p in parts[1:])
+
+    found: list[str] = []
+    aliases: set[str] = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                if private(a.name):
+                    found.append(a.name)
+                if a.name.split(".")[0] == "lieflow":
+                    aliases.add(a.asname or "lieflow")
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            for a in node.names:
+                if private(f"{node.module}.{a.name}"):
+                    found.append(f"{node.module}.{a.name}")
+                if node.module == "lieflow" and not a.name.startswith("_"):
+                    aliases.add(a.asname or a.name)
+    for node in ast.walk(ast.parse(source)):
+        if (
+            isinstance(node, ast.Attribute)
+            and node.attr.startswith("_")
+            and not node.attr.startswith("__")
+        ):
+            base = node.value
+            while isinstance(base, ast.Attribute):
+                base = base.value
+            if isinstance(base, ast.Name) and base.id in aliases:
+                found.append(f"{ast.unparse(node)}")
+    return found
+
+
+def test_the_plugins_use_only_public_lieflow_names() -> None:
+    """The plugins in plugins/ are written as a third party would: no private lieflow
+    module or name (their compiled B uses :mod:`lieflow.compiled`'s public maps)."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "plugins"
+    files = sorted(root.glob("*/**/*.py"))
+    assert len(files) > 10
+    uses = {
+        str(f.relative_to(root)): _private_lieflow_uses(f.read_text(encoding="utf-8"))
+        for f in files
+    }
+    assert {k: v for k, v in uses.items() if v} == {}
+    # the checker finds each form
+    assert _private_lieflow_uses("from lieflow._kernels import skew_hermitian_part") == [
+        "lieflow._kernels.skew_hermitian_part"
+    ]
+    assert _private_lieflow_uses("import lieflow._kernels as k") == ["lieflow._kernels"]
+    assert _private_lieflow_uses("from lieflow.flows import _combine") == ["lieflow.flows._combine"]
+    assert _private_lieflow_uses("import lieflow as lf\nlf._kernels.gemm") == ["lf._kernels"]
+    assert _private_lieflow_uses("from lieflow import compiled\ncompiled._F") == ["compiled._F"]

@@ -86,7 +86,8 @@ class IsospectralSystem(ABC):
         projection): the Toda lattice, where ``B - cW`` is not skew. It reaches the loops
         as a typed first-class function, so numba's disk cache of the loops stays valid for
         every system; compile it with ``numba.njit(cache=True)`` at module level (or
-        ``lieflow._kernels.compiled_map``) so that it is cached too. The engine checks it
+        the decorator :func:`lieflow.compiled.compiled_map`) so that it is cached too; lieflow's
+        own maps (:data:`lieflow.compiled.MAPS`) are there to return or call. The engine checks it
         against :meth:`B` and :meth:`project_stage` on the initial state (to roundoff)
         before use. Importing numba inside this method keeps it optional.
 
@@ -101,10 +102,10 @@ class IsospectralSystem(ABC):
         S = self.hadamard_factor
         if S is None or type(self).project_stage is not IsospectralSystem.project_stage:
             return None
-        from .. import _kernels
+        from .. import compiled
 
         kind = type(self.algebra)
-        fn = _kernels.hadamard_B_skew if kind is SO else _kernels.hadamard_B if kind is GL else None
+        fn = compiled.hadamard_B_skew if kind is SO else compiled.hadamard_B if kind is GL else None
         if fn is None:
             return None
         return fn, np.ascontiguousarray(np.asarray(S) - shift, dtype=np.float64).ravel()
@@ -122,9 +123,9 @@ class IsospectralSystem(ABC):
 
         if type(self).project is not IsospectralSystem.project or not isinstance(self.algebra, U):
             return None
-        from .. import _kernels
+        from .. import compiled
 
-        return _kernels.skew_hermitian_part, np.array([isinstance(self.algebra, SU)], float)
+        return compiled.skew_hermitian_part, np.array([isinstance(self.algebra, SU)], float)
 
     def B_derivative(self, W: Array, dW: Array) -> Array:
         """Fréchet derivative ``B'(W)[dW]``; needed by Newton's method (SPEC §5).

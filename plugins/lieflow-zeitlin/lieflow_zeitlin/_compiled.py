@@ -22,13 +22,13 @@ from typing import Any
 import numba
 import numpy as np
 
-from lieflow._kernels import skew_hermitian_part
+from lieflow.compiled import skew_hermitian_part
 
 from .laplacian import _sweep_compiled
 
 #: ``params = [c, nb, b, 1, Im diag F_f (N entries), lower, upper, carry_fwd, carry_bwd,
 #: dinv]`` (each factor ``(nb, b, 2(N+1))``, flattened; :func:`params`); the ``1`` is the
-#: parameter of :func:`lieflow._kernels.skew_hermitian_part` that removes the trace.
+#: parameter of ``lieflow.compiled.skew_hermitian_part`` that removes the trace.
 HEADER = 4
 
 
