@@ -179,7 +179,7 @@ class AsPublished:
         states = [np.array(W0)]
         its = np.zeros(steps, dtype=np.int64)
         for k in range(steps):
-            step = scheme.step(system, states[-1], h)
+            step = scheme.step(states[-1], h, system)
             states.append(step.W)
             its[k] = step.iterations
         return RunStats(steps, its, np.stack(states))
@@ -211,7 +211,7 @@ class PlainReduced:
         states = [np.array(W0)]
         its = np.zeros(steps, dtype=np.int64)
         for k in range(steps):
-            step = scheme.step(system, states[-1], h)
+            step = scheme.step(states[-1], h, system)
             states.append(step.W)
             if not keep:
                 del states[0]

@@ -93,7 +93,7 @@ class PaperScheme:
         """``paper_<tableau name>``."""
         return f"paper_{self.tableau.name}"
 
-    def step(self, system: IsospectralSystem, W0: np.ndarray, h: float) -> PaperStep:
+    def step(self, W0: np.ndarray, h: float, system: IsospectralSystem) -> PaperStep:
         """Advance ``W0`` (one ``n×n`` matrix) by one step of size ``h``."""
         if not self.composition:
             return dense_block_step(
@@ -213,7 +213,7 @@ def paper_integrate(
     iterations = np.zeros(steps, dtype=np.int64)
     start = time.perf_counter()
     for k in range(steps):
-        res = scheme.step(system, W, h)
+        res = scheme.step(W, h, system)
         W, iterations[k] = res.W, res.iterations
     return PaperRun(W, iterations, time.perf_counter() - start)
 
@@ -287,7 +287,7 @@ class PlainScheme:
     max_iter: int = 100
     patience: int = 6
 
-    def step(self, system: IsospectralSystem, W0: np.ndarray, h: float) -> PaperStep:
+    def step(self, W0: np.ndarray, h: float, system: IsospectralSystem) -> PaperStep:
         """Advance ``W0`` by one step of size ``h``."""
         if not self.composition:
             return plain_reduced_step(system, W0, h, self.tableau.A, self.tableau.b,

@@ -146,11 +146,11 @@ class SchemeFlow:
     ) -> tuple[Array, WarmStart | None, StepStats]:
         """One step of the scheme (autonomous: ``t`` is not used)."""
         if state is None:
-            res = self.scheme.step(self.system, W, h, self.solver, None)
+            res = self.scheme.step(W, h, self.system, self.solver, None)
             new = None
         else:
             prediction = state.predict()
-            res = self.scheme.step(self.system, W, h, self.solver, prediction.guess)
+            res = self.scheme.step(W, h, self.system, self.solver, prediction.guess)
             new = prediction.advance(res.warm)
         return (
             self.system.project(res.W),

@@ -34,7 +34,7 @@ def test_dense_baseline_matches_block_gauss(stages: int, form: Literal["reduced"
     """The as-published dense algorithm takes the same step as lieflow's BlockGauss."""
     system, W0 = _grb(7)
     tableau = gauss(stages)
-    ours = BlockGauss(tableau, form=form).step(system, W0, 0.05, lf.solvers.FixedPoint())
+    ours = BlockGauss(tableau, form=form).step(W0, 0.05, system, lf.solvers.FixedPoint())
     theirs = dense_block_step(system, W0, 0.05, tableau.A, tableau.b)
     np.testing.assert_allclose(theirs.W, ours.W, rtol=0, atol=1e-12)
     assert theirs.iterations >= 2
@@ -45,7 +45,7 @@ def test_plain_reduced_baseline_matches_block_gauss(stages: int) -> None:
     """The plain-numpy reduced stage form takes the same step as lieflow."""
     system, W0 = _grb(7)
     tableau = gauss(stages)
-    ours = BlockGauss(tableau).step(system, W0, 0.05, lf.solvers.FixedPoint())
+    ours = BlockGauss(tableau).step(W0, 0.05, system, lf.solvers.FixedPoint())
     theirs = plain_reduced_step(system, W0, 0.05, tableau.A, tableau.b)
     np.testing.assert_allclose(theirs.W, ours.W, rtol=0, atol=1e-12)
     for name in ("midpoint", "sydirk7"):

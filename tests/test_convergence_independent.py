@@ -138,6 +138,6 @@ def test_a_wrong_scheme_fails() -> None:
     for n in (16, 32):
         W, h = W0, T / n
         for _ in range(n):
-            W = scheme.step(system, W, h * (1.0 + h), lf.solvers.FixedPoint(rtol=1e-15)).W
+            W = scheme.step(W, h * (1.0 + h), system, lf.solvers.FixedPoint(rtol=1e-15)).W
         errs.append(float(np.linalg.norm(W - ref)))
     assert np.log2(errs[0] / errs[1]) == pytest.approx(1.0, abs=0.1)

@@ -23,11 +23,11 @@ def _rel(a: np.ndarray, b: np.ndarray) -> float:
 def test_three_formulations_agree(system: lf.IsospectralSystem, tab: lf.ButcherTableau) -> None:
     W0 = system.random_state(seed=5)
     h = 0.1
-    ref = BlockGauss(tab, form="reduced").step(system, W0, h, tight()).W
-    assert _rel(BlockGauss(tab, form="block").step(system, W0, h, tight()).W, ref) <= 1e-13
-    assert _rel(ModinViviani(tab).step(system, W0, h, tight()).W, ref) <= 1e-13
+    ref = BlockGauss(tab, form="reduced").step(W0, h, system, tight()).W
+    assert _rel(BlockGauss(tab, form="block").step(W0, h, system, tight()).W, ref) <= 1e-13
+    assert _rel(ModinViviani(tab).step(W0, h, system, tight()).W, ref) <= 1e-13
     if tab.is_diagonally_implicit:
-        assert _rel(SyDIRK(tab).step(system, W0, h, tight()).W, ref) <= 1e-13
+        assert _rel(SyDIRK(tab).step(W0, h, system, tight()).W, ref) <= 1e-13
 
 
 SOLVERS = [
@@ -47,8 +47,8 @@ SOLVERS = [
 def test_all_solvers_agree(system: lf.IsospectralSystem, name: str, solver: lf.Solver) -> None:
     scheme = lf.schemes.get(name)
     W0 = system.random_state(seed=2)
-    ref = scheme.step(system, W0, 0.1, tight()).W
-    assert _rel(scheme.step(system, W0, 0.1, solver).W, ref) <= 1e-12
+    ref = scheme.step(W0, 0.1, system, tight()).W
+    assert _rel(scheme.step(W0, 0.1, system, solver).W, ref) <= 1e-12
 
 
 @pytest.mark.parametrize("name", ["midpoint", "gauss3", "modin_viviani"])
@@ -56,6 +56,6 @@ def test_complex_system_through_every_solver(name: str) -> None:
     system = HermitianBody(3)
     W0 = system.random_state(seed=1)
     scheme = lf.schemes.get(name)
-    ref = scheme.step(system, W0, 0.2, tight()).W
+    ref = scheme.step(W0, 0.2, system, tight()).W
     for solver in SOLVERS:
-        assert _rel(scheme.step(system, W0, 0.2, solver).W, ref) <= 1e-12
+        assert _rel(scheme.step(W0, 0.2, system, solver).W, ref) <= 1e-12

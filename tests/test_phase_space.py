@@ -112,7 +112,7 @@ def test_projection_changes_a_converged_step_by_roundoff(
     """``scheme.step`` (no projection of the new state) lands on the phase space to
     roundoff, so projecting it changes nothing measurable (measured: <= 1.7e-16)."""
     W0 = system.random_state(7)
-    W1 = lf.schemes.get(name).step(system, W0, 0.1, lf.solvers.FixedPoint()).W
+    W1 = lf.schemes.get(name).step(W0, 0.1, system, lf.solvers.FixedPoint()).W
     assert float(system.phase_space_distance(W1)) <= 8 * EPS
     assert np.linalg.norm(system.project(W1) - W1) <= 8 * EPS * np.linalg.norm(W1)
 

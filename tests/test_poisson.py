@@ -88,7 +88,7 @@ def poisson_defect(
     E = basis(system)
 
     def phi(V: np.ndarray) -> np.ndarray:
-        return coords(E, scheme.step(system, V, h, SOLVER).W)
+        return coords(E, scheme.step(V, h, system, SOLVER).W)
 
     eps = 2e-4 * float(np.linalg.norm(W))
     J = np.stack(
@@ -104,7 +104,7 @@ def poisson_defect(
         ],
         axis=1,
     )
-    W1 = scheme.step(system, W, h, SOLVER).W
+    W1 = scheme.step(W, h, system, SOLVER).W
     target = poisson_matrix(E, W1)
     return float(np.linalg.norm(J @ poisson_matrix(E, W) @ J.T - target) / np.linalg.norm(target))
 
@@ -217,5 +217,5 @@ def test_paper_toda_map_is_not_poisson_on_gl_n_but_agrees_with_the_extension() -
     assert poisson_defect(toda, scheme, W, 0.2) > 1e-4
     assert poisson_defect(ext, scheme, W, 0.2) <= POISSON_TOL
     np.testing.assert_allclose(
-        scheme.step(toda, W, 0.2, SOLVER).W, scheme.step(ext, W, 0.2, SOLVER).W, atol=1e-14
+        scheme.step(W, 0.2, toda, SOLVER).W, scheme.step(W, 0.2, ext, SOLVER).W, atol=1e-14
     )

@@ -180,9 +180,9 @@ def test_newton_needs_the_derivative_of_a_nonlinear_B() -> None:
 
     system = Cubic()
     with pytest.raises(lf.LieflowError, match="B_derivative"):
-        lf.schemes.get("midpoint").step(system, system.random_state(0), 0.1, lf.solvers.Newton())
+        lf.schemes.get("midpoint").step(system.random_state(0), 0.1, system, lf.solvers.Newton())
     # the other solvers need no derivative
-    lf.schemes.get("midpoint").step(system, system.random_state(0), 0.1, lf.solvers.FrozenB())
+    lf.schemes.get("midpoint").step(system.random_state(0), 0.1, system, lf.solvers.FrozenB())
 
 
 def test_the_cap_accepts_an_update_at_roundoff() -> None:

@@ -27,7 +27,7 @@ def test_geometry_over_200_steps(system: lf.IsospectralSystem, scheme: lf.Scheme
     # by construction; the step the scheme takes from the last state, before any
     # projection, must land on the phase space too (symmetric for Toda, on the spheres
     # for vortices, traceless for su(N)): this can fail.
-    nxt = scheme.step(system, sol.W_final, 0.05, tight()).W
+    nxt = scheme.step(sol.W_final, 0.05, system, tight()).W
     assert float(system.phase_space_distance(nxt)) <= 1e-13
     assert sol.casimir_drift is not None and sol.casimir_drift.max() <= 1e-12
     assert sol.energy_error is not None and sol.energy_error.max() < 1e-2
@@ -42,7 +42,7 @@ def test_complex_algebras(system_cls: type, name: str) -> None:
     assert sol.spectrum_drift().max() <= 1e-12
     # skew-Hermitian by construction (W1 = W0 + sum (BW - (BW)^†)); the trace of an su(n)
     # step is not, and the unprojected step must keep it at roundoff
-    nxt = lf.schemes.get(name).step(system, sol.W_final, 0.05, tight()).W
+    nxt = lf.schemes.get(name).step(sol.W_final, 0.05, system, tight()).W
     assert float(system.phase_space_distance(nxt)) <= 1e-13
     assert sol.casimir_drift is not None and sol.casimir_drift.max() <= 1e-12
 
@@ -52,8 +52,8 @@ def test_time_symmetry(system: lf.IsospectralSystem, scheme: lf.Scheme) -> None:
     if not scheme.tableau.is_symmetric():
         pytest.skip(f"{scheme.name} is not a symmetric method")
     W0 = system.random_state(seed=11)
-    W1 = scheme.step(system, W0, 0.1, tight()).W
-    back = scheme.step(system, W1, -0.1, tight()).W
+    W1 = scheme.step(W0, 0.1, system, tight()).W
+    back = scheme.step(W1, -0.1, system, tight()).W
     np.testing.assert_allclose(back, W0, rtol=0, atol=1e-13)
 
 

@@ -161,7 +161,7 @@ def test_conservation_over_200_steps(system: PointVortices, W0: np.ndarray) -> N
     assert sol.casimir_drift.max() <= 1e-13  # measured 1.1e-15: |m_i|^2 = Γ_i^2
     # the returned states are projected onto the spheres |m_i| = |Γ_i|; the next step,
     # before projection, must be on them too (isospectrality, not construction)
-    nxt = lf.schemes.get("gauss3").step(system, sol.W_final, 0.1, lf.solvers.FixedPoint()).W
+    nxt = lf.schemes.get("gauss3").step(sol.W_final, 0.1, system, lf.solvers.FixedPoint()).W
     assert float(system.phase_space_distance(nxt)) <= 1e-14  # measured 1.5e-16
     J = system.moment_of_vorticity(sol.W)
     assert np.abs(J - J[0]).max() <= 1e-13  # measured 1.7e-15
@@ -180,8 +180,8 @@ def test_batch_matches_single_runs(system: PointVortices) -> None:
 @pytest.mark.parametrize("scheme", ["midpoint", "gauss3"])
 def test_newton_agrees_with_fixed_point(system: PointVortices, W0: np.ndarray, scheme: str) -> None:
     sc = lf.schemes.get(scheme)
-    fp = sc.step(system, W0, 0.1, lf.solvers.FixedPoint(), None)
-    nt = sc.step(system, W0, 0.1, lf.solvers.Newton(), None)
+    fp = sc.step(W0, 0.1, system, lf.solvers.FixedPoint(), None)
+    nt = sc.step(W0, 0.1, system, lf.solvers.Newton(), None)
     assert nt.iterations <= 5  # quadratic convergence (measured 3)
     assert np.abs(fp.W - nt.W).max() <= 1e-12
 
@@ -191,8 +191,8 @@ def test_newton_solves_a_stiff_step(system: PointVortices) -> None:
     W = system.initial_condition(random_positions(system.K, seed=1))
     sc = lf.schemes.get("gauss3")
     with pytest.raises(lf.ConvergenceError):
-        sc.step(system, W, 0.1, lf.solvers.FixedPoint(), None)
-    res = sc.step(system, W, 0.1, lf.solvers.Newton(), None)
+        sc.step(W, 0.1, system, lf.solvers.FixedPoint(), None)
+    res = sc.step(W, 0.1, system, lf.solvers.Newton(), None)
     np.testing.assert_allclose(system.casimirs(res.W), system.strengths**2, rtol=1e-14)
     assert abs(system.energy(res.W) / system.energy(W) - 1) < 1e-4
 

@@ -386,7 +386,7 @@ def test_complex64(name: str) -> None:
 def test_complex64_stays_single_precision_through_a_step(name: str, solver: str) -> None:
     system = lz.EulerZeitlin(8, dtype="complex64")
     W0 = system.algebra.random(13)
-    step = lf.schemes.get(name).step(system, W0, 0.25, lf.solvers.get(solver, rtol=1e-5))
+    step = lf.schemes.get(name).step(W0, 0.25, system, lf.solvers.get(solver, rtol=1e-5))
     assert step.W.dtype == np.complex64
 
 

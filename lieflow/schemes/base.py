@@ -77,13 +77,19 @@ class Scheme(ABC):
     @abstractmethod
     def step(
         self,
-        system: IsospectralSystem,
         W0: Array,
         h: float,
+        system: IsospectralSystem,
         solver: Solver,
         warm: Array | None = None,
     ) -> StepResult:
-        """Advance ``W0`` by one step of size ``h`` (``W0`` may be a stack ``(..., n, n)``)."""
+        """Advance ``W0`` by one step of size ``h`` of ``system``, solving with ``solver``
+        from the initial guess ``warm`` (``None``: cold; :attr:`StepResult.warm` of the
+        previous step: a warm start). ``W0`` may be a stack ``(..., n, n)``.
+
+        The arguments come in the order of :meth:`Flow.step <lieflow.flows.Flow.step>`
+        (``W, t, h, state``): the state, the step size (a scheme is autonomous: no ``t``),
+        what the step runs on, and the carried state last."""
 
 
 def solve(

@@ -282,9 +282,9 @@ class BlockGauss(Scheme):
 
     def step(
         self,
-        system: IsospectralSystem,
         W0: Array,
         h: float,
+        system: IsospectralSystem,
         solver: Solver,
         warm: Array | None = None,
     ) -> StepResult:

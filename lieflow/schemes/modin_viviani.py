@@ -160,9 +160,9 @@ class ModinViviani(Scheme):
 
     def step(
         self,
-        system: IsospectralSystem,
         W0: Array,
         h: float,
+        system: IsospectralSystem,
         solver: Solver,
         warm: Array | None = None,
     ) -> StepResult:

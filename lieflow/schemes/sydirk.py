@@ -119,9 +119,9 @@ class SyDIRK(Scheme):
 
     def step(
         self,
-        system: IsospectralSystem,
         W0: Array,
         h: float,
+        system: IsospectralSystem,
         solver: Solver,
         warm: Array | None = None,
     ) -> StepResult:
