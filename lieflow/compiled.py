@@ -139,8 +139,9 @@ def __getattr__(name: str) -> Any:
 
 
 @attrs.frozen
-class Chunk:
-    """What one call of :meth:`CompiledPlan.advance` computed.
+class CompiledSteps:
+    """The steps one call of :meth:`CompiledPlan.advance` took in the compiled loops (the
+    flow turns them into a :class:`lieflow.driver.Chunk`).
 
     Attributes
     ----------
@@ -213,7 +214,7 @@ class CompiledPlan:
         history: Sequence[Array] = (),
         depth: int = DEFAULT_DEPTH,
         trusted: int = 1,
-    ) -> Chunk:
+    ) -> CompiledSteps:
         """Advance ``W`` (``(*batch, n, n)``) by up to ``steps`` steps of size ``h`` from the
         warm-start state: the kept solutions ``history`` (most recent first), how many are
         kept (``depth``; 0: no warm starts) and how many the next prediction uses
@@ -244,7 +245,7 @@ class CompiledPlan:
             k.gemm(self.dtype), buf, fbuf,
         )  # fmt: skip
         shape = (*batch, *core)
-        return Chunk(
+        return CompiledSteps(
             states[:done].reshape(done, *batch, n, n),
             iters[:done],
             tuple(hist[j].reshape(shape) for j in range(int(flags[0]))),

@@ -33,7 +33,7 @@ import numpy as np
 
 from .algebras import Array
 from .errors import InputError
-from .schemes.base import Scheme
+from .schemes.base import Scheme, StepStats
 from .solvers.base import Solver
 from .solvers.fixed_point import FixedPoint
 from .systems.base import IsospectralSystem
@@ -51,26 +51,6 @@ __all__ = [
     "Splitting",
     "StepStats",
 ]
-
-
-@attrs.frozen
-class StepStats:
-    """What one step of a flow cost.
-
-    Attributes
-    ----------
-    iterations : int
-        Nonlinear-solver updates (summed over the sub-steps of a composition; 0 for an
-        explicit or exact flow).
-    solver : str
-        Name of the solver that finished the (last implicit sub-)step; ``""`` if none.
-    residual : float
-        The largest last relative update of the step's solves (0 if none).
-    """
-
-    iterations: int = 0
-    solver: str = ""
-    residual: float = 0.0
 
 
 @runtime_checkable
@@ -152,11 +132,7 @@ class SchemeFlow:
             prediction = state.predict()
             res = self.scheme.step(W, h, self.system, self.solver, prediction.guess)
             new = prediction.advance(res.warm)
-        return (
-            self.system.project(res.W),
-            new,
-            StepStats(res.iterations, res.solver, res.residual),
-        )
+        return self.system.project(res.W), new, res.stats
 
 
 def _check_flow(flow: object, what: str) -> None:

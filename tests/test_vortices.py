@@ -182,7 +182,7 @@ def test_newton_agrees_with_fixed_point(system: PointVortices, W0: np.ndarray, s
     sc = lf.schemes.get(scheme)
     fp = sc.step(W0, 0.1, system, lf.solvers.FixedPoint(), None)
     nt = sc.step(W0, 0.1, system, lf.solvers.Newton(), None)
-    assert nt.iterations <= 5  # quadratic convergence (measured 3)
+    assert nt.stats.iterations <= 5  # quadratic convergence (measured 3)
     assert np.abs(fp.W - nt.W).max() <= 1e-12
 
 

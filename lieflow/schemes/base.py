@@ -19,6 +19,27 @@ P = TypeVar("P", bound=ImplicitProblem)
 
 
 @attrs.frozen
+class StepStats:
+    """What one step cost: of a scheme (:attr:`StepResult.stats`) or of any flow
+    (:meth:`Flow.step <lieflow.flows.Flow.step>`).
+
+    Attributes
+    ----------
+    iterations : int
+        Nonlinear-solver updates (summed over the sub-steps of a composition; 0 for an
+        explicit or exact flow).
+    solver : str
+        Name of the solver that finished the (last implicit sub-)step; ``""`` if none.
+    residual : float
+        The largest last relative update of the step's solves (0 if none).
+    """
+
+    iterations: int = 0
+    solver: str = ""
+    residual: float = 0.0
+
+
+@attrs.frozen
 class StepResult:
     """One step ``W0 -> W1`` of a scheme.
 
@@ -29,19 +50,14 @@ class StepResult:
     warm : ndarray
         The solved unknowns as offsets from their ``h = 0`` values; passed back as ``warm``
         to the next step, it is that step's initial guess (a warm start, SPEC §5).
-    iterations : int
-        Solver updates in this step (summed over the sub-steps of a composition).
-    solver : str
-        Name of the solver that finished the step (the last sub-step's).
-    residual : float
-        The last recorded relative update of the final solve.
+    stats : StepStats
+        What the step cost: solver updates (summed over the sub-steps of a composition),
+        the solver that finished it (the last sub-step's) and its last relative update.
     """
 
     W: Array = attrs.field(repr=False)
     warm: Array = attrs.field(repr=False)
-    iterations: int
-    solver: str
-    residual: float
+    stats: StepStats
 
 
 class Scheme(ABC):

@@ -16,6 +16,7 @@ from ..tableaus import ButcherTableau, gauss, one_of
 from .base import (
     Scheme,
     StepResult,
+    StepStats,
     TableauProblem,
     scratch,
     solve,
@@ -293,7 +294,5 @@ class BlockGauss(Scheme):
         return StepResult(
             problem.update(res.x),
             problem.offsets(res.x),
-            res.iterations,
-            res.solver,
-            res.residuals[-1],
+            StepStats(res.iterations, res.solver, res.residuals[-1]),
         )

@@ -12,6 +12,7 @@ from ..tableaus import ButcherTableau
 from .base import (
     Scheme,
     StepResult,
+    StepStats,
     TableauProblem,
     solve,
     solve_right,
@@ -170,5 +171,5 @@ class ModinViviani(Scheme):
             solver, lambda guess: ModinVivianiProblem(system, W0, h, self.tableau, guess), warm
         )
         return StepResult(
-            problem.update(res.x), res.x, res.iterations, res.solver, res.residuals[-1]
+            problem.update(res.x), res.x, StepStats(res.iterations, res.solver, res.residuals[-1])
         )

@@ -14,6 +14,7 @@ from .base import (
     Scheme,
     StageProblem,
     StepResult,
+    StepStats,
     real_scalar,
     right_product,
     scratch,
@@ -139,4 +140,4 @@ class SyDIRK(Scheme):
             x = res.x
             np.subtract(x, W, out=offsets[..., i, :, :])
             W = problem.update(x)
-        return StepResult(W, offsets, iterations, res.solver, res.residuals[-1])
+        return StepResult(W, offsets, StepStats(iterations, res.solver, res.residuals[-1]))

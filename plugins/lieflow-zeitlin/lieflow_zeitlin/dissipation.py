@@ -49,19 +49,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 import lieflow
-
-try:
-    from lieflow.flows import StepStats
-except ImportError:  # pragma: no cover - lieflow before flows: the same value object
-
-    @attrs.frozen
-    class StepStats:  # type: ignore[no-redef]
-        """What one step of a flow cost (``lieflow.flows.StepStats``)."""
-
-        iterations: int = 0
-        solver: str = ""
-        residual: float = 0.0
-
+from lieflow.flows import StepStats
 
 from . import _recurrences as _rec
 from .laplacian import HoppeYauLaplacian, harmonics
