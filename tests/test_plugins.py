@@ -191,7 +191,8 @@ def test_the_plugins_use_only_public_lieflow_names() -> None:
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1] / "plugins"
-    files = sorted(root.glob("*/**/*.py"))
+    # the plugins' code (their tests, under plugins/*/tests, may look inside lieflow)
+    files = sorted(f for f in root.glob("*/**/*.py") if "tests" not in f.relative_to(root).parts)
     assert len(files) > 10
     uses = {
         str(f.relative_to(root)): _private_lieflow_uses(f.read_text(encoding="utf-8"))

@@ -20,7 +20,7 @@ from scipy.integrate import solve_ivp
 import lieflow as lf
 
 STRENGTHS = (1.0, 1.0, 1.0, -1.0)
-PLUGIN_DIR = Path(__file__).resolve().parents[1] / "plugins" / "lieflow-vortices"
+PLUGIN_DIR = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,7 @@ from lieflow.app import io  # noqa: E402
 from lieflow.app.cli import main  # noqa: E402
 from lieflow.app.config import build, load_config  # noqa: E402
 
-EXAMPLES = Path(__file__).resolve().parent.parent / "plugins" / "lieflow-zeitlin" / "examples"
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
 def _copy(tmp_path: Path, name: str, replacements: list[tuple[str, str]]) -> Path:

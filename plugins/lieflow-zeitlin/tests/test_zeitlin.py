@@ -21,13 +21,7 @@ lz = pytest.importorskip("lieflow_zeitlin")
 
 from lieflow_zeitlin.laplacian import spin_matrices, tridiagonal  # noqa: E402
 
-EXAMPLE = (
-    Path(__file__).resolve().parent.parent
-    / "plugins"
-    / "lieflow-zeitlin"
-    / "examples"
-    / "euler_n128.toml"
-)
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "euler_n128.toml"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 

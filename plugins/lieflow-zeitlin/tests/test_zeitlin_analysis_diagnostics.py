@@ -178,7 +178,7 @@ def test_diagnostics_every_zero_writes_none_and_is_validated(tmp_path: Path) -> 
 def test_docs_page_shows_the_example_configuration() -> None:
     """docs/turbulence.md quotes plugins/lieflow-zeitlin/examples/turbulence_n24.toml (its
     python blocks run the file): the quoted TOML is the file without its comments."""
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[3]  # the lieflow repository
     page = (root / "docs" / "turbulence.md").read_text()
     quoted = page.split("```toml\n", 1)[1].split("```", 1)[0]
     example = (root / "plugins/lieflow-zeitlin/examples/turbulence_n24.toml").read_text()
