@@ -47,7 +47,7 @@ def _check_long_run(
     assert sol.phase_space_distance().max() <= 1e-13
     # the next step, before any projection, is on the phase space too (a defect that the
     # scheme creates cannot hide behind the projection of the returned states)
-    nxt = scheme.step(system, sol.W_final, h, lf.solvers.get("auto")).W
+    nxt = scheme.step(sol.W_final, h, system, lf.solvers.get("auto")).W
     assert float(system.phase_space_distance(nxt)) <= 1e-13
     assert sol.spectrum_drift().max() <= 1e-10
     assert sol.casimir_drift is not None and sol.casimir_drift.max() <= 1e-10
