@@ -102,7 +102,7 @@ def run(ctx: BenchContext) -> Section:
     start = time.perf_counter()
     title = "Forced-dissipative Euler–Zeitlin: splittings on the compiled engine"
     N = 16 if ctx.config.quick else 64
-    steps = 8 if ctx.config.quick else 256
+    steps = 8 if ctx.config.quick else 128
     built = flows(N, ctx.seed)
     if built is None:
         return Section(
@@ -115,7 +115,7 @@ def run(ctx: BenchContext) -> Section:
         _advance(flow, W0, h, 2)
     timings = compare(
         {k: (lambda f=f: _advance(f, W0, h, steps)) for k, f in cases.items()},
-        max(ctx.config.repeats, 3) if not ctx.config.quick else 1,
+        max(ctx.config.repeats, 7) if not ctx.config.quick else 1,
     )
     runs = [Run(k, t.median / steps, float(t.value)) for k, t in timings.items()]
     base = runs[0]
