@@ -1,0 +1,209 @@
+r"""Step updates that are isospectral for *any* iterate of the stage equations (SPEC §4.7).
+
+The commutator update ``W1 = W0 + h sum_i b_i [B(W_i), W_i]`` of every formulation is
+isospectral only at the fixed point of the stage equations. The updates here write the same
+``W1`` as a conjugation ``W1 = U W0 U^{-1}`` by a matrix ``U`` built from the current iterate,
+so the spectrum of ``W0`` is kept whatever the iterate, and they equal the commutator update
+when the stage equations are solved (derivations: ``docs/theory.md``, *Updates that are
+isospectral for any iterate*):
+
+* :func:`cayley_update` — a midpoint step (each sub-step of a SyDIRK composition):
+  ``U = (I - a B)^{-1} (I + a B)``, ``a = h/2``, ``B = B(M)`` at the iterate ``M``;
+* :func:`lifted_update` — a Gauss (any symplectic tableau) step: ``U = g1^†`` with
+  ``g1 = I + h sum_j b_j G_j B_j^†`` of the lifted system, ``W1 = g1^† W0 g1^{-†}``
+  (``p1 g1^† = W0`` is a bilinear invariant every symplectic Runge–Kutta method keeps);
+  :func:`frozen_stage_conjugator` forms ``g1^†`` from the stage values' ``B_j`` alone (the
+  block and Modin–Viviani forms, which do not carry ``G``).
+
+When every ``B`` is skew-Hermitian (``so(n)``, ``u(n)``, ``su(N)``, the Toda lattice on its
+symmetric phase space) ``U`` is unitary: it is made unitary to roundoff by Newton–Schulz
+(:func:`orthonormalize`) and ``W1 = U W0 U^†``. Otherwise ``W1 = U W0 U^{-1}`` (a
+similarity: still isospectral), by a linear solve.
+
+Every function takes and returns arrays of any array-API library (NumPy, CuPy, torch, ...)
+and uses only ``@``, ``+ - *``, ``eye``, ``linalg.solve`` and ``linalg.vector_norm`` of the
+array's own namespace, so one source serves CPU and GPU.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from ..errors import ConvergenceError
+
+try:  # optional: the namespace of any array-API library
+    from array_api_compat import array_namespace as _array_namespace
+except ImportError:  # pragma: no cover - NumPy arrays only
+    _array_namespace = None
+
+Array = Any
+
+#: The step updates a scheme offers: ``"commutator"`` (SPEC §4.1–4.5, isospectral at the
+#: fixed point) and ``"conjugation"`` (this module, isospectral for any iterate).
+UPDATES = ("commutator", "conjugation")
+
+#: Newton–Schulz steps allowed before :func:`orthonormalize` gives up (each at least
+#: squares the distance from unitarity once it is below 1/2: two or three suffice).
+NEWTON_SCHULZ_STEPS = 12
+
+
+def namespace(*arrays: Array) -> Any:
+    """The array-API namespace of ``arrays``: NumPy for NumPy arrays (and without
+    ``array_api_compat``), else ``array_api_compat.array_namespace``."""
+    if _array_namespace is None or all(isinstance(a, np.ndarray) for a in arrays):
+        return np
+    return _array_namespace(*arrays)
+
+
+def _dagger(xp: Any, X: Array) -> Array:
+    """``X^†`` over the last two axes."""
+    Xt = xp.matrix_transpose(X)
+    return xp.conj(Xt) if xp.isdtype(X.dtype, "complex floating") else Xt
+
+
+def _eye_like(xp: Any, X: Array) -> Array:
+    return xp.eye(X.shape[-1], dtype=X.dtype, device=getattr(X, "device", None))
+
+
+def _matrix_norms(xp: Any, X: Array) -> Array:
+    """Frobenius norm of each matrix of a stack (shape: the stack's)."""
+    return xp.linalg.vector_norm(X, axis=(-2, -1))
+
+
+def _eps(xp: Any, X: Array) -> float:
+    return float(xp.finfo(X.dtype).eps)
+
+
+def is_unitary_generator(B: Array, xp: Any | None = None) -> bool:
+    """Whether every ``B`` of the stack is skew-Hermitian to roundoff (then the
+    conjugators built from it are unitary)."""
+    xp = namespace(B) if xp is None else xp
+    defect = float(xp.max(_matrix_norms(xp, B + _dagger(xp, B))))
+    size = float(xp.max(_matrix_norms(xp, B)))
+    return defect <= 16 * _eps(xp, B) * max(size, float(np.finfo(float).tiny))
+
+
+def orthonormalize(U: Array, xp: Any | None = None) -> Array:
+    r"""The nearest unitary matrix to ``U`` (its polar factor), by Newton–Schulz:
+
+    .. math:: U \leftarrow U\,(3I - U^\dagger U)/2 = U\,(I - E/2),\qquad E = U^\dagger U - I,
+
+    which converges quadratically to the polar factor when ``||E|| < 1`` (Higham,
+    *Functions of Matrices*, SIAM 2008, §8.3). Stops when ``||E||_F`` is at roundoff
+    (``4 n eps``) or stops decreasing; raises :class:`~lieflow.errors.ConvergenceError` if
+    ``U`` is too far from unitary for the iteration (``||E||_2 >= 1``: the stage equations
+    were not solved to any useful accuracy).
+    """
+    xp = namespace(U) if xp is None else xp
+    eye = _eye_like(xp, U)
+    n = U.shape[-1]
+    floor = 4 * n * _eps(xp, U)
+    last = math.inf
+    for _ in range(NEWTON_SCHULZ_STEPS):
+        E = _dagger(xp, U) @ U - eye
+        err = float(xp.max(_matrix_norms(xp, E)))
+        if err <= floor or err >= last:
+            return U
+        if err >= 1.0 and last == math.inf:
+            raise ConvergenceError(
+                f"the step's conjugator is far from unitary (||U^† U - I|| = {err:.2e} >= 1): "
+                "solve the stage equations more accurately (smaller rtol) or take a smaller "
+                "step",
+                solver="newton_schulz",
+            )
+        last = err
+        U = U - 0.5 * (U @ E)
+    return U
+
+
+def conjugate(U: Array, W0: Array, unitary: bool, skew: bool, xp: Any | None = None) -> Array:
+    r"""``W1 = U W0 U^{-1}``: with ``unitary``, ``U`` is first made unitary
+    (:func:`orthonormalize`) and ``W1 = U W0 U^†``; otherwise ``U^{-1}`` is applied by a
+    linear solve, ``W1 = ((U^{-T}) (U W0)^T)^T``. With ``skew`` (``W0`` in a skew-Hermitian
+    algebra) ``W1`` is returned as its skew-Hermitian part, an element of the algebra
+    exactly (the other part is roundoff: ``U W0 U^†`` is skew-Hermitian in exact
+    arithmetic)."""
+    xp = namespace(U, W0) if xp is None else xp
+    if unitary:
+        U = orthonormalize(U, xp)
+        W1 = U @ W0 @ _dagger(xp, U)
+    else:
+        UW = U @ W0
+        W1 = xp.matrix_transpose(
+            xp.linalg.solve(xp.matrix_transpose(U), xp.matrix_transpose(UW))
+        )
+    if skew:
+        W1 = 0.5 * (W1 - _dagger(xp, W1))
+    return W1
+
+
+def cayley(B: Array, a: float, xp: Any | None = None) -> Array:
+    r"""The Cayley transform ``U = (I - aB)^{-1}(I + aB)`` (the two factors commute), by one
+    solve with ``n`` right-hand sides. Unitary (to roundoff) when ``B`` is
+    skew-Hermitian."""
+    xp = namespace(B) if xp is None else xp
+    eye = _eye_like(xp, B)
+    aB = a * B
+    return xp.linalg.solve(eye - aB, eye + aB)
+
+
+def cayley_update(W0: Array, B: Array, a: float, skew: bool) -> Array:
+    r"""The midpoint update in conjugation form (SPEC §4.7):
+
+    .. math:: W_1 = C W_0 C^{-1},\qquad C = (I - a\tilde B)^{-1}(I + a\tilde B),\qquad a = h/2,
+
+    with ``B`` = :math:`\tilde B = B(M)` at any iterate ``M``. At the fixed point
+    :math:`W_0 = (I - a\tilde B) M (I + a\tilde B)` it equals
+    :math:`(I + a\tilde B) M (I - a\tilde B) = W_0 + h[\tilde B, M]`, the commutator update.
+    ``skew``: ``W0`` lies in a skew-Hermitian algebra."""
+    xp = namespace(W0, B)
+    return conjugate(cayley(B, a, xp), W0, is_unitary_generator(B, xp), skew, xp)
+
+
+def lifted_update(W0: Array, Gdag: Array, B: Array, hb: Array, skew: bool) -> Array:
+    r"""The Gauss (any symplectic tableau) update in conjugation form (SPEC §4.7):
+
+    .. math:: U = g_1^\dagger = I + h\sum_j b_j B_j G_j^\dagger,\qquad W_1 = U W_0 U^{-1},
+
+    from the lifted stage values ``Gdag`` (:math:`G_j^\dagger`, shape ``(..., s, n, n)``),
+    their ``B_j`` (same shape) and the weights ``hb`` (:math:`h b_j`, a NumPy vector). At
+    the fixed point :math:`p_1 g_1^\dagger = W_0` and this is :math:`g_1^\dagger p_1`, the
+    commutator update. With skew-Hermitian ``B_j`` the lifted :math:`g_1` is unitary at the
+    fixed point and is made unitary exactly otherwise (:func:`orthonormalize`)."""
+    xp = namespace(W0, Gdag, B)
+    U = _eye_like(xp, W0) + _weighted_sum(xp, hb, B @ Gdag)
+    return conjugate(U, W0, is_unitary_generator(B, xp), skew, xp)
+
+
+def frozen_stage_conjugator(B: Array, A: Array, h: float) -> Array:
+    r"""The lifted stage values :math:`G_i^\dagger` for the stages' ``B_i`` (shape
+    ``(..., s, n, n)``): the solution of the linear stage equations
+    :math:`G_i^\dagger = I + h\sum_j a_{ij} B_j G_j^\dagger`, i.e. one dense solve
+    :math:`(I - hA\mathbf B)\,[G_1^\dagger; \dots; G_s^\dagger] = [I; \dots; I]` of size
+    ``sn`` (blocks :math:`a_{ij} B_j`). At the fixed point of any formulation these are the
+    lifted system's :math:`G_i^\dagger`; for any skew-Hermitian ``B_j`` the
+    :math:`g_1` they give is unitary (it preserves the quadratic invariant
+    :math:`g g^\dagger` of :math:`\dot g = g B^\dagger`)."""
+    xp = namespace(B)
+    *batch, s, n, _ = B.shape
+    coef = xp.asarray(np.asarray(A) * h, dtype=xp.finfo(B.dtype).dtype)
+    blocks = coef[:, :, None, None] * B[..., None, :, :, :]  # (..., i, j, a, c) = h a_ij B_j
+    k = len(batch)
+    dense = xp.reshape(
+        xp.permute_dims(blocks, (*range(k), k, k + 2, k + 1, k + 3)), (*batch, s * n, s * n)
+    )
+    eye_n = _eye_like(xp, B)
+    rhs = xp.reshape(xp.broadcast_to(eye_n, (*batch, s, n, n)), (*batch, s * n, n))
+    eye = xp.eye(s * n, dtype=B.dtype, device=getattr(B, "device", None))
+    return xp.reshape(xp.linalg.solve(eye - dense, rhs), (*batch, s, n, n))
+
+
+def _weighted_sum(xp: Any, weights: Array, X: Array) -> Array:
+    """``sum_j weights[j] X[..., j, :, :]``."""
+    out = float(weights[0]) * X[..., 0, :, :]
+    for j in range(1, X.shape[-3]):
+        out = out + float(weights[j]) * X[..., j, :, :]
+    return out
