@@ -109,10 +109,11 @@ def orthonormalize(U: Array, xp: Any | None = None) -> Array:
             return U
         if err >= 1.0 and last == math.inf:
             raise ConvergenceError(
-                f"the step's conjugator is far from unitary (||U^† U - I|| = {err:.2e} >= 1): "
-                "solve the stage equations more accurately (smaller rtol) or take a smaller "
-                "step",
+                f"the step's conjugator is far from unitary (||U^† U - I|| = {err:.2e} >= 1; "
+                "solve the stage equations more accurately: a smaller rtol)",
                 solver="newton_schulz",
+                iterations=0,
+                residuals=(err,),
             )
         last = err
         U = U - 0.5 * (U @ E)
