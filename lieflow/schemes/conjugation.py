@@ -34,6 +34,7 @@ import numpy as np
 
 from ..errors import ConvergenceError
 
+_array_namespace: Any
 try:  # optional: the namespace of any array-API library
     from array_api_compat import array_namespace as _array_namespace
 except ImportError:  # pragma: no cover - NumPy arrays only
@@ -133,9 +134,7 @@ def conjugate(U: Array, W0: Array, unitary: bool, skew: bool, xp: Any | None = N
         W1 = U @ W0 @ _dagger(xp, U)
     else:
         UW = U @ W0
-        W1 = xp.matrix_transpose(
-            xp.linalg.solve(xp.matrix_transpose(U), xp.matrix_transpose(UW))
-        )
+        W1 = xp.matrix_transpose(xp.linalg.solve(xp.matrix_transpose(U), xp.matrix_transpose(UW)))
     if skew:
         W1 = 0.5 * (W1 - _dagger(xp, W1))
     return W1

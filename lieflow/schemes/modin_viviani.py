@@ -183,6 +183,4 @@ class ModinViviani(Scheme):
             solver, lambda guess: ModinVivianiProblem(system, W0, h, self.tableau, guess), warm
         )
         update = problem.update if self.update == "commutator" else problem.conjugation_update
-        return StepResult(
-            update(res.x), res.x, res.iterations, res.solver, res.residuals[-1]
-        )
+        return StepResult(update(res.x), res.x, res.iterations, res.solver, res.residuals[-1])
