@@ -299,11 +299,9 @@ class BlockGauss(Scheme):
         return self.tableau.name if self.form == "reduced" else f"block_{self.tableau.name}"
 
     def compiled_form(self) -> tuple[str, Array, Array] | None:
-        """``("reduced", A, b)`` for the reduced form with the commutator update (compiled);
-        ``None`` otherwise."""
-        if self.form != "reduced" or self.update != "commutator":
-            return None
-        return "reduced", self.tableau.A, self.tableau.b
+        """``("reduced", A, b)`` for the reduced form (compiled, with the scheme's
+        ``update``); ``None`` for the block form."""
+        return ("reduced", self.tableau.A, self.tableau.b) if self.form == "reduced" else None
 
     def step(
         self,

@@ -128,10 +128,8 @@ class SyDIRK(Scheme):
     )
 
     def compiled_form(self) -> tuple[str, Array, Array] | None:
-        """``("sydirk", A, b)``: the compiled engine runs this composition (commutator
-        update only)."""
-        if self.update != "commutator":
-            return None
+        """``("sydirk", A, b)``: the compiled engine runs this composition (with the
+        scheme's ``update``)."""
         return "sydirk", self.tableau.A, self.tableau.b
 
     def step(
