@@ -671,7 +671,7 @@ def _orthonormalize(U: Any, E: Any, UE: Any, tmp: Any, gemm: Any) -> bool:
     (:func:`~lieflow.schemes.conjugation.orthonormalize`); false if ``U`` is too far from
     unitary (``||E|| >= 1`` at the start)."""
     n = U.shape[0]
-    floor = 4 * n * _EPS64
+    floor = math.sqrt(n) * _EPS64
     last = math.inf
     for _ in range(_NS_STEPS):
         _matmul_hn(U, U, E, tmp, gemm)
@@ -690,6 +690,8 @@ def _orthonormalize(U: Any, E: Any, UE: Any, tmp: Any, gemm: Any) -> bool:
         for i in range(n):
             for j in range(n):
                 U[i, j] -= 0.5 * UE[i, j]
+        if err * err <= _EPS64:
+            return True
     return True
 
 
@@ -738,7 +740,7 @@ def _cayley_into(
     cayley_update`); ``Bm``, ``L``, ``C``, ``s3`` scratch (``M`` is read only)."""
     n = W.shape[0]
     _apply_B(B, params, M, Bm)
-    unitary = _skew_to_roundoff(Bm)
+    unitary = skew or _skew_to_roundoff(Bm)
     for i in range(n):
         for j in range(n):
             d = 1.0 if i == j else 0.0
@@ -761,16 +763,17 @@ def _lifted_into(
     for a in range(n):
         for c in range(n):
             U[a, c] = 1.0 if a == c else 0.0
-    unitary = True
+    unitary = skew
+    general = True
     for i in range(hb.shape[0]):
         _matmul_hn(x[0, i], x[1, i], Wi, P, gemm)
         _apply_B(B, params, Wi, Bi)
-        unitary = unitary and _skew_to_roundoff(Bi)
+        general = general and _skew_to_roundoff(Bi)
         _matmul_nh(Bi, x[0, i], P, Wi, gemm)
         for a in range(n):
             for c in range(n):
                 U[a, c] += hb[i] * P[a, c]
-    return _conjugate_into(W, U, unitary, skew, Wi, Bi, P, gemm)
+    return _conjugate_into(W, U, unitary or general, skew, Wi, Bi, P, gemm)
 
 
 # ------------------------------------------------------------------ the one driver

@@ -15,8 +15,10 @@ isospectral for any iterate*):
   :func:`frozen_stage_conjugator` forms ``g1^†`` from the stage values' ``B_j`` alone (the
   block and Modin–Viviani forms, which do not carry ``G``).
 
-When every ``B`` is skew-Hermitian (``so(n)``, ``u(n)``, ``su(N)``, the Toda lattice on its
-symmetric phase space) ``U`` is unitary: it is made unitary to roundoff by Newton–Schulz
+When every ``B`` is skew-Hermitian — always on a skew-Hermitian algebra (``so(n)``,
+``u(n)``, ``su(N)``: ``B`` is an element of it, skew-Hermitian up to the roundoff of its own
+evaluation), and where it is so to ``16 eps`` on others (the Toda lattice on its symmetric
+phase space) — ``U`` is unitary: it is made unitary to roundoff by Newton–Schulz
 (:func:`orthonormalize`) and ``W1 = U W0 U^†``. Otherwise ``W1 = U W0 U^{-1}`` (a
 similarity: still isospectral), by a linear solve.
 
@@ -93,15 +95,17 @@ def orthonormalize(U: Array, xp: Any | None = None) -> Array:
     .. math:: U \leftarrow U\,(3I - U^\dagger U)/2 = U\,(I - E/2),\qquad E = U^\dagger U - I,
 
     which converges quadratically to the polar factor when ``||E|| < 1`` (Higham,
-    *Functions of Matrices*, SIAM 2008, §8.3). Stops when ``||E||_F`` is at roundoff
-    (``4 n eps``) or stops decreasing; raises :class:`~lieflow.errors.ConvergenceError` if
-    ``U`` is too far from unitary for the iteration (``||E||_2 >= 1``: the stage equations
-    were not solved to any useful accuracy).
+    *Functions of Matrices*, SIAM 2008, §8.3): the next ``||E||`` is about
+    ``(3/4) ||E||^2``. Stops after the update that takes ``||E||_F`` below roundoff
+    (``||E||^2 <= eps``), or when ``||E||_F <= sqrt(n) eps`` (or stops decreasing) before
+    an update; raises :class:`~lieflow.errors.ConvergenceError` if ``U`` is too far from
+    unitary for the iteration (``||E|| >= 1``: the stage equations were not solved to any
+    useful accuracy).
     """
     xp = namespace(U) if xp is None else xp
     eye = _eye_like(xp, U)
-    n = U.shape[-1]
-    floor = 4 * n * _eps(xp, U)
+    eps = _eps(xp, U)
+    floor = math.sqrt(U.shape[-1]) * eps
     last = math.inf
     for _ in range(NEWTON_SCHULZ_STEPS):
         E = _dagger(xp, U) @ U - eye
@@ -118,6 +122,8 @@ def orthonormalize(U: Array, xp: Any | None = None) -> Array:
             )
         last = err
         U = U - 0.5 * (U @ E)
+        if err * err <= eps:  # this update took ||E|| to roundoff
+            return U
     return U
 
 
@@ -160,7 +166,7 @@ def cayley_update(W0: Array, B: Array, a: float, skew: bool) -> Array:
     :math:`(I + a\tilde B) M (I - a\tilde B) = W_0 + h[\tilde B, M]`, the commutator update.
     ``skew``: ``W0`` lies in a skew-Hermitian algebra."""
     xp = namespace(W0, B)
-    return conjugate(cayley(B, a, xp), W0, is_unitary_generator(B, xp), skew, xp)
+    return conjugate(cayley(B, a, xp), W0, skew or is_unitary_generator(B, xp), skew, xp)
 
 
 def lifted_update(W0: Array, Gdag: Array, B: Array, hb: Array, skew: bool) -> Array:
@@ -175,7 +181,7 @@ def lifted_update(W0: Array, Gdag: Array, B: Array, hb: Array, skew: bool) -> Ar
     fixed point and is made unitary exactly otherwise (:func:`orthonormalize`)."""
     xp = namespace(W0, Gdag, B)
     U = _eye_like(xp, W0) + _weighted_sum(xp, hb, B @ Gdag)
-    return conjugate(U, W0, is_unitary_generator(B, xp), skew, xp)
+    return conjugate(U, W0, skew or is_unitary_generator(B, xp), skew, xp)
 
 
 def frozen_stage_conjugator(B: Array, A: Array, h: float) -> Array:
