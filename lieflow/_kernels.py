@@ -666,30 +666,32 @@ def _skew_to_roundoff(B: Any) -> bool:
 
 
 @_helper
-def _orthonormalize(U: Any, E: Any, UE: Any, tmp: Any, gemm: Any) -> bool:
-    """Newton–Schulz ``U <- U (I - E/2)``, ``E = U^† U - I``, in place
+def _orthonormalize(K: Any, E: Any, KE: Any, tmp: Any, gemm: Any) -> bool:
+    """Newton–Schulz on ``U = I + K`` in its increment, in place:
+    ``E = K + K^† + K^† K``, ``K <- K - (E + K E)/2``
     (:func:`~lieflow.schemes.conjugation.orthonormalize`); false if ``U`` is too far from
     unitary (``||E|| >= 1`` at the start)."""
-    n = U.shape[0]
+    n = K.shape[0]
     floor = math.sqrt(n) * _EPS64
     last = math.inf
     for _ in range(_NS_STEPS):
-        _matmul_hn(U, U, E, tmp, gemm)
+        _matmul_hn(K, K, E, tmp, gemm)
         err2 = 0.0
         for i in range(n):
-            E[i, i] -= 1.0
             for j in range(n):
-                err2 += _abs2(E[i, j])
+                e = E[i, j] + K[i, j] + np.conj(K[j, i])
+                E[i, j] = e
+                err2 += _abs2(e)
         err = math.sqrt(err2)
         if err <= floor or err >= last:
             return True
         if err >= 1.0 and last == math.inf:
             return False
         last = err
-        _matmul(U, E, UE, gemm)
+        _matmul(K, E, KE, gemm)
         for i in range(n):
             for j in range(n):
-                U[i, j] -= 0.5 * UE[i, j]
+                K[i, j] -= 0.5 * (E[i, j] + KE[i, j])
         if err * err <= _EPS64:
             return True
     return True
@@ -697,36 +699,48 @@ def _orthonormalize(U: Any, E: Any, UE: Any, tmp: Any, gemm: Any) -> bool:
 
 @_helper
 def _conjugate_into(
-    W: Any, U: Any, unitary: bool, skew: bool, s1: Any, s2: Any, s3: Any, gemm: Any
+    W: Any, K: Any, unitary: bool, skew: bool, s1: Any, s2: Any, s3: Any, gemm: Any
 ) -> bool:
-    """``W <- U W U^{-1}`` in place (:func:`~lieflow.schemes.conjugation.conjugate`):
-    ``U`` made unitary and ``U W U^†`` with ``unitary``, else a solve with ``U^T``; the
-    skew-Hermitian part with ``skew``. ``s1``, ``s2``, ``s3``: scratch; false if ``U`` is
-    too far from unitary."""
+    """``W <- U W U^{-1}``, ``U = I + K``, in place, as ``W`` plus an increment
+    (:func:`~lieflow.schemes.conjugation.conjugate`): with ``unitary``, ``K`` made unitary
+    and ``W += K W + W K^† + K W K^†`` (its skew-Hermitian part with ``skew``), else
+    ``W += (K W - W K) U^{-1}`` by a solve with ``U^T``. ``s1``, ``s2``, ``s3``: scratch;
+    false if ``U`` is too far from unitary."""
     n = W.shape[0]
     if unitary:
-        if not _orthonormalize(U, s1, s2, s3, gemm):
+        if not _orthonormalize(K, s1, s2, s3, gemm):
             return False
-        _matmul(U, W, s1, gemm)
-        _matmul_nh(s1, U, W, s2, gemm)
+        _matmul(K, W, s1, gemm)
+        if skew:
+            _matmul_nh(s1, K, s2, s3, gemm)
+            for i in range(n):
+                for j in range(i, n):
+                    dij = s1[i, j] - np.conj(s1[j, i]) + s2[i, j]
+                    dji = s1[j, i] - np.conj(s1[i, j]) + s2[j, i]
+                    d = 0.5 * (dij - np.conj(dji))
+                    W[i, j] = W[i, j] + d
+                    if j != i:
+                        W[j, i] = W[j, i] - np.conj(d)
+        else:
+            _matmul_nh(W, K, s3, s2, gemm)  # W K^† (real data: s2 is not touched)
+            for i in range(n):
+                for j in range(n):
+                    s3[i, j] += s1[i, j]
+            _matmul_nh(s1, K, s2, s1, gemm)  # K W K^† (real data: s1 is not touched)
+            for i in range(n):
+                for j in range(n):
+                    W[i, j] = W[i, j] + (s3[i, j] + s2[i, j])
     else:
-        _matmul(U, W, s1, gemm)
+        _matmul(K, W, s1, gemm)
+        _matmul(W, K, s2, gemm)
         for i in range(n):
             for j in range(n):
-                s2[i, j] = U[j, i]
-                W[i, j] = s1[j, i]
-        _gauss_jordan(s2, W)  # (U W0 U^{-1})^T = U^{-T} (U W0)^T
+                s3[i, j] = s1[j, i] - s2[j, i]  # D^T
+                s2[i, j] = K[j, i] + (1.0 if i == j else 0.0)  # U^T
+        _gauss_jordan(s2, s3)  # (D U^{-1})^T = U^{-T} D^T
         for i in range(n):
-            for j in range(i + 1, n):
-                t = W[i, j]
-                W[i, j] = W[j, i]
-                W[j, i] = t
-    if skew:
-        for i in range(n):
-            for j in range(i, n):
-                d = 0.5 * (W[i, j] - np.conj(W[j, i]))
-                W[i, j] = d
-                W[j, i] = -np.conj(d)
+            for j in range(n):
+                W[i, j] = W[i, j] + s3[j, i]
     return True
 
 
@@ -736,16 +750,16 @@ def _cayley_into(
     s3: Any, gemm: Any,
 ) -> bool:  # fmt: skip
     """The midpoint update in Cayley form in place: ``W <- C W C^{-1}``,
-    ``C = (I - aB)^{-1}(I + aB)``, ``B = B(M)`` (:func:`~lieflow.schemes.conjugation.
-    cayley_update`); ``Bm``, ``L``, ``C``, ``s3`` scratch (``M`` is read only)."""
+    ``C = (I - aB)^{-1}(I + aB) = I + K``, ``K = 2a (I - aB)^{-1} B``, ``B = B(M)``
+    (:func:`~lieflow.schemes.conjugation.cayley_update`); ``Bm``, ``L``, ``C``, ``s3``
+    scratch (``M`` is read only)."""
     n = W.shape[0]
     _apply_B(B, params, M, Bm)
     unitary = skew or _skew_to_roundoff(Bm)
     for i in range(n):
         for j in range(n):
-            d = 1.0 if i == j else 0.0
-            L[i, j] = d - a * Bm[i, j]
-            C[i, j] = d + a * Bm[i, j]
+            L[i, j] = (1.0 if i == j else 0.0) - a * Bm[i, j]
+            C[i, j] = (2 * a) * Bm[i, j]
     _gauss_jordan(L, C)
     return _conjugate_into(W, C, unitary, skew, L, Bm, s3, gemm)
 
@@ -755,14 +769,14 @@ def _lifted_into(
     W: Any, hb: Any, skew: bool, x: Any, B: Any, params: Any, Wi: Any, Bi: Any, P: Any,
     U: Any, gemm: Any,
 ) -> bool:  # fmt: skip
-    """The Gauss update in conjugation form in place: ``W <- U W U^{-1}``,
-    ``U = I + sum_i hb_i B_i G_i^†``, ``B_i = B(G_i^† P_i)``, ``x = (G, P)``
+    """The Gauss update in conjugation form in place: ``W <- U W U^{-1}``, ``U = I + K``,
+    ``K = sum_i hb_i B_i G_i^†`` (held in ``U``), ``B_i = B(G_i^† P_i)``, ``x = (G, P)``
     (:func:`~lieflow.schemes.conjugation.lifted_update`); ``Wi``, ``Bi``, ``P``, ``U``
     scratch."""
     n = W.shape[0]
     for a in range(n):
         for c in range(n):
-            U[a, c] = 1.0 if a == c else 0.0
+            U[a, c] = 0.0
     unitary = skew
     general = True
     for i in range(hb.shape[0]):

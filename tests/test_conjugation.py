@@ -178,11 +178,11 @@ def test_orthonormalize_reaches_roundoff_and_refuses_far_matrices() -> None:
     rng = np.random.default_rng(6)
     Q, _ = np.linalg.qr(rng.standard_normal((3, 8, 8)))
     U = Q + 1e-4 * rng.standard_normal(Q.shape)
-    V = conjugation.orthonormalize(U)
+    V = np.eye(8) + conjugation.orthonormalize(U - np.eye(8))
     assert np.max(np.linalg.norm(np.swapaxes(V, -1, -2) @ V - np.eye(8), axis=(-2, -1))) <= 1e-14
     assert np.linalg.norm(V - Q) <= 1e-3  # the nearest unitary, not just any
     with pytest.raises(ConvergenceError, match="far from unitary"):
-        conjugation.orthonormalize(3.0 * Q)
+        conjugation.orthonormalize(3.0 * Q - np.eye(8))
 
 
 def test_update_option_is_validated() -> None:

@@ -89,29 +89,32 @@ def is_unitary_generator(B: Array, xp: Any | None = None) -> bool:
     return defect <= 16 * _eps(xp, B) * max(size, float(np.finfo(float).tiny))
 
 
-def orthonormalize(U: Array, xp: Any | None = None) -> Array:
-    r"""The nearest unitary matrix to ``U`` (its polar factor), by Newton–Schulz:
+def orthonormalize(K: Array, xp: Any | None = None) -> Array:
+    r"""``U = I + K`` replaced by the nearest unitary matrix (its polar factor), by
+    Newton–Schulz, returned as its increment ``K`` (so that a small ``K`` keeps its
+    relative accuracy):
 
-    .. math:: U \leftarrow U\,(3I - U^\dagger U)/2 = U\,(I - E/2),\qquad E = U^\dagger U - I,
+    .. math:: U \leftarrow U\,(3I - U^\dagger U)/2 = U\,(I - E/2),\qquad
+              E = U^\dagger U - I = K + K^\dagger + K^\dagger K,
 
-    which converges quadratically to the polar factor when ``||E|| < 1`` (Higham,
-    *Functions of Matrices*, SIAM 2008, §8.3): the next ``||E||`` is about
-    ``(3/4) ||E||^2``. Stops after the update that takes ``||E||_F`` below roundoff
-    (``||E||^2 <= eps``), or when ``||E||_F <= sqrt(n) eps`` (or stops decreasing) before
-    an update; raises :class:`~lieflow.errors.ConvergenceError` if ``U`` is too far from
-    unitary for the iteration (``||E|| >= 1``: the stage equations were not solved to any
-    useful accuracy).
+    i.e. :math:`K \leftarrow K - (E + KE)/2`, which converges quadratically to the polar
+    factor when ``||E|| < 1`` (Higham, *Functions of Matrices*, SIAM 2008, §8.3): the next
+    ``||E||`` is about ``(3/4) ||E||^2``. Stops after the update that takes ``||E||_F``
+    below roundoff (``||E||^2 <= eps``), or when ``||E||_F <= sqrt(n) eps`` (or stops
+    decreasing) before an update; raises :class:`~lieflow.errors.ConvergenceError` if
+    ``U`` is too far from unitary for the iteration (``||E|| >= 1``: the stage equations
+    were not solved to any useful accuracy).
     """
-    xp = namespace(U) if xp is None else xp
-    eye = _eye_like(xp, U)
-    eps = _eps(xp, U)
-    floor = math.sqrt(U.shape[-1]) * eps
+    xp = namespace(K) if xp is None else xp
+    eps = _eps(xp, K)
+    floor = math.sqrt(K.shape[-1]) * eps
     last = math.inf
     for _ in range(NEWTON_SCHULZ_STEPS):
-        E = _dagger(xp, U) @ U - eye
+        Kh = _dagger(xp, K)
+        E = K + Kh + Kh @ K
         err = float(xp.max(_matrix_norms(xp, E)))
         if err <= floor or err >= last:
-            return U
+            return K
         if err >= 1.0 and last == math.inf:
             raise ConvergenceError(
                 f"the step's conjugator is far from unitary (||U^† U - I|| = {err:.2e} >= 1; "
@@ -121,39 +124,45 @@ def orthonormalize(U: Array, xp: Any | None = None) -> Array:
                 residuals=(err,),
             )
         last = err
-        U = U - 0.5 * (U @ E)
+        K = K - 0.5 * (E + K @ E)
         if err * err <= eps:  # this update took ||E|| to roundoff
-            return U
-    return U
+            return K
+    return K
 
 
-def conjugate(U: Array, W0: Array, unitary: bool, skew: bool, xp: Any | None = None) -> Array:
-    r"""``W1 = U W0 U^{-1}``: with ``unitary``, ``U`` is first made unitary
-    (:func:`orthonormalize`) and ``W1 = U W0 U^†``; otherwise ``U^{-1}`` is applied by a
-    linear solve, ``W1 = ((U^{-T}) (U W0)^T)^T``. With ``skew`` (``W0`` in a skew-Hermitian
-    algebra) ``W1`` is returned as its skew-Hermitian part, an element of the algebra
-    exactly (the other part is roundoff: ``U W0 U^†`` is skew-Hermitian in exact
-    arithmetic)."""
-    xp = namespace(U, W0) if xp is None else xp
+def conjugate(K: Array, W0: Array, unitary: bool, skew: bool, xp: Any | None = None) -> Array:
+    r"""``W1 = U W0 U^{-1}`` for ``U = I + K``, formed as ``W0`` plus an increment computed
+    from ``K`` (the roundoff of the products is then relative to the step's change, not to
+    ``W0``, as in the commutator update):
+
+    * ``unitary``: ``U`` made unitary (:func:`orthonormalize`), and
+      ``W1 = W0 + (K W0 + W0 K^† + K W0 K^†)`` (``= U W0 U^†``); for ``skew`` (``W0`` in a
+      skew-Hermitian algebra) ``W0 K^† = -(K W0)^†`` and the increment's skew-Hermitian
+      part is taken, so that ``W1`` is in the algebra exactly;
+    * otherwise ``W1 = W0 + (K W0 - W0 K) U^{-1}`` (``= U W0 U^{-1}``), ``U^{-1}`` applied
+      by a linear solve with ``U^T``.
+    """
+    xp = namespace(K, W0) if xp is None else xp
     if unitary:
-        U = orthonormalize(U, xp)
-        W1 = U @ W0 @ _dagger(xp, U)
-    else:
-        UW = U @ W0
-        W1 = xp.matrix_transpose(xp.linalg.solve(xp.matrix_transpose(U), xp.matrix_transpose(UW)))
-    if skew:
-        W1 = 0.5 * (W1 - _dagger(xp, W1))
-    return W1
+        K = orthonormalize(K, xp)
+        Kh = _dagger(xp, K)
+        KW = K @ W0
+        if skew:
+            D = KW - _dagger(xp, KW) + KW @ Kh
+            return W0 + 0.5 * (D - _dagger(xp, D))
+        return W0 + (KW + W0 @ Kh + KW @ Kh)
+    D = K @ W0 - W0 @ K
+    U = _eye_like(xp, K) + K
+    return W0 + xp.matrix_transpose(xp.linalg.solve(xp.matrix_transpose(U), xp.matrix_transpose(D)))
 
 
 def cayley(B: Array, a: float, xp: Any | None = None) -> Array:
-    r"""The Cayley transform ``U = (I - aB)^{-1}(I + aB)`` (the two factors commute), by one
-    solve with ``n`` right-hand sides. Unitary (to roundoff) when ``B`` is
-    skew-Hermitian."""
+    r"""The Cayley transform ``C = (I - aB)^{-1}(I + aB)`` as its increment
+    ``K = C - I = 2a (I - aB)^{-1} B``, by one solve with ``n`` right-hand sides. ``C`` is
+    unitary (to roundoff) when ``B`` is skew-Hermitian."""
     xp = namespace(B) if xp is None else xp
     eye = _eye_like(xp, B)
-    aB = a * B
-    return xp.linalg.solve(eye - aB, eye + aB)
+    return xp.linalg.solve(eye - a * B, (2 * a) * B)
 
 
 def cayley_update(W0: Array, B: Array, a: float, skew: bool) -> Array:
@@ -180,8 +189,8 @@ def lifted_update(W0: Array, Gdag: Array, B: Array, hb: Array, skew: bool) -> Ar
     commutator update. With skew-Hermitian ``B_j`` the lifted :math:`g_1` is unitary at the
     fixed point and is made unitary exactly otherwise (:func:`orthonormalize`)."""
     xp = namespace(W0, Gdag, B)
-    U = _eye_like(xp, W0) + _weighted_sum(xp, hb, B @ Gdag)
-    return conjugate(U, W0, skew or is_unitary_generator(B, xp), skew, xp)
+    K = _weighted_sum(xp, hb, B @ Gdag)
+    return conjugate(K, W0, skew or is_unitary_generator(B, xp), skew, xp)
 
 
 def frozen_stage_conjugator(B: Array, A: Array, h: float) -> Array:
