@@ -206,7 +206,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     cases: list[tuple[str, str, Any, np.ndarray, float, int]] = []
     if args.only in (None, "so10"):
         grb, W = Case("generalized_rigid_body", "", 10, 0.01, 1, 1e-14).build(0)
-        cases.append(("so10", "so(10) body, midpoint h = 0.1", grb, W, 0.1, 2000 if q else 100_000))
+        n = 2000 if q else 100_000
+        cases.append(("so10", "so(10) body, midpoint h = 0.1", grb, W, 0.1, n))
+        cases.append(("so10_h04", "so(10) body, midpoint h = 0.4", grb, W, 0.4, n))
     if args.only in (None, "toda"):
         toda = lf.systems.get("periodic_toda")
         cases.append(
