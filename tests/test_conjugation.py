@@ -214,3 +214,11 @@ def test_compiled_engine_runs_the_same_update(case: str, scheme_name: str) -> No
     assert np.linalg.norm(finals[1] - finals[0]) <= 1e-13 * np.linalg.norm(W0)
     assert not np.array_equal(finals[1], finals[0])  # the loops ran, not the numpy path
     assert _spectrum_drift(W0, finals[1]) <= 1e-14
+
+
+@pytest.mark.parametrize("name", ["midpoint", "sydirk7", "triple_jump", "suzuki5", "gauss",
+                                  "gauss3", "modin_viviani"])  # fmt: skip
+def test_registered_schemes_take_the_update(name: str) -> None:
+    """Every registered scheme takes ``update`` (so run configurations can set it)."""
+    assert lf.schemes.get(name, update="conjugation").update == "conjugation"
+    assert lf.schemes.get(name).update == "commutator"
