@@ -222,3 +222,28 @@ def test_registered_schemes_take_the_update(name: str) -> None:
     """Every registered scheme takes ``update`` (so run configurations can set it)."""
     assert lf.schemes.get(name, update="conjugation").update == "conjugation"
     assert lf.schemes.get(name).update == "commutator"
+
+
+def test_one_source_for_any_array_library() -> None:
+    """The updates run on arrays of another array-API library (``array_api_strict``, which
+    refuses anything outside the standard) and give NumPy's numbers."""
+    xp = pytest.importorskip("array_api_strict")
+    rng = np.random.default_rng(7)
+    n = 5
+    W0, B = (X - X.T for X in rng.standard_normal((2, n, n)))
+    Bs = rng.standard_normal((2, n, n))
+    Bs = Bs - np.swapaxes(Bs, -1, -2)
+    tab = tableaus.gauss(2)
+    Gdag = conjugation.frozen_stage_conjugator(Bs, tab.A, 0.1)
+    pairs = [
+        (conjugation.cayley_update(W0, B, 0.05, True),
+         conjugation.cayley_update(xp.asarray(W0), xp.asarray(B), 0.05, True)),
+        (conjugation.lifted_update(W0, Gdag, Bs, 0.1 * tab.b, True),
+         conjugation.lifted_update(xp.asarray(W0), conjugation.frozen_stage_conjugator(
+             xp.asarray(Bs), tab.A, 0.1), xp.asarray(Bs), 0.1 * tab.b, True)),
+        (conjugation.cayley_update(W0 + B.T @ B, B @ B, 0.05, False),
+         conjugation.cayley_update(xp.asarray(W0 + B.T @ B), xp.asarray(B @ B), 0.05, False)),
+    ]  # fmt: skip
+    for expected, got in pairs:
+        assert not isinstance(got, np.ndarray)
+        assert np.max(np.abs(np.asarray(got) - expected)) <= 1e-15 * np.max(np.abs(expected))

@@ -204,7 +204,9 @@ def frozen_stage_conjugator(B: Array, A: Array, h: float) -> Array:
     :math:`g g^\dagger` of :math:`\dot g = g B^\dagger`)."""
     xp = namespace(B)
     *batch, s, n, _ = B.shape
-    coef = xp.asarray(np.asarray(A) * h, dtype=xp.finfo(B.dtype).dtype)
+    coef = xp.asarray(
+        np.asarray(A) * h, dtype=xp.finfo(B.dtype).dtype, device=getattr(B, "device", None)
+    )
     blocks = coef[:, :, None, None] * B[..., None, :, :, :]  # (..., i, j, a, c) = h a_ij B_j
     k = len(batch)
     dense = xp.reshape(
