@@ -603,6 +603,193 @@ def _reduced_map(
     return step2, size2
 
 
+# ------------------------------------------------------------------ conjugation updates
+# The compiled forms of :mod:`lieflow.schemes.conjugation` (SPEC §4.7), selected by
+# ``irule[6]``: the same formulas, with Gauss–Jordan elimination in loops for the solves
+# (compiled code here cannot allocate, so LAPACK's solve is not available).
+
+#: Newton–Schulz steps allowed (as :data:`lieflow.schemes.conjugation.NEWTON_SCHULZ_STEPS`).
+_NS_STEPS = 12
+_EPS64 = float(np.finfo(np.float64).eps)
+
+
+@_helper
+def _gauss_jordan(L: Any, R: Any) -> None:
+    """``R <- L^{-1} R`` in place (``L``, ``n×n``, is destroyed): elimination with partial
+    pivoting, then back substitution."""
+    n, m = L.shape[0], R.shape[1]
+    for k in range(n):
+        p = k
+        best = _abs2(L[k, k])
+        for i in range(k + 1, n):
+            v = _abs2(L[i, k])
+            if v > best:
+                best = v
+                p = i
+        if p != k:
+            for j in range(k, n):
+                t = L[k, j]
+                L[k, j] = L[p, j]
+                L[p, j] = t
+            for j in range(m):
+                t = R[k, j]
+                R[k, j] = R[p, j]
+                R[p, j] = t
+        inv = 1.0 / L[k, k]
+        for i in range(k + 1, n):
+            f = L[i, k] * inv
+            for j in range(k + 1, n):
+                L[i, j] -= f * L[k, j]
+            for j in range(m):
+                R[i, j] -= f * R[k, j]
+    for k in range(n - 1, -1, -1):
+        inv = 1.0 / L[k, k]
+        for j in range(m):
+            acc = R[k, j]
+            for c in range(k + 1, n):
+                acc -= L[k, c] * R[c, j]
+            R[k, j] = acc * inv
+
+
+@_helper
+def _skew_to_roundoff(B: Any) -> bool:
+    """Whether ``B`` is skew-Hermitian to roundoff
+    (:func:`~lieflow.schemes.conjugation.is_unitary_generator`)."""
+    n = B.shape[0]
+    defect = 0.0
+    size = 0.0
+    for i in range(n):
+        for j in range(n):
+            defect += _abs2(B[i, j] + np.conj(B[j, i]))
+            size += _abs2(B[i, j])
+    return math.sqrt(defect) <= 16 * _EPS64 * max(math.sqrt(size), _TINY)
+
+
+@_helper
+def _orthonormalize(K: Any, E: Any, KE: Any, tmp: Any, gemm: Any) -> bool:
+    """Newton–Schulz on ``U = I + K`` in its increment, in place:
+    ``E = K + K^† + K^† K``, ``K <- K - (E + K E)/2``
+    (:func:`~lieflow.schemes.conjugation.orthonormalize`); false if ``U`` is too far from
+    unitary (``||E|| >= 1`` at the start)."""
+    n = K.shape[0]
+    floor = math.sqrt(n) * _EPS64
+    last = math.inf
+    for _ in range(_NS_STEPS):
+        _matmul_hn(K, K, E, tmp, gemm)
+        err2 = 0.0
+        for i in range(n):
+            for j in range(n):
+                e = E[i, j] + K[i, j] + np.conj(K[j, i])
+                E[i, j] = e
+                err2 += _abs2(e)
+        err = math.sqrt(err2)
+        if err <= floor or err >= last:
+            return True
+        if err >= 1.0 and last == math.inf:
+            return False
+        last = err
+        _matmul(K, E, KE, gemm)
+        for i in range(n):
+            for j in range(n):
+                K[i, j] -= 0.5 * (E[i, j] + KE[i, j])
+        if err * err <= _EPS64:
+            return True
+    return True
+
+
+@_helper
+def _conjugate_into(
+    W: Any, K: Any, unitary: bool, skew: bool, s1: Any, s2: Any, s3: Any, gemm: Any
+) -> bool:
+    """``W <- U W U^{-1}``, ``U = I + K``, in place, as ``W`` plus an increment
+    (:func:`~lieflow.schemes.conjugation.conjugate`): with ``unitary``, ``K`` made unitary
+    and ``W += K W + W K^† + K W K^†`` (its skew-Hermitian part with ``skew``), else
+    ``W += (K W - W K) U^{-1}`` by a solve with ``U^T``. ``s1``, ``s2``, ``s3``: scratch;
+    false if ``U`` is too far from unitary."""
+    n = W.shape[0]
+    if unitary:
+        if not _orthonormalize(K, s1, s2, s3, gemm):
+            return False
+        _matmul(K, W, s1, gemm)
+        if skew:
+            _matmul_nh(s1, K, s2, s3, gemm)
+            for i in range(n):
+                for j in range(i, n):
+                    dij = s1[i, j] - np.conj(s1[j, i]) + s2[i, j]
+                    dji = s1[j, i] - np.conj(s1[i, j]) + s2[j, i]
+                    d = 0.5 * (dij - np.conj(dji))
+                    W[i, j] = W[i, j] + d
+                    if j != i:
+                        W[j, i] = W[j, i] - np.conj(d)
+        else:
+            _matmul_nh(W, K, s3, s2, gemm)  # W K^† (real data: s2 is not touched)
+            for i in range(n):
+                for j in range(n):
+                    s3[i, j] += s1[i, j]
+            _matmul_nh(s1, K, s2, s1, gemm)  # K W K^† (real data: s1 is not touched)
+            for i in range(n):
+                for j in range(n):
+                    W[i, j] = W[i, j] + (s3[i, j] + s2[i, j])
+    else:
+        _matmul(K, W, s1, gemm)
+        _matmul(W, K, s2, gemm)
+        for i in range(n):
+            for j in range(n):
+                s3[i, j] = s1[j, i] - s2[j, i]  # D^T
+                s2[i, j] = K[j, i] + (1.0 if i == j else 0.0)  # U^T
+        _gauss_jordan(s2, s3)  # (D U^{-1})^T = U^{-T} D^T
+        for i in range(n):
+            for j in range(n):
+                W[i, j] = W[i, j] + s3[j, i]
+    return True
+
+
+@_inner
+def _cayley_into(
+    W: Any, a: float, skew: bool, M: Any, B: Any, params: Any, Bm: Any, L: Any, C: Any,
+    s3: Any, gemm: Any,
+) -> bool:  # fmt: skip
+    """The midpoint update in Cayley form in place: ``W <- C W C^{-1}``,
+    ``C = (I - aB)^{-1}(I + aB) = I + K``, ``K = 2a (I - aB)^{-1} B``, ``B = B(M)``
+    (:func:`~lieflow.schemes.conjugation.cayley_update`); ``Bm``, ``L``, ``C``, ``s3``
+    scratch (``M`` is read only)."""
+    n = W.shape[0]
+    _apply_B(B, params, M, Bm)
+    unitary = skew or _skew_to_roundoff(Bm)
+    for i in range(n):
+        for j in range(n):
+            L[i, j] = (1.0 if i == j else 0.0) - a * Bm[i, j]
+            C[i, j] = (2 * a) * Bm[i, j]
+    _gauss_jordan(L, C)
+    return _conjugate_into(W, C, unitary, skew, L, Bm, s3, gemm)
+
+
+@_inner
+def _lifted_into(
+    W: Any, hb: Any, skew: bool, x: Any, B: Any, params: Any, Wi: Any, Bi: Any, P: Any,
+    U: Any, gemm: Any,
+) -> bool:  # fmt: skip
+    """The Gauss update in conjugation form in place: ``W <- U W U^{-1}``, ``U = I + K``,
+    ``K = sum_i hb_i B_i G_i^†`` (held in ``U``), ``B_i = B(G_i^† P_i)``, ``x = (G, P)``
+    (:func:`~lieflow.schemes.conjugation.lifted_update`); ``Wi``, ``Bi``, ``P``, ``U``
+    scratch."""
+    n = W.shape[0]
+    for a in range(n):
+        for c in range(n):
+            U[a, c] = 0.0
+    unitary = skew
+    general = True
+    for i in range(hb.shape[0]):
+        _matmul_hn(x[0, i], x[1, i], Wi, P, gemm)
+        _apply_B(B, params, Wi, Bi)
+        general = general and _skew_to_roundoff(Bi)
+        _matmul_nh(Bi, x[0, i], P, Wi, gemm)
+        for a in range(n):
+            for c in range(n):
+                U[a, c] += hb[i] * P[a, c]
+    return _conjugate_into(W, U, unitary or general, skew, Wi, Bi, P, gemm)
+
+
 # ------------------------------------------------------------------ the one driver
 
 
@@ -703,7 +890,11 @@ def _sydirk_step(
         if its < 0:
             return -1
         total += its
-        _commutator_add(out, hb[i], skew, x, B, params, m0, m1, m3, gemm)
+        if irule[6] != 0:
+            if not _cayley_into(out, 0.5 * hb[i], skew, x, B, params, m0, m1, m2, m3, gemm):
+                return -1
+        else:
+            _commutator_add(out, hb[i], skew, x, B, params, m0, m1, m3, gemm)
     return total
 
 
@@ -741,6 +932,8 @@ def _reduced_step(
     for a in range(n):
         for c in range(n):
             out[a, c] = cur[a, c]
+    if irule[6] != 0:
+        return its if _lifted_into(out, hb, skew, x, B, params, Wi, Bi, BW, WB, gemm) else -1
     for i in range(s):
         _matmul_hn(x[0, i], x[1, i], Wi, WB, gemm)
         _commutator_add(out, hb[i], skew, Wi, B, params, Bi, BW, WB, gemm)
@@ -814,7 +1007,8 @@ def _driver(fstep: Any, fviews: Any) -> Any:
         trajectory, flattened, most recent first), ``flags = (filled, trusted)`` and the
         extrapolation weights (row ``p - 1``: from ``p`` points) are the warm-start state
         (:class:`~lieflow.flows.WarmStart`), updated in place after every completed step.
-        ``irule`` holds ``(max_iter, patience, window, project, retry_cold, use_warm)``.
+        ``irule`` holds ``(max_iter, patience, window, project, retry_cold, use_warm,
+        conjugation)`` (the last: the update in conjugation form, SPEC §4.7).
         Each new state is mapped by ``P`` (the system's compiled projection) when
         ``project``. ``gemm``: the products above ``n = _SMALL`` (:func:`gemm`); ``buf``,
         ``fbuf``: the work arrays (:func:`workspace`). Writes each step's states and its

@@ -12,14 +12,16 @@ from .solvers import Auto, FixedPoint, FrozenB, Newton
 from .systems import GeneralizedRigidBody, PeriodicToda, RigidBody
 
 
-def gauss_scheme(stages: int = 2, form: Literal["reduced", "block"] = "reduced") -> BlockGauss:
+def gauss_scheme(
+    stages: int = 2, form: Literal["reduced", "block"] = "reduced", update: str = "commutator"
+) -> BlockGauss:
     """Gauss–Legendre ISOSyRK of order 2s via the block algorithm (any number of stages)."""
-    return BlockGauss(tableaus.gauss(stages), form=form)
+    return BlockGauss(tableaus.gauss(stages), form=form, update=update)
 
 
-def modin_viviani_scheme(stages: int = 2) -> ModinViviani:
+def modin_viviani_scheme(stages: int = 2, update: str = "commutator") -> ModinViviani:
     """Classic Modin–Viviani 3s+s^2 form with the s-stage Gauss tableau (reference)."""
-    return ModinViviani(tableaus.gauss(stages))
+    return ModinViviani(tableaus.gauss(stages), update=update)
 
 
 @hookimpl
@@ -33,19 +35,25 @@ def lieflow_register(registry: RegistryBuilder) -> None:
 
     registry.add_scheme("midpoint", SyDIRK, "implicit midpoint rule (1s-SyDIRK), order 2")
     registry.add_scheme(
-        "sydirk7", lambda: SyDIRK(tableaus.yoshida6()), "7-stage SyDIRK (Yoshida), order 6"
+        "sydirk7",
+        lambda update="commutator": SyDIRK(tableaus.yoshida6(), update=update),
+        "7-stage SyDIRK (Yoshida), order 6",
     )
     registry.add_scheme(
-        "triple_jump", lambda: SyDIRK(tableaus.triple_jump()), "triple-jump SyDIRK, order 4"
+        "triple_jump",
+        lambda update="commutator": SyDIRK(tableaus.triple_jump(), update=update),
+        "triple-jump SyDIRK, order 4",
     )
     registry.add_scheme(
-        "suzuki5", lambda: SyDIRK(tableaus.suzuki5()), "Suzuki 5-stage SyDIRK, order 4"
+        "suzuki5",
+        lambda update="commutator": SyDIRK(tableaus.suzuki5(), update=update),
+        "Suzuki 5-stage SyDIRK, order 4",
     )
     registry.add_scheme("gauss", gauss_scheme, "Gauss–Legendre with `stages` stages, order 2s")
     for s in (2, 3, 4):
         registry.add_scheme(
             f"gauss{s}",
-            lambda s=s, form="reduced": gauss_scheme(s, form),
+            lambda s=s, form="reduced", update="commutator": gauss_scheme(s, form, update),
             f"{s}-stage Gauss–Legendre (block algorithm), order {2 * s}",
         )
     registry.add_scheme("block", BlockGauss, "block algorithm for any symplectic `tableau`")

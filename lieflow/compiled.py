@@ -184,7 +184,8 @@ class CompiledPlan:
     are the fixed-point stopping rule (:class:`~lieflow.solvers.StoppingRule`);
     ``retry_cold`` repeats a failed warm-started solve from the cold guess, as
     :func:`lieflow.schemes.base.solve` does (not under ``Auto``, which hands a failed solve
-    to Newton first).
+    to Newton first). ``conjugation``: the scheme's ``update`` is ``"conjugation"`` (SPEC
+    §4.7).
     """
 
     kind: str
@@ -200,6 +201,7 @@ class CompiledPlan:
     rule: Array = attrs.field(repr=False)
     irule: Array = attrs.field(repr=False)
     solver_name: str
+    conjugation: bool = attrs.field(default=False, kw_only=True)
 
     def warm_shape(self) -> tuple[int, ...]:
         """Core shape of the warm-start offsets of one trajectory."""
@@ -231,7 +233,7 @@ class CompiledPlan:
         for j in range(filled):
             hist[j] = np.asarray(history[j], dtype=self.dtype).reshape(K, size)
         flags = np.array([filled, int(trusted)], dtype=np.int64)
-        irule = np.append(self.irule, np.int64(depth > 0))
+        irule = np.append(self.irule, np.array([depth > 0, self.conjugation], dtype=np.int64))
         states = np.empty((steps, K, n, n), dtype=self.dtype)
         iters = np.zeros(steps, dtype=np.int64)
         s = self.b.size
@@ -456,6 +458,7 @@ def plan(
         rule=np.array([r.rtol, r.atol, r.roundoff_floor, r.divergence_factor], dtype=float),
         irule=np.array([r.max_iter, r.patience, r.window, r.project, retry_cold], dtype=np.int64),
         solver_name=fixed.name,
+        conjugation=getattr(scheme, "update", "commutator") == "conjugation",
     )
 
 

@@ -56,3 +56,22 @@ def test_single_precision_compiled_or_fallback() -> None:
     W = system.random_state(0).astype(np.float32)
     sol = lf.integrate(system, lf.schemes.get("gauss2"), W, h=0.05, steps=2000)
     assert sol.W.dtype == np.float32
+
+
+def test_newton_stops_at_single_precision_roundoff() -> None:
+    """Newton on a complex64 midpoint solve stops once it reaches float32 roundoff (the
+    floor scales with the precision) instead of wandering on the noise to its cap; the
+    complex128 solve is unchanged (quadratic convergence to rtol 1e-14)."""
+    lz = pytest.importorskip("lieflow_zeitlin")
+    from lieflow.schemes.sydirk import MidpointProblem
+
+    system = lf.systems.get("euler_zeitlin", N=12, time="fluid")
+    W0 = lz.random_vorticity(12, degree=4, seed=0)
+    double = lf.solvers.Newton().solve(MidpointProblem(system, W0, 0.1))
+    single = lf.solvers.Newton().solve(MidpointProblem(system, W0.astype(np.complex64), 0.1))
+    assert double.reason == "converged" and double.residuals[-1] <= 1e-14
+    assert single.reason == "roundoff"
+    assert single.iterations <= double.iterations + 2
+    assert single.residuals[-1] <= 1e-6
+    err = np.linalg.norm(single.x - double.x) / np.linalg.norm(double.x)
+    assert err <= 1e-6  # float32 accuracy

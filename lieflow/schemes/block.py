@@ -13,6 +13,7 @@ from ..algebras import Array, dagger
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau, gauss, one_of
+from . import conjugation
 from .base import (
     Scheme,
     StepResult,
@@ -131,6 +132,13 @@ class BlockProblem(TableauProblem):
         """``W1 = W0 + h sum_i b_i [B(M_ii), M_ii]``."""
         return self.commutator_update(self.stages(M), self.h * self.b)
 
+    def conjugation_update(self, M: Array) -> Array:
+        """``W1 = g1^† W0 g1^{-†}`` with the lifted ``G_i`` of the stages' ``B``:
+        isospectral for any ``M`` (:func:`~lieflow.schemes.conjugation.lifted_update`)."""
+        B = self.B(self.stages(M))
+        Gdag = conjugation.frozen_stage_conjugator(B, self.A, self.h)
+        return conjugation.lifted_update(self.W0, Gdag, B, self.h * self.b, self.skew)
+
     def offsets(self, M: Array) -> Array:
         """``M`` minus its ``h = 0`` value, for warm starts."""
         return M - self.W0[..., None, None, :, :]
@@ -243,6 +251,14 @@ class ReducedProblem(TableauProblem):
         """``W1 = W0 + h sum_i b_i [B(W_i), W_i]`` with ``W_i = G_i^† P_i``."""
         return self.commutator_update(self.stages(x), self.h * self.b)
 
+    def conjugation_update(self, x: Array) -> Array:
+        """``W1 = Q^† W0 Q``, ``Q`` the lifted ``g1 = I + h sum_j b_j G_j B_j^†`` made
+        unitary (a similarity by ``g1^†`` for non-skew ``B``): isospectral for any ``x``
+        (:func:`~lieflow.schemes.conjugation.lifted_update`)."""
+        B = self.B(self.stages(x))
+        Gdag = dagger(x[..., 0, :, :, :])
+        return conjugation.lifted_update(self.W0, Gdag, B, self.h * self.b, self.skew)
+
     def offsets(self, x: Array) -> Array:
         """``x`` minus its ``h = 0`` value ``(I, W0)``, for warm starts."""
         return x - self.trivial
@@ -265,11 +281,18 @@ class BlockGauss(Scheme):
         (SPEC §4.5, ``3s`` products per iteration); ``"block"`` iterates the paper's ``s×s``
         block matrix ``M`` block-wise (``3s^2`` products). Both have the same fixed point
         and give the same ``W1`` to roundoff.
+    update : {"commutator", "conjugation"}
+        ``"commutator"`` (default): ``W1 = W0 + h sum_i b_i [B_i, W_i]``, isospectral at
+        the fixed point; ``"conjugation"``: ``W1 = Q^† W0 Q`` with the lifted ``g1`` made
+        unitary, isospectral for any iterate (SPEC §4.7, :mod:`lieflow.schemes.conjugation`).
     """
 
     tableau: ButcherTableau = attrs.field(factory=_gauss2, converter=symplectic)
     form: Literal["reduced", "block"] = attrs.field(
         default="reduced", validator=one_of("reduced", "block")
+    )
+    update: str = attrs.field(
+        default="commutator", validator=one_of(*conjugation.UPDATES), kw_only=True
     )
 
     @property
@@ -277,8 +300,8 @@ class BlockGauss(Scheme):
         return self.tableau.name if self.form == "reduced" else f"block_{self.tableau.name}"
 
     def compiled_form(self) -> tuple[str, Array, Array] | None:
-        """``("reduced", A, b)`` for the reduced form (compiled); ``None`` for the block
-        form."""
+        """``("reduced", A, b)`` for the reduced form (compiled, with the scheme's
+        ``update``); ``None`` for the block form."""
         return ("reduced", self.tableau.A, self.tableau.b) if self.form == "reduced" else None
 
     def step(
@@ -291,8 +314,9 @@ class BlockGauss(Scheme):
     ) -> StepResult:
         cls = ReducedProblem if self.form == "reduced" else BlockProblem
         problem, res = solve(solver, lambda guess: cls(system, W0, h, self.tableau, guess), warm)
+        update = problem.update if self.update == "commutator" else problem.conjugation_update
         return StepResult(
-            problem.update(res.x),
+            update(res.x),
             problem.offsets(res.x),
             StepStats(res.iterations, res.solver, res.residuals[-1]),
         )

@@ -8,7 +8,8 @@ import numpy as np
 from ..algebras import Array
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
-from ..tableaus import ButcherTableau
+from ..tableaus import ButcherTableau, one_of
+from . import conjugation
 from .base import (
     Scheme,
     StepResult,
@@ -145,15 +146,27 @@ class ModinVivianiProblem(TableauProblem):
         """``W1 = W0 + h sum_i b_i [B(W~_i), W~_i]``."""
         return self.commutator_update(self.stages(x), self.h * self.b)
 
+    def conjugation_update(self, x: Array) -> Array:
+        """``W1 = g1^† W0 g1^{-†}`` with the lifted ``G_i`` of the stages' ``B``:
+        isospectral for any ``x`` (:func:`~lieflow.schemes.conjugation.lifted_update`)."""
+        B = self.B(self.stages(x))
+        Gdag = conjugation.frozen_stage_conjugator(B, self.A, self.h)
+        return conjugation.lifted_update(self.W0, Gdag, B, self.h * self.b, self.skew)
+
 
 @attrs.frozen
 class ModinViviani(Scheme):
     """The classic ``3s + s^2`` Modin–Viviani ISOSyRK form for any symplectic tableau.
 
     Kept as the reference formulation: the block algorithm must reproduce it to roundoff.
+    ``update`` as for :class:`~lieflow.schemes.BlockGauss` (the conjugation form builds the
+    lifted ``G_i`` from the stages' ``B``: the unknowns carry ``G_i^† W0``, not ``G_i``).
     """
 
     tableau: ButcherTableau = attrs.field(factory=_gauss2, converter=symplectic)
+    update: str = attrs.field(
+        default="commutator", validator=one_of(*conjugation.UPDATES), kw_only=True
+    )
 
     @property
     def name(self) -> str:
@@ -170,6 +183,7 @@ class ModinViviani(Scheme):
         problem, res = solve(
             solver, lambda guess: ModinVivianiProblem(system, W0, h, self.tableau, guess), warm
         )
+        update = problem.update if self.update == "commutator" else problem.conjugation_update
         return StepResult(
-            problem.update(res.x), res.x, StepStats(res.iterations, res.solver, res.residuals[-1])
+            update(res.x), res.x, StepStats(res.iterations, res.solver, res.residuals[-1])
         )

@@ -9,7 +9,8 @@ from ..algebras import Array
 from ..errors import TableauError
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
-from ..tableaus import ButcherTableau, midpoint
+from ..tableaus import ButcherTableau, midpoint, one_of
+from . import conjugation
 from .base import (
     Scheme,
     StageProblem,
@@ -90,6 +91,11 @@ class MidpointProblem(StageProblem):
         """``W1 = W0 + h [B(M), M]``."""
         return self.commutator_update(M[..., None, :, :], np.array([2 * self.half]))
 
+    def conjugation_update(self, M: Array) -> Array:
+        """``W1 = C W0 C^{-1}``, ``C`` the Cayley transform of ``(h/2) B(M)``: isospectral
+        for any ``M`` (:func:`~lieflow.schemes.conjugation.cayley_update`)."""
+        return conjugation.cayley_update(self.W0, self.B(M), self.half, self.skew)
+
 
 def _composition_tableau(tableau: ButcherTableau) -> ButcherTableau:
     b = tableau.b
@@ -110,12 +116,21 @@ class SyDIRK(Scheme):
 
     Each sub-step solves its own :class:`MidpointProblem`; ``warm`` stacks the sub-steps'
     unknowns (offsets ``M_i - W^{(i-1)}``), shape ``(..., s, n, n)``.
+
+    ``update``: ``"commutator"`` (default, ``W1 = W0 + h b_i [B(M), M]`` per sub-step,
+    isospectral at the fixed point) or ``"conjugation"`` (the Cayley form
+    ``W1 = C W0 C^{-1}``, isospectral for any iterate: SPEC §4.7,
+    :mod:`lieflow.schemes.conjugation`).
     """
 
     tableau: ButcherTableau = attrs.field(factory=midpoint, converter=_composition_tableau)
+    update: str = attrs.field(
+        default="commutator", validator=one_of(*conjugation.UPDATES), kw_only=True
+    )
 
     def compiled_form(self) -> tuple[str, Array, Array] | None:
-        """``("sydirk", A, b)``: the compiled engine runs this composition."""
+        """``("sydirk", A, b)``: the compiled engine runs this composition (with the
+        scheme's ``update``)."""
         return "sydirk", self.tableau.A, self.tableau.b
 
     def step(
@@ -130,6 +145,7 @@ class SyDIRK(Scheme):
         s = self.tableau.stages
         offsets = np.empty((*W0.shape[:-2], s, *W0.shape[-2:]), dtype=W0.dtype)
         iterations = 0
+        commutator = self.update == "commutator"
         for i, bi in enumerate(self.tableau.b.tolist()):
 
             def build(guess: Array | None, W: Array = W, hi: float = bi * h) -> MidpointProblem:
@@ -139,5 +155,5 @@ class SyDIRK(Scheme):
             iterations += res.iterations
             x = res.x
             np.subtract(x, W, out=offsets[..., i, :, :])
-            W = problem.update(x)
+            W = problem.update(x) if commutator else problem.conjugation_update(x)
         return StepResult(W, offsets, StepStats(iterations, res.solver, res.residuals[-1]))

@@ -43,7 +43,9 @@ class Newton:
     ``max_halvings`` times), which makes Newton converge from the cold guess at step sizes
     where the plain iteration wanders; if no halving decreases ``||R||`` (the guess is
     outside Newton's basin), one frozen-B step (``problem.frozen_map``) is taken instead
-    and Newton resumes from there. Stops when ``||R(x)|| <= atol + rtol ||x||``,
+    and Newton resumes from there. Stops when ``||R(x)|| <= atol + rtol ||x||``, or as
+    ``"roundoff"`` once ``||R||`` is below the roundoff floor (scaled to the iterate's
+    precision) and falls by less than half in an iteration (no longer quadratic: roundoff),
     returning ``F(x)``; ``iterations`` counts linear solves. Stagnation and divergence
     are detected as in :class:`StoppingRule`.
     """
@@ -85,8 +87,14 @@ class Newton:
         m_real = _to_real(x, core).shape[1]
         dense = self.linear == "dense" or (self.linear == "auto" and m_real <= self.dense_max)
         Fx = problem.map(x)
+        floor = monitor.rule.roundoff_floor  # scaled to the iterate's precision
         while True:
             reason = monitor.check(Fx, x)
+            res = monitor.residuals
+            if reason is None and len(res) > 1 and floor >= res[-1] >= 0.5 * res[-2]:
+                # below the roundoff floor and no longer converging quadratically: Newton is
+                # at roundoff (complex64 otherwise wanders 8 -> 29 iterations on the noise)
+                reason = "roundoff"
             if reason is not None:
                 ok = reason in ("converged", "roundoff")
                 res = monitor.residuals
