@@ -115,6 +115,17 @@ def spin_matrices(N: int) -> tuple[Array, Array, Array]:
     return 0.5 * (Sp + Sm), (Sp - Sm) / 2j, S3
 
 
+def _coefficients(N: int, m: Array, k: Array) -> tuple[Array, Array]:
+    r"""The one source of the Hoppe–Yau coefficients (SPEC §3): for entry ``k`` of diagonal
+    ``m >= 0`` (arrays of the same shape, floats), the diagonal
+    ``-[(N-1)(2k+1+m) - 2k(k+m)]`` and the coupling ``e_k = sqrt(k (N-k) (k+m) (N-k-m))``
+    of entry ``k`` to entry ``k-1`` (zero for ``k = 0``; ``nan``-free wherever
+    ``0 <= k < N-m``, which callers mask)."""
+    d = -((N - 1) * (2 * k + 1 + m) - 2 * k * (k + m))
+    e = np.sqrt(np.maximum(k * (N - k) * (k + m) * (N - k - m), 0.0))
+    return d, e
+
+
 def tridiagonal(N: int, m: int) -> tuple[Array, Array]:
     r"""The tridiagonal matrix of ``Δ_N`` on diagonal ``±m``: ``(diagonal, off-diagonal)``.
 
@@ -126,17 +137,14 @@ def tridiagonal(N: int, m: int) -> tuple[Array, Array]:
     m = abs(int(m))
     if m >= N:
         raise lieflow.InputError(f"diagonal m must satisfy |m| < N = {N}, got {m}")
-    i = np.arange(N - m, dtype=float)
-    d = -((N - 1) * (2 * i + 1 + m) - 2 * i * (i + m))
-    k = i[1:]
-    e = np.sqrt(k * (N - k) * (k + m) * (N - k - m))
-    return d, e
+    d, e = _coefficients(N, np.full(N - m, float(m)), np.arange(N - m, dtype=float))
+    return d, e[1:]
 
 
 def _packed_coefficients(N: int) -> tuple[Array, Array, Array]:
-    """``Δ_N`` in the packed ``(N, N+1)`` layout: diagonal ``d``, the coupling ``e`` of each
-    row to the row above (zero where systems meet and on pads) and the mask of non-pad
-    entries (``d = 0`` on pads)."""
+    """``Δ_N`` in the packed ``(N, N+1)`` layout (module docs): diagonal ``d``, the coupling
+    ``e`` of each row to the row above (zero where systems meet and on pads) and the mask of
+    non-pad entries (``d = 0`` on pads); the values are those of :func:`_coefficients`."""
     i = np.arange(N, dtype=float)[:, None]
     q = np.arange(N + 1, dtype=float)[None, :]
     first = i < N - q  # diagonal -q, entry index i
@@ -144,10 +152,8 @@ def _packed_coefficients(N: int) -> tuple[Array, Array, Array]:
     m = np.where(first, q, N + 1 - q)
     k = np.where(first, i, i - (N - q))
     valid = first | second
-    d = np.where(valid, -((N - 1) * (2 * k + 1 + m) - 2 * k * (k + m)), 0.0)
-    coupled = valid & (k > 0)
-    e = np.where(coupled, np.sqrt(np.where(coupled, k * (N - k) * (k + m) * (N - k - m), 0.0)), 0)
-    return d, e, valid
+    d, e = _coefficients(N, m, k)
+    return np.where(valid, d, 0.0), np.where(valid & (k > 0), e, 0.0), valid
 
 
 @attrs.frozen(eq=False)
