@@ -64,3 +64,57 @@ def test_tridiagonal_and_packed_coefficients_match_the_double_commutator(N: int)
         np.testing.assert_allclose(e_packed[r[1:], c[1:]], e, rtol=0, atol=1e-12)
         assert e_packed[r[0], c[0]] == 0  # decoupled from whatever sits above it
     assert valid.sum() == N * N and np.all(d_packed[~valid] == 0) and np.all(e_packed[~valid] == 0)
+
+
+# --------------------------------------------------------------------------- B on any arrays
+xps = pytest.importorskip("array_api_strict")
+
+
+def _rel(a: object, b: np.ndarray) -> float:
+    a = np.asarray(a)
+    return float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
+
+
+def _fields(N: int) -> list[np.ndarray]:
+    rng = np.random.default_rng(N)
+    white = rng.standard_normal((2, N, N)) + 1j * rng.standard_normal((2, N, N))
+    return [lz.random_vorticity(N, degree=min(N - 1, 8), seed=N), white]
+
+
+@pytest.mark.parametrize("N", [2, 3, 4, 7, 8, 16, 33, 64])
+@pytest.mark.parametrize(("scale", "shift"), [(1.0, 0.0), (0.3, 0.0), (2.0, 5.0)])
+def test_cyclic_reduction_solve_matches_the_sweeps(N: int, scale: float, shift: float) -> None:
+    L = lz.HoppeYauLaplacian(N, scale=scale, shift=shift)
+    for W in _fields(N):
+        P = L.solve(W)  # numpy: the sequential sweeps (another algorithm)
+        Pa = L.solve(xps.asarray(W))
+        assert isinstance(Pa, type(xps.asarray(W))) and Pa.dtype == xps.complex128
+        assert tuple(Pa.shape) == W.shape
+        assert _rel(Pa, P) <= 1e-13
+        # and it solves the system (apply is the packed operator, checked above)
+        traceless = W - (np.trace(W, axis1=-2, axis2=-1) / N)[..., None, None] * np.eye(N)
+        np.testing.assert_allclose(
+            L.apply(np.asarray(Pa)), scale * traceless, rtol=0, atol=1e-14 * N * N * np.abs(W).max()
+        )
+        assert np.abs(np.trace(np.asarray(Pa), axis1=-2, axis2=-1)).max() <= 1e-13 * np.abs(P).max()
+
+
+def test_cyclic_reduction_single_precision_real_input_and_batches() -> None:
+    N = 12
+    L = lz.HoppeYauLaplacian(N)
+    W = lz.random_vorticity(N, degree=6, seed=4)
+    P = L.solve(W)
+    P32 = L.solve(xps.asarray(W.astype(np.complex64)))
+    assert P32.dtype == xps.complex64 and _rel(P32, P) <= 1e-5
+    real = np.random.default_rng(0).standard_normal((3, 2, N, N))
+    Pr = L.solve(xps.asarray(real))
+    assert Pr.dtype == xps.complex128 and _rel(Pr, L.solve(real)) <= 1e-13
+
+
+@pytest.mark.parametrize("rotation", [0.0, 1.5])
+def test_euler_zeitlin_B_on_array_api_strict_arrays(rotation: float) -> None:
+    system = lz.EulerZeitlin(16, rotation=rotation, lamb=0.5 if rotation else 0.0)
+    W = system.random_state(3)
+    B = system.B(W)
+    Ba = system.B(xps.asarray(W))
+    assert Ba.dtype == xps.complex128 and _rel(Ba, B) <= 1e-13
