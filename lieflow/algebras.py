@@ -15,15 +15,32 @@ import attrs
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .backends import device_of, is_numpy, namespace
 from .errors import AlgebraError, InputError
 
 Array = NDArray[Any]
 
 
+def _array(X: ArrayLike) -> Array:
+    """``X`` as an array: itself if it belongs to another array library
+    (:mod:`lieflow.backends`), else ``np.asarray(X)``."""
+    if hasattr(X, "__array_namespace__") and not is_numpy(X):
+        return X  # type: ignore[return-value]
+    return np.asarray(X)
+
+
+def transpose(X: Array) -> Array:
+    """``X^T`` over the last two axes (a view where the library has views)."""
+    return X.swapaxes(-1, -2) if is_numpy(X) else X.mT
+
+
 def dagger(X: Array) -> Array:
     """Conjugate transpose of the last two axes, ``X^†`` (a view for real input)."""
-    Xt = X.swapaxes(-1, -2)
-    return Xt.conj() if X.dtype.kind == "c" else Xt
+    if is_numpy(X):
+        Xt = X.swapaxes(-1, -2)
+        return Xt.conj() if X.dtype.kind == "c" else Xt
+    xp = namespace(X)
+    return xp.conj(X.mT) if xp.isdtype(X.dtype, "complex floating") else X.mT
 
 
 def frobenius_norm(X: Array) -> Array:
@@ -33,7 +50,7 @@ def frobenius_norm(X: Array) -> Array:
 
 def _halved(Y: Array) -> Array:
     """``Y / 2``, in place when ``Y`` is a (fresh) floating array."""
-    if Y.dtype.kind in "fc":
+    if not is_numpy(Y) or Y.dtype.kind in "fc":
         Y *= 0.5
         return Y
     return 0.5 * Y
@@ -186,8 +203,8 @@ class SO(LieAlgebra):
     symbol: ClassVar[str] = "so"
 
     def project(self, X: ArrayLike) -> Array:
-        X = np.asarray(X)
-        return _halved(X - X.swapaxes(-1, -2))
+        X = _array(X)
+        return _halved(X - transpose(X))
 
     @property
     def dimension(self) -> int:
@@ -206,7 +223,7 @@ class U(LieAlgebra):
     symbol: ClassVar[str] = "u"
 
     def project(self, X: ArrayLike) -> Array:
-        X = np.asarray(X)
+        X = _array(X)
         return _halved(X - dagger(X))
 
     @property
@@ -224,8 +241,14 @@ class SU(U):
     symbol: ClassVar[str] = "su"
 
     def project(self, X: ArrayLike) -> Array:
-        Y = np.ascontiguousarray(super().project(X))  # new: the reshape below is a view
+        Y = super().project(X)
         n = self.n
+        if not is_numpy(Y):  # another array library: no views assumed, one subtraction
+            xp = namespace(Y)
+            eye = xp.eye(n, dtype=Y.dtype, device=device_of(Y))
+            trace = xp.sum(Y * eye, axis=(-2, -1))
+            return Y - (trace / n)[..., None, None] * eye
+        Y = np.ascontiguousarray(Y)  # new: the reshape below is a view
         diagonal = Y.reshape(*Y.shape[:-2], n * n)[..., :: n + 1]  # a view
         diagonal -= diagonal.sum(axis=-1, keepdims=True) / n
         return Y
@@ -247,7 +270,7 @@ class GL(LieAlgebra):
     symbol: ClassVar[str] = "gl"
 
     def project(self, X: ArrayLike) -> Array:
-        return np.asarray(X)
+        return _array(X)
 
     @property
     def dimension(self) -> int:

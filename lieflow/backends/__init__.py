@@ -20,7 +20,16 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["device_of", "from_host", "is_numpy", "namespace", "to_numpy"]
+__all__ = [
+    "copy",
+    "device_of",
+    "from_host",
+    "host_norms",
+    "is_numpy",
+    "machine_epsilon",
+    "namespace",
+    "to_numpy",
+]
 
 
 def is_numpy(x: Any) -> bool:
@@ -94,3 +103,27 @@ def to_numpy(x: Any) -> np.ndarray:
         return np.asarray(np.from_dlpack(compat.to_device(x, "cpu")))
     except (TypeError, ValueError, AttributeError, RuntimeError, BufferError):
         return np.asarray(x)
+
+
+def copy(x: Any) -> Any:
+    """A new array equal to ``x`` (same library, device and dtype)."""
+    if is_numpy(x):
+        return np.array(x, copy=True)
+    return namespace(x).asarray(x, copy=True)
+
+
+def host_norms(x: Any, core_ndim: int) -> np.ndarray:
+    """Frobenius norms of ``x`` over its trailing ``core_ndim`` axes, as a float64 NumPy
+    array of the batch shape: computed on ``x``'s device, one small device-to-host copy
+    (the only synchronisation of a solver's stopping test)."""
+    xp = namespace(x)
+    axes = tuple(range(-core_ndim, 0))
+    squares = xp.real(x * xp.conj(x)) if xp.isdtype(x.dtype, "complex floating") else x * x
+    return np.asarray(to_numpy(xp.sqrt(xp.sum(squares, axis=axes))), dtype=np.float64)
+
+
+def machine_epsilon(dtype: Any, like: Any) -> float:
+    """Machine epsilon of the floating ``dtype`` of ``like``'s library."""
+    if is_numpy(like):
+        return float(np.finfo(dtype).eps)
+    return float(namespace(like).finfo(dtype).eps)

@@ -10,6 +10,7 @@ import attrs
 import numpy as np
 
 from ..algebras import Array, dagger
+from ..backends import is_numpy
 from ..errors import ConvergenceError
 from ..solvers.base import ImplicitProblem, Solver, SolveResult, einsum
 from ..systems.base import IsospectralSystem
@@ -160,6 +161,10 @@ class StageProblem:
             C = B @ W - W @ B
             del W, B
         W0 = self.W0
+        if not is_numpy(W0):  # another array library: the weighted sum stage by stage
+            terms = [float(w) * C[..., i, :, :] for i, w in enumerate(np.asarray(hb).tolist())]
+            del C
+            return sum(terms[1:], terms[0]) + W0
         weights = np.asarray(hb, dtype=W0.real.dtype)
         out = einsum("i,...iab->...ab", weights, C)
         del C
@@ -217,6 +222,8 @@ def real_scalar(value: float, like: Array) -> Any:
     arrays like ``like``: the result NumPy gives for the Python float (which it rounds to
     that precision), in about half the time for small arrays. The float itself for
     non-floating ``like``."""
+    if not is_numpy(like):
+        return value
     dtype = like.dtype
     if dtype.kind == "c":
         dtype = like.real.dtype
