@@ -37,7 +37,7 @@ def test_namespace_and_host_copies() -> None:
     assert c is not Wa and np.array_equal(backends.to_numpy(c), W)
 
 
-@pytest.mark.parametrize("scheme_name", ["midpoint", "triple_jump"])
+@pytest.mark.parametrize("scheme_name", ["midpoint", "triple_jump", "gauss2", "gauss3"])
 @pytest.mark.parametrize("index", [0, 1])
 def test_scheme_steps_on_array_api_strict_match_numpy(scheme_name: str, index: int) -> None:
     name, system = _systems()[index]

@@ -186,9 +186,11 @@ class TableauProblem(StageProblem):
     ) -> None:
         super().__init__(system, W0)
         self.h = float(h)
-        # read-only here: no copy where the tableau's precision is W0's already
-        self.A = tableau.A.astype(W0.real.dtype, copy=False)
-        self.b = tableau.b.astype(W0.real.dtype, copy=False)
+        # read-only here: no copy where the tableau's precision is W0's already; host
+        # float64 for arrays of another library (placed on its device where a map needs it)
+        real = W0.real.dtype if is_numpy(W0) else np.float64
+        self.A = tableau.A.astype(real, copy=False)
+        self.b = tableau.b.astype(real, copy=False)
 
 
 def symplectic(tableau: ButcherTableau) -> ButcherTableau:
