@@ -25,6 +25,7 @@ only ``name``, ``init`` and ``step``.
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Sequence
 from typing import Any, Protocol, runtime_checkable
 
@@ -33,6 +34,7 @@ import numpy as np
 
 from . import tree
 from .algebras import Array
+from .backends import copy
 from .errors import InputError
 from .schemes.base import Scheme
 from .solvers.base import Solver, einsum, squared_norm
@@ -185,7 +187,7 @@ def _combine(weights: Sequence[int], history: Sequence[Any], stack: Any = None) 
         return (w @ stack[:m]).reshape(history[0].shape)
 
     def leaf(*xs: Any) -> Any:
-        acc = weights[0] * xs[0] if weights[0] != 1 else np.array(xs[0], copy=True)
+        acc = weights[0] * xs[0] if weights[0] != 1 else copy(xs[0])
         for w, x in zip(weights[1:], xs[1:], strict=False):
             acc += w * x
         return acc
@@ -208,7 +210,7 @@ def _prediction_errors(solved: Any, history: Sequence[Any], stack: Any = None) -
         errors: list[float] = einsum("ij,ij->i", E, E).tolist()
         return errors
     return [
-        tree.sum_of_squares(tree.map_leaves(np.subtract, solved, _combine(_weights(m), history)))
+        tree.sum_of_squares(tree.map_leaves(operator.sub, solved, _combine(_weights(m), history)))
         for m in range(1, len(history) + 1)
     ]
 

@@ -21,6 +21,7 @@ import numpy as np
 from ..errors import InputError
 
 __all__ = [
+    "all_finite",
     "copy",
     "device_of",
     "from_host",
@@ -127,3 +128,11 @@ def machine_epsilon(dtype: Any, like: Any) -> float:
     if is_numpy(like):
         return float(np.finfo(dtype).eps)
     return float(namespace(like).finfo(dtype).eps)
+
+
+def all_finite(x: Any) -> bool:
+    """Whether every entry of ``x`` is finite (one scalar to the host)."""
+    if is_numpy(x):
+        return bool(np.all(np.isfinite(x)))
+    xp = namespace(x)
+    return bool(xp.all(xp.isfinite(x)))

@@ -196,10 +196,8 @@ class ReducedProblem(TableauProblem):
         hA = self.h * self.A
         if not is_numpy(GB):  # another array library: the same products, fresh arrays
             xp = namespace(GB)
-            real = xp.float32 if GB.dtype == xp.complex64 or GB.dtype == xp.float32 else None
-            halves = [
-                from_host(coef, GB, real if real is not None else xp.float64)
-                @ xp.reshape(Y, (*batch, s, n * n))
+            halves = [  # coefficients in GB's dtype: some libraries (torch) do not mix
+                from_host(coef, GB, GB.dtype) @ xp.reshape(Y, (*batch, s, n * n))
                 for coef, Y in ((-hA if self.skew else hA, GB), (-hA, PB))
             ]
             joined = xp.reshape(xp.stack(halves, axis=-3), (*batch, 2, s, n, n))
