@@ -20,7 +20,7 @@ from numpy.typing import ArrayLike
 
 from . import driver
 from .algebras import Array
-from .backends import from_host, is_numpy, to_numpy
+from .backends import from_host, is_foreign_array, is_numpy, to_numpy
 from .driver import Diagnostics, Monitor
 from .errors import ConvergenceError, InputError
 from .flows import Flow, SchemeFlow, StepStats, WarmStart
@@ -235,7 +235,7 @@ def _check_memory(nbytes: int, steps: int, save_every: int) -> None:
 
 
 def _validated(system: IsospectralSystem, W0: ArrayLike) -> Array:
-    if hasattr(W0, "__array_namespace__") and not is_numpy(W0):  # lieflow.backends
+    if is_foreign_array(W0):  # an array of another library (lieflow.backends)
         return from_host(_validated(system, to_numpy(W0)), W0)
     W0a = system.validate(W0)
     if W0a.size == 0:

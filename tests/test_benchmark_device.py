@@ -31,3 +31,12 @@ def test_without_a_gpu_library_it_says_so(capsys: pytest.CaptureFixture[str]) ->
         pytest.skip("a GPU is present")
     assert device.main(["--library", "cupy"]) == 2
     assert "no GPU array library" in capsys.readouterr().err
+
+
+def test_the_cpu_floor_benchmark_prints_its_ratio(capsys: pytest.CaptureFixture[str]) -> None:
+    from benchmarks import floor
+
+    assert floor.main(["--sizes", "16", "--steps", "2", "--repeats", "1", "--cpu-time"]) == 0
+    row = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| 16 ")]
+    cells = [c.strip() for c in row[0].split("|")[1:-1]]
+    assert len(cells) == 7 and float(cells[-1]) > 0 and float(cells[1]) >= 1

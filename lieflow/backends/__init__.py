@@ -26,6 +26,7 @@ __all__ = [
     "device_of",
     "from_host",
     "host_norms",
+    "is_foreign_array",
     "is_numpy",
     "machine_epsilon",
     "namespace",
@@ -36,6 +37,21 @@ __all__ = [
 def is_numpy(x: Any) -> bool:
     """Whether ``x`` is a NumPy array or scalar (or a Python number)."""
     return isinstance(x, (np.ndarray, np.generic, int, float, complex))
+
+
+def is_foreign_array(x: Any) -> bool:
+    """Whether ``x`` is an array of a library other than NumPy (CuPy, PyTorch, JAX,
+    ``array_api_strict``, ...): what :func:`namespace` serves through array-api-compat.
+    Lists, scalars and NumPy arrays are not."""
+    if is_numpy(x) or isinstance(x, (list, tuple)):
+        return False
+    if hasattr(x, "__array_namespace__"):
+        return True
+    try:
+        import array_api_compat
+    except ImportError:
+        return False
+    return bool(array_api_compat.is_array_api_obj(x))
 
 
 def _compat() -> ModuleType:

@@ -9,7 +9,7 @@ from typing import Any, TypeVar
 import attrs
 import numpy as np
 
-from ..algebras import Array, dagger
+from ..algebras import Array, minus_dagger
 from ..backends import is_numpy
 from ..errors import ConvergenceError
 from ..solvers.base import ImplicitProblem, Solver, SolveResult, einsum
@@ -156,7 +156,7 @@ class StageProblem:
         if self.skew:
             C = B @ W
             del W, B
-            C = C - dagger(C)
+            C = minus_dagger(C)
         else:
             C = B @ W - W @ B
             del W, B
@@ -201,11 +201,6 @@ def symplectic(tableau: ButcherTableau) -> ButcherTableau:
 def solve_right(rhs: Array, mat: Array) -> Array:
     """``rhs mat^{-1}`` (batched), as a solve with the transposed matrix."""
     return np.swapaxes(np.linalg.solve(np.swapaxes(mat, -1, -2), np.swapaxes(rhs, -1, -2)), -1, -2)
-
-
-def right_product(BM: Array, M: Array, B: Array, skew: bool) -> Array:
-    """``M B``, computed as ``(B M)^†`` without a product when ``M`` and ``B`` are skew."""
-    return dagger(BM) if skew else M @ B
 
 
 def scratch(held: Array | None, count: int, shape: tuple[int, ...], dtype: Any) -> Array:

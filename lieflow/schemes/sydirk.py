@@ -7,7 +7,7 @@ from typing import Any
 import attrs
 import numpy as np
 
-from ..algebras import Array
+from ..algebras import Array, minus_dagger
 from ..backends import copy, is_numpy, namespace
 from ..errors import TableauError
 from ..solvers.base import Solver
@@ -18,7 +18,6 @@ from .base import (
     StageProblem,
     StepResult,
     real_scalar,
-    right_product,
     scratch,
     solve,
     solve_right,
@@ -69,10 +68,14 @@ class MidpointProblem(StageProblem):
         else:
             BM = B @ M
             BMB = BM @ B
-        MB = right_product(BM, M, B, self.skew)
-        del B
-        out = BM - MB
-        del MB
+        if self.skew:  # MB = (BM)^†: BM - MB without a transposed temporary
+            del B
+            out = minus_dagger(BM)
+        else:
+            MB = M @ B
+            del B
+            out = BM - MB
+            del MB
         out *= self._q
         out += self.W0
         BMB *= self._qq

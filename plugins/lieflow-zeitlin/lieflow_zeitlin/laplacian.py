@@ -82,7 +82,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 import lieflow
-from lieflow.backends import device_of, is_numpy, namespace
+from lieflow.backends import device_of, is_foreign_array, is_numpy, namespace
 
 from ._recurrences import _jit, numba
 from .cyclic_reduction import CyclicReduction
@@ -363,7 +363,7 @@ class HoppeYauLaplacian:
 
     # ------------------------------------------------------------------ application
     def _check(self, X: ArrayLike, name: str) -> Array:
-        X = X if hasattr(X, "__array_namespace__") else np.asarray(X)
+        X = X if is_foreign_array(X) else np.asarray(X)
         if X.ndim < 2 or X.shape[-2:] != (self.N, self.N):
             raise lieflow.InputError(
                 f"{name} has shape {X.shape}; the N = {self.N} Laplacian needs (..., {self.N}, "
