@@ -30,8 +30,8 @@ mantissa on x86-64) and rounded to float64 once: computed in float64, the cancel
 ``b`` accumulate over the levels, and on the Hoppe–Yau systems (condition ``~N²``) the solve
 lost ``5e-13`` / ``6e-12`` relative at N = 256 / 1024 against an extended-precision solve;
 with extended-precision multipliers ``2e-15`` at both (the numpy engine's sequential sweeps,
-whose factors are computed the same way: ``2e-15`` too, ``2e-13`` before). Where ``longdouble`` is plain double (some ARM and Windows builds) the
-float64 figures apply.
+whose factors are computed the same way: ``2e-15`` too, ``2e-13`` before). Where
+``longdouble`` is plain double (some ARM and Windows builds) the float64 figures apply.
 """
 
 from __future__ import annotations
