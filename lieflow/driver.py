@@ -20,6 +20,7 @@ import attrs
 import numpy as np
 
 from .algebras import Array
+from .backends import all_finite
 from .errors import ConvergenceError
 from .flows import Flow
 from .systems.base import IsospectralSystem
@@ -120,7 +121,7 @@ class Monitor(Protocol):
 def _check_finite(
     W: Array, iterations: int, solver: str, residual: float, k: int, h: float
 ) -> None:
-    if not np.all(np.isfinite(W)):
+    if not all_finite(W):
         raise ConvergenceError(
             "non_finite",
             solver=solver,
@@ -195,7 +196,7 @@ def advance(
         yield Chunk(
             k,
             h,
-            W[None],
+            W[None, ...],
             np.array([stats.iterations], dtype=np.int64),
             np.array([stats.residual]),
             (stats.solver,),

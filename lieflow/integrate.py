@@ -20,6 +20,7 @@ from numpy.typing import ArrayLike
 
 from . import driver
 from .algebras import Array
+from .backends import from_host, is_foreign_array, is_numpy, to_numpy
 from .driver import Diagnostics, Monitor
 from .errors import ConvergenceError, InputError
 from .flows import Flow, SchemeFlow, StepStats, WarmStart
@@ -162,6 +163,13 @@ def scheme_flow(
         return flow
     if engine not in ("auto", "compiled"):
         raise InputError(f"engine must be 'auto', 'numpy' or 'compiled', got {engine!r}")
+    if not is_numpy(W0):  # an array of another library (lieflow.backends)
+        if engine == "compiled":
+            raise InputError(
+                f"engine='compiled' runs NumPy arrays only, got a {type(W0).__module__} "
+                "array; use engine='auto' (the array's own library runs the steps)"
+            )
+        return flow
     from . import compiled
 
     if engine == "auto" and not compiled.available():
@@ -227,6 +235,8 @@ def _check_memory(nbytes: int, steps: int, save_every: int) -> None:
 
 
 def _validated(system: IsospectralSystem, W0: ArrayLike) -> Array:
+    if is_foreign_array(W0):  # an array of another library (lieflow.backends)
+        return from_host(_validated(system, to_numpy(W0)), W0)
     W0a = system.validate(W0)
     if W0a.size == 0:
         raise InputError(
@@ -531,6 +541,7 @@ def integrate(
                        on_failure=on_failure, monitor=_progress_monitor(progress))  # fmt: skip
 
     n_saved = 1 + n_steps // save_every + (1 if n_steps % save_every else 0)
+    W0_device, W0a = W0a, to_numpy(W0a)  # states reach the host here, a chunk at a time
     _check_memory(n_saved * W0a.nbytes, n_steps, save_every)
     saved_W = np.empty((n_saved, *W0a.shape), dtype=W0a.dtype)
     saved_k = np.zeros(n_saved, dtype=np.int64)
@@ -550,7 +561,8 @@ def integrate(
     if monitor is not None:
         monitor.start(0, n_steps)
     try:
-        for chunk in driver.advance(flow, W0a, h, n_steps):
+        for chunk in driver.advance(flow, W0_device, h, n_steps):
+            chunk = attrs.evolve(chunk, W=to_numpy(chunk.W))
             a, b = chunk.start, chunk.stop
             iterations[a:b] = chunk.iterations
             solvers.extend(chunk.solvers)

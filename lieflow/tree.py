@@ -16,6 +16,7 @@ from typing import Any
 import attrs
 import numpy as np
 
+from .backends import host_norms
 from .solvers.base import squared_norm
 
 __all__ = ["leaves", "map_leaves", "paths", "rebuild", "sum_of_squares"]
@@ -88,8 +89,11 @@ def rebuild(template: Any, values: dict[str, Any]) -> Any:
 def sum_of_squares(tree: Any) -> float:
     """``sum ||leaf||_F^2`` over the floating-point array leaves (the squared norm of the
     whole tree)."""
-    return sum(
-        squared_norm(leaf)
-        for leaf in leaves(tree)
-        if isinstance(leaf, np.ndarray) and leaf.dtype.kind in "fc"
-    )
+    total = 0.0
+    for leaf in leaves(tree):
+        if isinstance(leaf, np.ndarray):
+            if leaf.dtype.kind in "fc":
+                total += squared_norm(leaf)
+        elif hasattr(leaf, "__array_namespace__"):  # another array library
+            total += float(np.sum(host_norms(leaf, leaf.ndim) ** 2))
+    return total

@@ -10,6 +10,7 @@ next prediction extrapolates from. The extrapolation (:func:`extrapolation_weigh
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Sequence
 from typing import Any
 
@@ -17,6 +18,7 @@ import attrs
 import numpy as np
 
 from . import tree
+from .backends import copy
 from .errors import InputError
 from .solvers.base import einsum, squared_norm
 
@@ -125,7 +127,7 @@ def _combine(weights: Sequence[int], history: Sequence[Any], stack: Any = None) 
         return (w @ stack[:m]).reshape(history[0].shape)
 
     def leaf(*xs: Any) -> Any:
-        acc = weights[0] * xs[0] if weights[0] != 1 else np.array(xs[0], copy=True)
+        acc = weights[0] * xs[0] if weights[0] != 1 else copy(xs[0])
         for w, x in zip(weights[1:], xs[1:], strict=False):
             acc += w * x
         return acc
@@ -148,7 +150,7 @@ def _prediction_errors(solved: Any, history: Sequence[Any], stack: Any = None) -
         errors: list[float] = einsum("ij,ij->i", E, E).tolist()
         return errors
     return [
-        tree.sum_of_squares(tree.map_leaves(np.subtract, solved, _combine(_weights(m), history)))
+        tree.sum_of_squares(tree.map_leaves(operator.sub, solved, _combine(_weights(m), history)))
         for m in range(1, len(history) + 1)
     ]
 

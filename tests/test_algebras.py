@@ -89,3 +89,18 @@ def test_su_projection_removes_the_trace_that_u_keeps() -> None:
 def test_random_refuses_a_scale_that_is_not_a_finite_number(scale: object) -> None:
     with pytest.raises(lf.InputError, match="scale must be a finite real number"):
         lf.SO(3).random(seed=0, scale=scale)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("n", [3, 64, 65, 130, 200])
+@pytest.mark.parametrize("kind", ["real", "complex"])
+def test_minus_dagger_is_x_minus_its_conjugate_transpose_bit_for_bit(n: int, kind: str) -> None:
+    from lieflow.algebras import minus_dagger
+
+    rng = np.random.default_rng(n)
+    X = rng.standard_normal((2, n, n))
+    if kind == "complex":
+        X = X + 1j * rng.standard_normal((2, n, n))
+    expected = X - np.conj(np.swapaxes(X, -1, -2))
+    got = minus_dagger(X)
+    assert got.shape == X.shape and got.dtype == X.dtype
+    np.testing.assert_array_equal(got, expected)

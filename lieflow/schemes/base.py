@@ -9,7 +9,8 @@ from typing import Any, TypeVar
 import attrs
 import numpy as np
 
-from ..algebras import Array, dagger
+from ..algebras import Array, minus_dagger
+from ..backends import is_numpy
 from ..errors import ConvergenceError
 from ..solvers.base import ImplicitProblem, Solver, SolveResult, einsum
 from ..systems.base import IsospectralSystem
@@ -177,11 +178,15 @@ class StageProblem:
         if self.skew:
             C = B @ W
             del W, B
-            C = C - dagger(C)
+            C = minus_dagger(C)
         else:
             C = B @ W - W @ B
             del W, B
         W0 = self.W0
+        if not is_numpy(W0):  # another array library: the weighted sum stage by stage
+            terms = [float(w) * C[..., i, :, :] for i, w in enumerate(np.asarray(hb).tolist())]
+            del C
+            return sum(terms[1:], terms[0]) + W0
         weights = np.asarray(hb, dtype=W0.real.dtype)
         out = einsum("i,...iab->...ab", weights, C)
         del C
@@ -203,9 +208,11 @@ class TableauProblem(StageProblem):
     ) -> None:
         super().__init__(system, W0)
         self.h = float(h)
-        # read-only here: no copy where the tableau's precision is W0's already
-        self.A = tableau.A.astype(W0.real.dtype, copy=False)
-        self.b = tableau.b.astype(W0.real.dtype, copy=False)
+        # read-only here: no copy where the tableau's precision is W0's already; host
+        # float64 for arrays of another library (placed on its device where a map needs it)
+        real = W0.real.dtype if is_numpy(W0) else np.float64
+        self.A = tableau.A.astype(real, copy=False)
+        self.b = tableau.b.astype(real, copy=False)
 
 
 def symplectic(tableau: ButcherTableau) -> ButcherTableau:
@@ -216,11 +223,6 @@ def symplectic(tableau: ButcherTableau) -> ButcherTableau:
 def solve_right(rhs: Array, mat: Array) -> Array:
     """``rhs mat^{-1}`` (batched), as a solve with the transposed matrix."""
     return np.swapaxes(np.linalg.solve(np.swapaxes(mat, -1, -2), np.swapaxes(rhs, -1, -2)), -1, -2)
-
-
-def right_product(BM: Array, M: Array, B: Array, skew: bool) -> Array:
-    """``M B``, computed as ``(B M)^†`` without a product when ``M`` and ``B`` are skew."""
-    return dagger(BM) if skew else M @ B
 
 
 def scratch(held: Array | None, count: int, shape: tuple[int, ...], dtype: Any) -> Array:
@@ -239,6 +241,8 @@ def real_scalar(value: float, like: Array) -> Any:
     arrays like ``like``: the result NumPy gives for the Python float (which it rounds to
     that precision), in about half the time for small arrays. The float itself for
     non-floating ``like``."""
+    if not is_numpy(like):
+        return value
     dtype = like.dtype
     if dtype.kind == "c":
         dtype = like.real.dtype

@@ -10,6 +10,7 @@ import attrs
 import numpy as np
 
 from ..algebras import Array, dagger
+from ..backends import copy, device_of, from_host, is_numpy, namespace
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau, gauss, one_of
@@ -88,7 +89,7 @@ class BlockProblem(TableauProblem):
     def x0(self) -> Array:
         """``M`` at ``h = 0`` (every block ``W0``) plus ``warm``, a new array on each
         access."""
-        return self.trivial + self.warm if self.warm is not None else self.trivial.copy()
+        return self.trivial + self.warm if self.warm is not None else copy(self.trivial)
 
     def stages(self, M: Array) -> Array:
         """The stage values ``M_kk``, shape ``(..., s, n, n)``."""
@@ -167,9 +168,16 @@ class ReducedProblem(TableauProblem):
     ) -> None:
         super().__init__(system, W0, h, tableau)
         s, n = tableau.stages, W0.shape[-1]
-        trivial = np.empty((*W0.shape[:-2], 2, s, n, n), dtype=W0.dtype)
-        trivial[..., 0, :, :, :] = np.eye(n)
-        trivial[..., 1, :, :, :] = W0[..., None, :, :]
+        shape = (*W0.shape[:-2], s, n, n)
+        if is_numpy(W0):
+            trivial = np.empty((*W0.shape[:-2], 2, s, n, n), dtype=W0.dtype)
+            trivial[..., 0, :, :, :] = np.eye(n)
+            trivial[..., 1, :, :, :] = W0[..., None, :, :]
+        else:  # another array library (lieflow.backends): no slice assignment assumed
+            xp = namespace(W0)
+            eye = xp.eye(n, dtype=W0.dtype, device=device_of(W0))
+            parts = [xp.broadcast_to(eye, shape), xp.broadcast_to(W0[..., None, :, :], shape)]
+            trivial = xp.stack(parts, axis=-4)
         self.trivial = trivial
         self.warm = warm
         self._stages: Array | None = None
@@ -179,7 +187,7 @@ class ReducedProblem(TableauProblem):
     def x0(self) -> Array:
         """``(I, W0)`` plus ``warm``, a new array on each access: the solver reads it once,
         and no copy outlives the first update."""
-        return self.trivial + self.warm if self.warm is not None else self.trivial.copy()
+        return self.trivial + self.warm if self.warm is not None else copy(self.trivial)
 
     def stages(self, x: Array) -> Array:
         """Stage values ``G_i^† P_i``, shape ``(..., s, n, n)``."""
@@ -194,8 +202,16 @@ class ReducedProblem(TableauProblem):
         negated copy of a stack is made) or ``G_j B_j^†`` (others): one ``(s×s)@(s×n²)``
         product per half, written into the result."""
         *batch, s, n, _ = GB.shape
-        out = np.empty((*batch, 2, s, n * n), dtype=np.result_type(GB, PB, self.A))
         hA = self.h * self.A
+        if not is_numpy(GB):  # another array library: the same products, fresh arrays
+            xp = namespace(GB)
+            halves = [  # coefficients in GB's dtype: some libraries (torch) do not mix
+                from_host(coef, GB, GB.dtype) @ xp.reshape(Y, (*batch, s, n * n))
+                for coef, Y in ((-hA if self.skew else hA, GB), (-hA, PB))
+            ]
+            joined = xp.reshape(xp.stack(halves, axis=-3), (*batch, 2, s, n, n))
+            return joined if constant is None else joined + constant
+        out = np.empty((*batch, 2, s, n * n), dtype=np.result_type(GB, PB, self.A))
         for half, (coef, Y) in enumerate(((-hA if self.skew else hA, GB), (-hA, PB))):
             np.matmul(coef, Y.reshape(*batch, s, n * n), out=out[..., half, :, :])
         out = out.reshape(*batch, 2, s, n, n)
@@ -211,6 +227,11 @@ class ReducedProblem(TableauProblem):
         # the products go into scratch kept for the step (:func:`scratch`): an iteration
         # allocates only B and its result
         G, P = x[..., 0, :, :, :], x[..., 1, :, :, :]
+        if not is_numpy(x):  # another array library: the same products, fresh arrays
+            B = self.B(dagger(G) @ P)
+            GB, PB = G @ (B if self.skew else dagger(B)), P @ B
+            del B
+            return self._assemble(GB, PB, self.trivial)
         (W,) = self._stages = scratch(self._stages, 1, G.shape, x.dtype)
         B = self.B(np.matmul(dagger(G), P, out=W))
         dtype = np.result_type(x, B)

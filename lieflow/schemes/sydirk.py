@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import attrs
 import numpy as np
 
-from ..algebras import Array
+from ..algebras import Array, minus_dagger
+from ..backends import copy, is_numpy, namespace
 from ..errors import TableauError
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
@@ -17,7 +20,6 @@ from .base import (
     StepResult,
     StepStats,
     real_scalar,
-    right_product,
     scratch,
     solve,
     solve_right,
@@ -53,20 +55,29 @@ class MidpointProblem(StageProblem):
     def x0(self) -> Array:
         """``W0 + warm`` (cold: ``W0``), a new array on each access: the solver reads it
         once, and no copy outlives the first update."""
-        return self.W0 + self.warm if self.warm is not None else self.W0.copy()
+        return self.W0 + self.warm if self.warm is not None else copy(self.W0)
 
     def map(self, M: Array) -> Array:
         # W0 + q (BM - MB) + q^2 BMB with the same roundings (``x += y`` is ``y + x``); the
         # products go into two scratch matrices kept for the step (:func:`scratch`), so an
         # iteration allocates only B and its result.
+        # Arrays of another library (lieflow.backends): the same operations on fresh arrays.
         B = self.B(M)
-        BM, BMB = self._scratch = scratch(self._scratch, 2, M.shape, np.result_type(B, M))
-        np.matmul(B, M, out=BM)
-        np.matmul(BM, B, out=BMB)
-        MB = right_product(BM, M, B, self.skew)
-        del B
-        out = np.subtract(BM, MB)
-        del MB
+        if is_numpy(M):
+            BM, BMB = self._scratch = scratch(self._scratch, 2, M.shape, np.result_type(B, M))
+            np.matmul(B, M, out=BM)
+            np.matmul(BM, B, out=BMB)
+        else:
+            BM = B @ M
+            BMB = BM @ B
+        if self.skew:  # MB = (BM)^†: BM - MB without a transposed temporary
+            del B
+            out = minus_dagger(BM)
+        else:
+            MB = M @ B
+            del B
+            out = BM - MB
+            del MB
         out *= self._q
         out += self.W0
         BMB *= self._qq
@@ -143,7 +154,11 @@ class SyDIRK(Scheme):
     ) -> StepResult:
         W = W0
         s = self.tableau.stages
-        offsets = np.empty((*W0.shape[:-2], s, *W0.shape[-2:]), dtype=W0.dtype)
+        host = is_numpy(W0)
+        offsets: Any = (
+            np.empty((*W0.shape[:-2], s, *W0.shape[-2:]), dtype=W0.dtype) if host else None
+        )
+        parts: list[Any] = []  # the offsets of another array library, stacked at the end
         iterations = 0
         commutator = self.update == "commutator"
         for i, bi in enumerate(self.tableau.b.tolist()):
@@ -154,6 +169,11 @@ class SyDIRK(Scheme):
             problem, res = solve(solver, build, None if warm is None else warm[..., i, :, :])
             iterations += res.iterations
             x = res.x
-            np.subtract(x, W, out=offsets[..., i, :, :])
+            if host:
+                np.subtract(x, W, out=offsets[..., i, :, :])
+            else:
+                parts.append(x - W)
             W = problem.update(x) if commutator else problem.conjugation_update(x)
+        if not host:
+            offsets = namespace(W0).stack(parts, axis=-3)
         return StepResult(W, offsets, StepStats(iterations, res.solver, res.residuals[-1]))

@@ -11,6 +11,7 @@ import attrs
 import numpy as np
 
 from ..algebras import Array
+from ..backends import host_norms, is_numpy, machine_epsilon
 from ..errors import InputError
 from .base import ImplicitProblem, SolveResult, batch_norm, squared_norm, sum_of_squares
 
@@ -149,13 +150,19 @@ class IterationMonitor:
 
     def __init__(self, rule: StoppingRule, core_ndim: int, x0: Array) -> None:
         dtype = x0.dtype
-        eps = _EPS if dtype.char in "dD" else _eps(dtype)
+        host = is_numpy(x0)
+        # arrays of another library (lieflow.backends): norms on their device, one small
+        # copy to the host per update (the stopping rule's only synchronisation)
+        self._norm = batch_norm if host else host_norms
+        eps = (
+            machine_epsilon(dtype, x0) if not host else _EPS if dtype.char in "dD" else _eps(dtype)
+        )
         if eps > _EPS:  # single precision: the floor scales with machine epsilon
             rule = attrs.evolve(rule, roundoff_floor=rule.roundoff_floor * (eps / _EPS))
         self.rule = rule
         self.core = core_ndim
         self.residuals: list[float] = []
-        self._single = x0.ndim == core_ndim  # one problem: the lean check in floats
+        self._single = host and x0.ndim == core_ndim  # one problem: the lean check in floats
         if self._single:
             # ||x0|| as batch_norm computes it (the same einsum kernel, a square root in
             # x0's precision), as a float; the lean check's reference size from its first
@@ -171,7 +178,7 @@ class IterationMonitor:
             # up to this many updates an unmet, finite, bounded update goes on for sure
             self._quiet = min(rule.patience, rule.window, rule.max_iter - 1)
         else:
-            self._size0 = batch_norm(x0, core_ndim)
+            self._size0 = self._norm(x0, core_ndim)
 
     def check(self, new: Array, old: Array) -> str | None:
         """Record the update ``old -> new``; ``None`` to go on, else the reason to stop.
@@ -182,8 +189,8 @@ class IterationMonitor:
             return self._check_single(new, old)
         rule = self.rule
         with np.errstate(invalid="ignore", over="ignore"):
-            step = batch_norm(new - old, self.core)
-            size = batch_norm(new, self.core)
+            step = self._norm(new - old, self.core)
+            size = self._norm(new, self.core)
             if not (np.all(np.isfinite(step)) and np.all(np.isfinite(size))):
                 self.residuals.append(float("nan"))
                 return "non_finite"

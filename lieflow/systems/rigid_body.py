@@ -8,6 +8,7 @@ import attrs
 import numpy as np
 
 from ..algebras import SO, Array
+from ..backends import from_host, is_numpy, namespace
 from ..errors import InputError
 from .base import IsospectralSystem
 
@@ -27,7 +28,12 @@ def _moments(values: Sequence[float] | np.ndarray) -> np.ndarray:
 
 def _like(table: np.ndarray, W: Array) -> np.ndarray:
     """``table`` (float64) in the real precision of ``W`` (a float32 state stays float32);
-    ``table`` itself for a double-precision ``W`` (no dtype promotion per call)."""
+    ``table`` itself for a double-precision ``W`` (no dtype promotion per call); for ``W``
+    of another array library (:mod:`lieflow.backends`) a copy on its device (small)."""
+    if not is_numpy(W):
+        xp = namespace(W)
+        single = W.dtype in (xp.float32, xp.complex64)
+        return from_host(table, W, xp.float32 if single else xp.float64)
     dtype = W.dtype if isinstance(W, np.ndarray) else np.asarray(W).dtype
     if dtype.char in "dD":
         return table

@@ -64,6 +64,7 @@ import numpy as np
 from numpy.typing import ArrayLike, DTypeLike, NDArray
 
 import lieflow
+from lieflow.backends import from_host, is_numpy, namespace
 
 from .laplacian import HoppeYauLaplacian, matrix_size
 from .quantization import hbar, random_vorticity
@@ -247,6 +248,11 @@ class EulerZeitlin(lieflow.IsospectralSystem):
         return VorticityAlgebra(self.N, degree=self.random_degree, precision=self.dtype)
 
     def _anomaly(self, W: Array) -> Array:
+        if not is_numpy(W):  # an array of another library (lieflow.backends)
+            if self.rotation == 0.0:
+                return W
+            xp = namespace(W)
+            return W - from_host(self.planetary, W, xp.result_type(W.dtype, xp.complex64))
         W = np.asarray(W)
         if self.rotation == 0.0:
             return W

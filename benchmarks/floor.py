@@ -1,0 +1,83 @@
+"""The numpy engine against its floor: Euler–Zeitlin midpoint, seconds per step over the
+time of the products and Laplacian solves the step cannot avoid, measured in one process.
+
+    python -m benchmarks.floor                  # N = 256, the threads BLAS has
+    python -m benchmarks.floor --sizes 256 512 --cpu-time
+    OPENBLAS_NUM_THREADS=1 python -m benchmarks.floor    # the one-thread check (target 1.25x)
+
+Floor of a step with ``u`` fixed-point updates (``lf.integrate`` with diagnostics, rtol
+1e-14, ``h = 1/N`` of fluid time, smooth random vorticity of rms 1, warm starts):
+``u (2 GEMM + B)`` for the midpoint maps, ``GEMM + B`` for the update, ``GEMM`` for the
+Casimirs ``tr W^k``, ``k <= 4`` and ``B`` for the energy — each term the best time of that
+operation alone on the same state. ``--cpu-time`` reads process CPU time instead of the wall
+clock: on a shared machine the wall clock of a 40 ms step includes other processes' time
+slices, which best-of-k timings of a 3 ms product mostly avoid (one BLAS thread only).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+import lieflow as lf
+
+
+def best(f: Callable[[], object], repeats: int, clock: Callable[[], float]) -> float:
+    """Best-of-``repeats`` seconds of ``f()`` (after one untimed call)."""
+    f()
+    times = []
+    for _ in range(repeats):
+        start = clock()
+        f()
+        times.append(clock() - start)
+    return min(times)
+
+
+def measure(N: int, steps: int, repeats: int, clock: Callable[[], float]) -> dict[str, float]:
+    """Seconds per step, its floor and their parts at size ``N``."""
+    import lieflow_zeitlin as lz
+
+    system = lf.systems.get("euler_zeitlin", N=N, time="fluid")
+    W0 = lz.random_vorticity(N, degree=8, seed=0)
+    scheme = lf.schemes.get("midpoint")
+    solver = lf.solvers.FixedPoint(rtol=1e-14)
+    h = 1.0 / N
+    sol = lf.integrate(system, scheme, W0, h=h, steps=steps, solver=solver, engine="numpy")
+
+    def run() -> None:
+        lf.integrate(system, scheme, W0, h=h, steps=steps, solver=solver, engine="numpy")
+
+    step = best(run, repeats, clock) / steps
+    W = sol.W[-1]
+    out = np.empty_like(W)
+    gemm = best(lambda: np.matmul(W, W, out=out), 5 * repeats, clock)
+    B = best(lambda: system.B(W), 5 * repeats, clock)
+    updates = float(sol.iterations.mean())
+    floor = updates * (2 * gemm + B) + (gemm + B) + gemm + B
+    return {"N": N, "updates": updates, "step": step, "gemm": gemm, "B": B, "floor": floor}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.floor", description=__doc__)
+    parser.add_argument("--sizes", type=int, nargs="+", default=[256])
+    parser.add_argument("--steps", type=int, default=8)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--cpu-time", action="store_true", help="process CPU time, not wall")
+    args = parser.parse_args(argv)
+    clock = time.process_time if args.cpu_time else time.perf_counter
+    print("| N | updates/step | ms/step | GEMM ms | B ms | floor ms | step / floor |")
+    print("|---|---|---|---|---|---|---|")
+    for N in args.sizes:
+        r = measure(N, args.steps, args.repeats, clock)
+        print(
+            f"| {N} | {r['updates']:.2f} | {1e3 * r['step']:.1f} | {1e3 * r['gemm']:.2f} | "
+            f"{1e3 * r['B']:.2f} | {1e3 * r['floor']:.1f} | {r['step'] / r['floor']:.2f} |"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

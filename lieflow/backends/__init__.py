@@ -1,0 +1,154 @@
+"""Arrays of other libraries: the namespace of an array, host copies, constants on a device.
+
+lieflow's numerics are written once against the Python array API standard
+(https://data-apis.org/array-api/): a function that receives arrays asks :func:`namespace` for
+the module ``xp`` that operates on them and calls ``xp.matmul``, ``xp.conj``, ... NumPy arrays
+get ``numpy`` itself (no wrapper, no import of anything optional: the core stays
+numpy/scipy/attrs/pluggy); arrays of any other library (CuPy, PyTorch, JAX,
+``array_api_strict``) get the standard-conforming namespace of ``array-api-compat``, the
+optional extra ``lieflow[array]``. The library is selected by the array passed in: a state on
+a GPU stays there, and :func:`to_numpy` is the one place where data reach the host (the
+sinks call it, a chunk at a time).
+"""
+
+from __future__ import annotations
+
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+
+__all__ = [
+    "all_finite",
+    "copy",
+    "device_of",
+    "from_host",
+    "host_norms",
+    "is_foreign_array",
+    "is_numpy",
+    "machine_epsilon",
+    "namespace",
+    "to_numpy",
+]
+
+
+def is_numpy(x: Any) -> bool:
+    """Whether ``x`` is a NumPy array or scalar (or a Python number)."""
+    return isinstance(x, (np.ndarray, np.generic, int, float, complex))
+
+
+def is_foreign_array(x: Any) -> bool:
+    """Whether ``x`` is an array of a library other than NumPy (CuPy, PyTorch, JAX,
+    ``array_api_strict``, ...): what :func:`namespace` serves through array-api-compat.
+    Lists, scalars and NumPy arrays are not."""
+    if is_numpy(x) or isinstance(x, (list, tuple)):
+        return False
+    if hasattr(x, "__array_namespace__"):
+        return True
+    try:
+        import array_api_compat
+    except ImportError:
+        return False
+    return bool(array_api_compat.is_array_api_obj(x))
+
+
+def _compat() -> ModuleType:
+    try:
+        import array_api_compat
+    except ImportError as exc:  # pragma: no cover - the extra is installed in CI
+        raise InputError(
+            "arrays of a library other than NumPy need array-api-compat: install the "
+            "optional extra with `pip install 'lieflow[array]'` (or pass NumPy arrays)"
+        ) from exc
+    return array_api_compat
+
+
+def namespace(*arrays: Any) -> ModuleType:
+    """The array namespace of ``arrays``: ``numpy`` for NumPy arrays (and Python numbers),
+    else the array API namespace of their library (``array_api_compat.array_namespace``).
+
+    Raises :class:`~lieflow.errors.InputError` for arrays of two different libraries or of
+    a library the array API does not cover.
+    """
+    others = [a for a in arrays if a is not None and not is_numpy(a)]
+    if not others:
+        return np
+    try:
+        return _compat().array_namespace(*others)
+    except TypeError as exc:
+        kinds = sorted({type(a).__module__ + "." + type(a).__name__ for a in others})
+        raise InputError(
+            f"no array API namespace for arrays of type {', '.join(kinds)} ({exc}); pass "
+            "arrays of one library that follows the array API standard (NumPy, CuPy, "
+            "PyTorch, JAX, array_api_strict)"
+        ) from exc
+
+
+def device_of(x: Any) -> Any:
+    """The device ``x`` lives on (``"cpu"`` for NumPy arrays)."""
+    if is_numpy(x):
+        return "cpu"
+    return _compat().device(x)
+
+
+def from_host(a: Any, like: Any, dtype: Any = None) -> Any:
+    """The host (NumPy) array ``a`` as an array of ``like``'s library on ``like``'s device
+    (``dtype``: a dtype of that library, default ``a``'s). ``a`` itself for NumPy ``like``.
+
+    One host-to-device copy: callers cache the result of constants (e.g. per operator).
+    """
+    if is_numpy(like):
+        return a if dtype is None else np.asarray(a, dtype=dtype)
+    xp = namespace(like)
+    out = xp.asarray(np.ascontiguousarray(a), device=device_of(like))
+    return out if dtype is None else xp.astype(out, dtype)
+
+
+def to_numpy(x: Any) -> np.ndarray:
+    """``x`` as a NumPy array on the host: the array itself for NumPy input, else one
+    device-to-host copy (CuPy ``.get()``, PyTorch ``.cpu()``, DLPack otherwise)."""
+    if is_numpy(x):
+        return np.asarray(x)
+    compat = _compat()
+    if compat.is_cupy_array(x):
+        return np.asarray(x.get())
+    if compat.is_torch_array(x):
+        return np.asarray(x.detach().cpu().numpy())
+    try:
+        return np.asarray(np.from_dlpack(compat.to_device(x, "cpu")))
+    except (TypeError, ValueError, AttributeError, RuntimeError, BufferError):
+        return np.asarray(x)
+
+
+def copy(x: Any) -> Any:
+    """A new array equal to ``x`` (same library, device and dtype)."""
+    if is_numpy(x):
+        return np.array(x, copy=True)
+    return namespace(x).asarray(x, copy=True)
+
+
+def host_norms(x: Any, core_ndim: int) -> np.ndarray:
+    """Frobenius norms of ``x`` over its trailing ``core_ndim`` axes, as a float64 NumPy
+    array of the batch shape: computed on ``x``'s device, one small device-to-host copy
+    (the only synchronisation of a solver's stopping test)."""
+    xp = namespace(x)
+    axes = tuple(range(-core_ndim, 0))
+    squares = xp.real(x * xp.conj(x)) if xp.isdtype(x.dtype, "complex floating") else x * x
+    return np.asarray(to_numpy(xp.sqrt(xp.sum(squares, axis=axes))), dtype=np.float64)
+
+
+def machine_epsilon(dtype: Any, like: Any) -> float:
+    """Machine epsilon of the floating ``dtype`` of ``like``'s library."""
+    if is_numpy(like):
+        return float(np.finfo(dtype).eps)
+    return float(namespace(like).finfo(dtype).eps)
+
+
+def all_finite(x: Any) -> bool:
+    """Whether every entry of ``x`` is finite (one scalar to the host)."""
+    if is_numpy(x):
+        return bool(np.all(np.isfinite(x)))
+    xp = namespace(x)
+    return bool(xp.all(xp.isfinite(x)))
