@@ -105,9 +105,9 @@ def run_steps(
     sync()
     start = time.perf_counter()
     for _ in range(steps):
-        r = scheme.step(system, W, H, solver, warm)
+        r = scheme.step(W, H, system, solver, warm)
         W, warm = r.W, r.warm
-        updates.append(r.iterations)
+        updates.append(r.stats.iterations)
     sync()
     return W, updates, time.perf_counter() - start, warm
 

@@ -47,9 +47,9 @@ def test_scheme_steps_on_array_api_strict_match_numpy(scheme_name: str, index: i
     Wa = xps.asarray(W)
     warm = warm_a = None
     for _ in range(10):
-        r = scheme.step(system, W, 0.05, solver, warm)
-        ra = scheme.step(system, Wa, 0.05, solver, warm_a)
-        assert ra.iterations == r.iterations
+        r = scheme.step(W, 0.05, system, solver, warm)
+        ra = scheme.step(Wa, 0.05, system, solver, warm_a)
+        assert ra.stats.iterations == r.stats.iterations
         W, warm, Wa, warm_a = r.W, r.warm, ra.W, ra.warm
         assert backends.namespace(Wa) is xps and backends.namespace(warm_a) is xps
     rel = np.max(np.abs(backends.to_numpy(Wa) - W)) / np.max(np.abs(W))
@@ -65,9 +65,9 @@ def test_a_batch_of_states_on_array_api_strict() -> None:
     W = np.stack([system.random_state(s) for s in range(3)])
     scheme = lf.schemes.get("midpoint")
     solver = lf.solvers.FixedPoint(rtol=1e-14)
-    r = scheme.step(system, W, 0.1, solver)
-    ra = scheme.step(system, xps.asarray(W), 0.1, solver)
-    assert ra.iterations == r.iterations
+    r = scheme.step(W, 0.1, system, solver)
+    ra = scheme.step(xps.asarray(W), 0.1, system, solver)
+    assert ra.stats.iterations == r.stats.iterations
     np.testing.assert_allclose(backends.to_numpy(ra.W), r.W, rtol=0, atol=1e-15)
 
 
@@ -83,8 +83,8 @@ def test_cupy_step_matches_numpy_on_a_gpu() -> None:
     W = system.random_state(2)
     solver = lf.solvers.FixedPoint(rtol=1e-14)
     scheme = lf.schemes.get("midpoint")
-    r = scheme.step(system, W, 0.01, solver)
-    rc = scheme.step(system, cp.asarray(W), 0.01, solver)
+    r = scheme.step(W, 0.01, system, solver)
+    rc = scheme.step(cp.asarray(W), 0.01, system, solver)
     assert np.max(np.abs(backends.to_numpy(rc.W) - r.W)) <= 1e-13 * np.max(np.abs(r.W))
 
 
