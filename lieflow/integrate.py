@@ -60,7 +60,19 @@ def check_step_size(h: float) -> float:
     return hf
 
 
+def _not_a_class(value: object, what: str) -> None:
+    """Refuse a class passed where an instance is expected (``solver=FixedPoint``)."""
+    if isinstance(value, type):
+        raise InputError(
+            f"{what} must be an instance, got the class {value.__name__}; "
+            f"pass an instance: {value.__name__}()"
+        )
+
+
 def _check_types(system: object, scheme: object, solver: object) -> None:
+    _not_a_class(system, "system")
+    _not_a_class(scheme, "scheme")
+    _not_a_class(solver, "solver")
     if not isinstance(system, IsospectralSystem):
         raise InputError(
             f"system must be an IsospectralSystem, got {type(system).__name__}; "
@@ -82,23 +94,48 @@ def _check_types(system: object, scheme: object, solver: object) -> None:
 def iterate(
     system: IsospectralSystem,
     scheme: Scheme,
-    W0: Array,
+    W0: ArrayLike,
     h: float,
-    solver: Solver,
+    solver: Solver | None = None,
     *,
     start: int = 0,
     warm: WarmStart | None = None,
     warm_start: bool | int = True,
 ) -> Iterator[Step]:
-    """Yield steps ``start + 1, start + 2, ...`` from the (already validated) state ``W0``:
-    an endless stream over :func:`lieflow.driver.advance` of a :class:`SchemeFlow`.
+    """Yield steps ``start + 1, start + 2, ...`` from ``W0``: an endless stream over
+    :func:`lieflow.driver.advance` of a :class:`SchemeFlow`.
+
+    The arguments are checked as :func:`integrate` checks them, when ``iterate`` is called
+    (not at the first step): ``h`` positive and finite, ``W0`` in the system's phase space,
+    a system, a scheme and a solver instance (``FixedPoint()`` by default), ``start`` a
+    non-negative step index.
 
     ``t`` is computed as ``index * h`` (never accumulated). ``warm`` seeds the first step's
     initial guess (pass the last :attr:`Step.warm` to resume a run bit-for-bit). A failed
     step raises :class:`ConvergenceError` carrying its index and time; a step whose result is
     not finite raises it too (reason ``"non_finite"``).
+
+    Raises
+    ------
+    InputError
+        A bad argument, named.
     """
+    hf = check_step_size(h)
+    solver = FixedPoint() if solver is None else solver
+    _check_types(system, scheme, solver)
+    if not isinstance(scheme, Scheme):
+        raise InputError(
+            f"iterate steps a Scheme, got {type(scheme).__name__}; step a Flow with "
+            "lieflow.driver.advance, or run it with lieflow.integrate"
+        )
+    if isinstance(start, bool) or not isinstance(start, (int, np.integer)) or start < 0:
+        raise InputError(f"start must be a non-negative step index, got {start!r}")
+    W0a = _validated(system, W0)
     flow = SchemeFlow(system, scheme, solver, warm_start)
+    return _steps(flow, W0a, hf, int(start), warm)
+
+
+def _steps(flow: Flow, W0: Array, h: float, start: int, warm: Any) -> Iterator[Step]:
     for chunk in driver.advance(flow, W0, h, sys.maxsize, start=start, state=warm):
         yield Step(
             chunk.stop,
