@@ -55,7 +55,7 @@ import numpy as np
 from ..algebras import Array
 from ..errors import LieflowError, PluginError
 from ..flows import Flow, Splitting
-from ..integrate import Engine, scheme_flow
+from ..integration import Engine, scheme_flow
 from ..plugins import Kind, Registry, default_registry
 from ..schemes.base import Scheme
 from ..solvers.base import Solver

@@ -57,7 +57,6 @@ import platform
 import re
 import socket
 import sys
-import time
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -69,9 +68,11 @@ import numpy as np
 
 from .. import _signals, driver, tree
 from ..algebras import Array
-from ..driver import Chunk, Diagnostics, Monitor
+from ..driver import Cadence, Chunk, ChunkDiagnostics, Diagnostics, Monitor
 from ..errors import ConvergenceError, InputError, LieflowError
 from ..flows import WarmStart
+from ..sinks import Ending, RunInfo, to_host
+from ..solution import Solution, Status
 from .config import ConfigError, RunSetup, identity_changes
 
 if sys.version_info >= (3, 11):
@@ -750,16 +751,7 @@ def read_extra(path: Path | str) -> dict[str, Array]:
         return {name: ds[:n] for name, ds in group.items() if not _is_scale(ds)}
 
 
-def _extra_hook(system: Any, save_every: int) -> tuple[Any, int]:
-    """``(system.extra_diagnostics or None, interval in steps)``: the interval is
-    ``system.diagnostics_every`` (``None``: ``save_every``; ``0``: no extra diagnostics)."""
-    every = getattr(system, "diagnostics_every", None)
-    if every is not None and int(every) == 0:
-        return None, 0
-    return getattr(system, "extra_diagnostics", None), int(every) if every else save_every
-
-
-def _append_extra(f: h5py.File, rows: list[tuple[int, float, dict[str, Any]]]) -> None:
+def _append_extra(f: h5py.File, rows: list[tuple[int, float, Mapping[str, Any]]]) -> None:
     """Append ``(step, t, {name: value})`` rows to ``/diagnostics/extra`` (datasets are
     created at the first row, shaped like its values; in a netCDF-4 file along the unlimited
     dimension ``sample``, an ensemble's member axis on ``ensemble``)."""
@@ -1100,13 +1092,15 @@ def _verify_for_resume(header: TrajectoryHeader) -> Checkpoint:
 
 
 class TrajectoryWriter:
-    """Appends a run to an open trajectory file.
+    """Appends a run to an open trajectory file: the application's
+    :class:`~lieflow.sinks.Sink` for ``.h5`` files (``TrajectorySink``).
 
-    Create one with :meth:`create` (a new file) or :meth:`reopen` (resume). Feed every
-    :class:`~lieflow.driver.Chunk` of steps to :meth:`record`; call :meth:`commit` at save
-    points (it appends the buffered diagnostics and saved states, writes a checkpoint and
-    flushes) and :meth:`close` at the end. A commit runs with interrupts deferred and writes
-    to explicit positions, so an interrupt cannot leave it half-done.
+    Create one with :meth:`create` (a new file), :meth:`reopen` (resume) or :meth:`open`
+    (either). :func:`lieflow.driver.run` feeds every :class:`~lieflow.driver.Chunk` of steps
+    to :meth:`record` (buffered), calls :meth:`checkpoint` at its checkpoint cadence (it
+    appends the buffered diagnostics and saved states, writes a checkpoint and flushes) and
+    :meth:`close` at the end. A checkpoint runs with interrupts deferred and writes to
+    explicit positions, so an interrupt cannot leave it half-done.
 
     A writer holds an exclusive lock on its output path from :meth:`create` or
     :meth:`reopen` to :meth:`close` (one writer per file: a second is refused with
@@ -1124,12 +1118,19 @@ class TrajectoryWriter:
         self._file_id = _file_id(f)
         self._layout = layout = _check_format(f, self._path)
         at = layout.paths
+        extra, every = driver.extra_hook(header.system, header.save_every)
         self._diagnostics = Diagnostics(
             header.system,
             f[at["energy"]][0],
             f[at["casimirs"]][0],
             header.system.casimir_scale(f[at["W0"]][()]),
+            extra,
+            every,
         )
+        self._header = header
+        #: where a reopened file continues (:meth:`reopen`); ``None`` for a new file
+        self.start: Checkpoint | None = None
+        self._ending: tuple[Ending, ConvergenceError | None, float] | None = None
         # h5py path lookups cost tens of microseconds each: keep the handles (``step``: the
         # per-step coordinate of a netCDF-4 file, appended with the diagnostics)
         per_step = (*_PER_STEP, *(("step",) if "step" in at else ()))
@@ -1141,14 +1142,13 @@ class TrajectoryWriter:
         # rows committed (steps 0..K)
         self._n_diag = self._diag["iterations"].shape[0] - layout.update_row0
         self._n_saved = self._traj["saved_step"].shape[0]
-        # per buffered chunk: (step indices kept, states kept, iterations, residuals, H, C,
-        # extra rows); only the kept states, never a whole chunk (memory stays bounded)
-        self._buffer: list[tuple[Array, Array, Array, Array, Array, Array, list[Any]]] = []
+        # per buffered chunk: (step indices kept, states kept, iterations, residuals, its
+        # diagnostics); only the kept states, never a whole chunk (memory stays bounded)
+        self._buffer: list[tuple[Array, Array, Array, Array, ChunkDiagnostics]] = []
         self._last: tuple[int, float, Array, Any] | None = None  # (step, h, W, flow state)
         self._slot = int(self._ck.attrs["current"])
         self._step = int(self._slots[self._slot].attrs["step"])  # the checkpoint's step
         self._max_error = float(np.max(self._diag["energy_error"][: self._n_diag]))
-        self._extra, self._extra_every = _extra_hook(header.system, header.save_every)
 
     @property
     def path(self) -> Path:
@@ -1249,35 +1249,39 @@ class TrajectoryWriter:
             raise
         return writer, ck
 
+    @classmethod
+    def open(cls, run: TrajectoryHeader | RunSetup, *, resume: bool = False) -> TrajectoryWriter:
+        """:meth:`reopen` ``run.output`` if ``resume`` and it exists (the writer's
+        :attr:`start` is then its last checkpoint), else :meth:`create` it."""
+        setup = _header(run)
+        if resume and setup.output.exists():
+            writer, ck = cls.reopen(setup)
+            writer.start = ck
+            return writer
+        return cls.create(setup)
+
     # -- writing ---------------------------------------------------------------------------
 
-    def record(self, chunk: Chunk, keep: Array) -> float:
-        """Buffer ``chunk``: its diagnostics, its states where ``keep`` is true, and its last
-        state and flow state for the next checkpoint. Returns the largest relative energy
-        error among its steps. Nothing is written until :meth:`commit`."""
-        H = self._diagnostics.energy(chunk.W)
-        C = self._diagnostics.casimirs(chunk.W)
-        err = float(np.max(self._diagnostics.energy_error(H)))
-        extra = []
-        if self._extra is not None:
-            for j in np.flatnonzero(chunk.index % self._extra_every == 0):
-                extra.append((int(chunk.index[j]), float(chunk.t[j]), self._extra(chunk.W[j])))
+    def record(self, chunk: Chunk, keep: Array, diagnostics: ChunkDiagnostics | None) -> None:
+        """Buffer ``chunk``: its diagnostics (computed here when ``None``: a file always
+        records them), its states where ``keep`` is true, and its last state and flow state
+        for the next checkpoint. Nothing is written until :meth:`checkpoint`."""
+        diag = self._diagnostics.of_chunk(chunk) if diagnostics is None else diagnostics
         keep = np.asarray(keep, dtype=bool)
-        entry = (chunk.index[keep], chunk.W[keep], np.asarray(chunk.iterations),
-                 np.asarray(chunk.residuals), H, C, extra)  # fmt: skip
-        last = (chunk.stop, chunk.h, np.array(chunk.W[-1]), chunk.state)
+        entry = (chunk.index[keep], to_host(chunk.W[keep]), to_host(chunk.iterations),
+                 to_host(chunk.residuals), diag)  # fmt: skip
+        last = (chunk.stop, chunk.h, np.array(to_host(chunk.W[-1])), chunk.state)
         # one append and one assignment: recorded entirely or not at all
         self._buffer.append(entry)
         self._last = last
-        self._max_error = max(self._max_error, err)
-        return err
+        self._max_error = max(self._max_error, diag.max_energy_error)
 
     @property
     def completed_steps(self) -> int:
         """Steps in the file after the last :meth:`commit` (its checkpoint's step)."""
         return self._step
 
-    def commit(self, *, keep_last: bool = False) -> None:
+    def checkpoint(self, *, keep_last: bool = False) -> None:
         """Append the buffered diagnostics and saved states (and the last state, with
         ``keep_last``), checkpoint at the last buffered step and flush.
 
@@ -1290,13 +1294,13 @@ class TrajectoryWriter:
                 return
             n0, n_saved = self._n_diag, self._n_saved
             stop, h, W_last, state = self._last
-            H = np.concatenate([b[4] for b in buf])
-            C = np.concatenate([b[5] for b in buf])
+            H = np.concatenate([to_host(b[4].energy) for b in buf])
+            C = np.concatenate([to_host(b[4].casimirs) for b in buf])
             columns = {
                 "energy": H,
-                "energy_error": self._diagnostics.energy_error(H),
+                "energy_error": np.concatenate([to_host(b[4].energy_error) for b in buf]),
                 "casimirs": C,
-                "casimir_drift": self._diagnostics.casimir_drift(C),
+                "casimir_drift": np.concatenate([to_host(b[4].casimir_drift) for b in buf]),
                 "iterations": np.concatenate([b[2] for b in buf]).astype(np.int64),
                 "residual": np.concatenate([b[3] for b in buf]).astype(float),
             }
@@ -1318,7 +1322,7 @@ class TrajectoryWriter:
                     ds = self._traj[name]
                     ds.resize(n_saved + steps.size, axis=0)
                     ds[n_saved:] = value
-            _append_extra(self._f, [e for b in buf for e in b[6]])
+            _append_extra(self._f, [e for b in buf for e in b[4].extra])
             self._checkpoint(stop, stop * h, W_last, state)
             self._f.flush()
             self._n_diag, self._n_saved = n0 + H.shape[0], n_saved + steps.size
@@ -1337,8 +1341,11 @@ class TrajectoryWriter:
         self._ck.attrs["current"] = slot_id  # the commit point
         self._slot, self._step = slot_id, index
 
-    def close(self, status: str, wall_time: float, failure: str = "") -> None:
-        """Record the final status and the time spent, close the file and release its lock.
+    def close(
+        self, status: Ending, failure: ConvergenceError | str | None, wall_time: float
+    ) -> None:
+        """Record the final status, the failure's message and the time spent, close the file
+        and release its lock.
 
         Raises
         ------
@@ -1348,11 +1355,12 @@ class TrajectoryWriter:
         """
         f = self._f
         lost = False
+        self._last, self._buffer = None, []  # hold no state once closed
         try:
             f.attrs["completed_steps"] = self._step
             f.attrs["status"] = status
             f.attrs["wall_time"] = float(f.attrs.get("wall_time", 0.0)) + wall_time
-            f.attrs["failure"] = failure
+            f.attrs["failure"] = "" if failure is None else str(failure)
             f.flush()
         finally:
             try:
@@ -1365,6 +1373,8 @@ class TrajectoryWriter:
             finally:
                 if self._lock is not None:
                     self._lock.release()
+        error = failure if isinstance(failure, ConvergenceError) else None
+        self._ending = (status, error, wall_time)
         if lost:
             raise LieflowError(
                 f"{_where(self._path)} was deleted or replaced by another program while this "
@@ -1373,6 +1383,55 @@ class TrajectoryWriter:
                 "move or delete the output during a run (`lieflow run --force` on a running "
                 "output is refused; `rm` or `mv` are not), and run again."
             )
+
+    def result(self) -> Solution:
+        """The run as a :class:`~lieflow.Solution` (after :meth:`close`): the initial and the
+        last state (``W``, ``t``, ``saved_steps`` of length 2), and every step's iterations
+        and diagnostics read back from the file; ``solvers`` names the requested solver."""
+        if self._ending is None:
+            raise LieflowError("TrajectoryWriter.result() before the run was closed")
+        status, failure, wall = self._ending
+        header = self._header
+        run = read_diagnostics(self._path)
+        k = run.completed_steps
+        first = np.asarray(run.W0)
+        W = np.stack([first, run.W]) if k else first[None]
+        steps_kept = np.array([0, k] if k else [0], dtype=np.int64)
+        return Solution(
+            system=header.system,
+            scheme=header.scheme,
+            h=header.h,
+            t=steps_kept * header.h,
+            W=W,
+            saved_steps=steps_kept,
+            iterations=run.iterations,
+            solvers=(header.solver or header.scheme,) * k,
+            energy_error=run.energy_error,
+            casimir_drift=run.casimir_drift,
+            status=Status.SUCCESS if status == "complete" else Status.FAILED,
+            failure=failure,
+            wall_time=wall,
+            extra=read_extra(self._path),
+        )
+
+
+#: The application's sink for trajectory files (:class:`lieflow.sinks.Sink`).
+TrajectorySink = TrajectoryWriter
+
+
+def trajectory_sink(
+    path: Path, run: RunInfo, *, resume: bool = False, replace: bool = False
+) -> TrajectoryWriter:
+    """The sink factory registered for ``.h5`` (:func:`lieflow.sinks.open_sink`): a
+    :class:`TrajectoryWriter` on ``path`` for ``run`` — continuing the file from its last
+    checkpoint with ``resume`` (if it exists), else creating it (an existing file only with
+    ``replace``)."""
+    header = TrajectoryHeader(
+        system=run.system, system_name=run.system_name, scheme=run.scheme, solver=run.solver,
+        h=run.h, save_every=run.save_every, requested_steps=run.requested_steps,
+        identity=run.identity, W0=run.W0, output=_as_path(path, "out"), replace=replace,
+    )  # fmt: skip
+    return TrajectoryWriter.open(header, resume=resume)
 
 
 def _write_slot(
@@ -1606,7 +1665,7 @@ def _initialise(f: h5py.File, header: TrajectoryHeader) -> None:
     for ds, value in rows.items():
         ds.resize(1, axis=0)
         ds[0] = value
-    extra, _ = _extra_hook(system, header.save_every)
+    extra, _ = driver.extra_hook(system, header.save_every)
     if extra is not None:
         _append_extra(f, [(0, 0.0, extra(W0))])
     ck = f.create_group("checkpoint")
@@ -1749,10 +1808,10 @@ def run_flow(
     monitor: Monitor | None = None,
 ) -> tuple[RunSummary, ConvergenceError | None]:
     """Advance ``flow`` and write the trajectory to ``header.output`` as it proceeds: the
-    loop of :func:`run` (``lieflow run``) and of :func:`lieflow.integrate` with ``out=``.
+    one consumer loop (:func:`lieflow.driver.run`) into a :class:`TrajectoryWriter`.
 
     Memory: the writer buffers each chunk's diagnostics (a few numbers per step) and only
-    the states it will save; at every save point they are written and a checkpoint taken.
+    the states it will save; at every checkpoint they are written.
 
     Returns
     -------
@@ -1761,59 +1820,35 @@ def run_flow(
         the error of a failed step (the file then holds the steps before it).
     """
     target = header.requested_steps
-    if resume and header.output.exists():
-        writer, ck = TrajectoryWriter.reopen(header)
+    writer = TrajectoryWriter.open(header, resume=resume)
+    ck = writer.start
+    if ck is None:
+        W, state, done = header.W0, None, 0
+    else:
         W, done = ck.W, ck.step
         state = ck.state(flow.init(W))
-    else:
-        writer = TrajectoryWriter.create(header)
-        W, state, done = header.W0, None, 0
-    if done >= target:
-        writer.close("complete", 0.0)
-        summary = RunSummary(header.output, "complete", done, target, 0, 0.0,
-                             writer.max_energy_error)  # fmt: skip
-        return summary, None
-
-    status, failure, error = "running", "", None
-    start = time.perf_counter()
-    if monitor is not None:
-        monitor.start(done, target)
-    try:
-        for chunk in driver.advance(flow, W, header.h, target, start=done, state=state):
-            keep = (chunk.index % header.save_every == 0) | (chunk.index == target)
-            err = writer.record(chunk, keep)
-            if keep.any():
-                writer.commit()
-            if monitor is not None:
-                monitor.advance(chunk.size, int(chunk.iterations.sum()), err)
-            del chunk  # hold no chunk while the next one is computed
-        status = "complete"
-    except KeyboardInterrupt:
-        status = "interrupted"
-    except ConvergenceError as exc:
-        status, failure, error = "failed", str(exc), exc
-    finally:
-        wall = time.perf_counter() - start
-        try:
-            if monitor is not None:
-                monitor.stop()
-        finally:
-            # Checkpoint what was computed (a failed run keeps its last state); then record
-            # the status. Both with interrupts deferred, so a second Ctrl-C cannot split them.
-            with _signals.deferred():
-                try:
-                    writer.commit(keep_last=status == "failed")
-                finally:
-                    writer.close(status if status != "running" else "interrupted", wall, failure)
+    outcome = driver.run(
+        flow,
+        W,
+        header.h,
+        target,
+        sinks=(writer,),
+        diagnostics=Diagnostics.of(header.system, header.W0, save_every=header.save_every),
+        save_every=header.save_every,
+        start=done,
+        state=state,
+        monitor=monitor,
+        checkpoint=Cadence(),
+    )
     completed = writer.completed_steps
     summary = RunSummary(
         header.output,
-        status,
+        outcome.status,
         completed,
         target,
         completed - done,
-        wall,
+        outcome.wall_time,
         writer.max_energy_error,
-        failure,
+        "" if outcome.failure is None else str(outcome.failure),
     )
-    return summary, error
+    return summary, outcome.failure

@@ -1,6 +1,6 @@
-"""The one entry point that runs many steps, :func:`integrate`, and the step stream
-:func:`iterate`: both over the one stepping loop, :func:`lieflow.driver.advance` (which the
-command line's HDF5 runner, :func:`lieflow.app.io.run`, drives too)."""
+"""The one entry point that runs many steps, :func:`integrate` (over the one consumer loop,
+:func:`lieflow.driver.run`, into a :class:`~lieflow.sinks.Sink`), and the step stream
+:func:`iterate` (over the one stepping loop, :func:`lieflow.driver.advance`)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,6 @@ import json
 import math
 import os
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Literal
@@ -21,10 +20,11 @@ from numpy.typing import ArrayLike
 from . import driver
 from .algebras import Array
 from .driver import Diagnostics, Monitor
-from .errors import ConvergenceError, InputError
+from .errors import InputError
 from .flows import Flow, SchemeFlow, StepStats, WarmStart
 from .schemes.base import Scheme
-from .solution import Solution, Status
+from .sinks import MemorySink, RunInfo, Sink, open_sink
+from .solution import Solution
 from .solvers.base import Solver
 from .solvers.fixed_point import FixedPoint
 from .systems.base import IsospectralSystem
@@ -276,7 +276,7 @@ def _progress_monitor(progress: bool | Monitor) -> Monitor | None:
     if progress is False:
         return None
     if progress is True:
-        from .app.progress import ProgressBar
+        from .progress import ProgressBar
 
         return ProgressBar()
     if not all(callable(getattr(progress, m, None)) for m in ("start", "advance", "stop")):
@@ -331,7 +331,7 @@ def _shift_identity(flow: Flow) -> dict[str, float]:
     return {"casimir_shift": stepped.c} if isinstance(stepped, CasimirShifted) else {}
 
 
-def _stream(
+def _file_sink(
     system: IsospectralSystem,
     scheme: Scheme | Flow,
     flow: Flow,
@@ -342,18 +342,16 @@ def _stream(
     *,
     save_every: int,
     warm_start: bool | int,
-    out: Any,
+    out: str | os.PathLike[str],
     resume: bool,
     replace: bool,
-    on_failure: str,
-    monitor: Monitor | None,
-) -> Solution:
-    """``integrate(..., out=path)``: run through :func:`lieflow.app.io.run_flow` into a
-    trajectory file; the :class:`Solution` holds the initial and last states and the
-    per-step diagnostics read back from the file."""
-    from .app import io
-
-    path = Path(io._as_path(out, "out")).absolute()
+) -> Sink:
+    """``integrate(..., out=path)``: the sink registered for the path's suffix (the
+    application's HDF5 trajectory writer for ``.h5``), opened for this run."""
+    if isinstance(out, bytes) or not isinstance(out, (str, os.PathLike)) or not str(out):
+        raise InputError(
+            f"out must be a file path or a Sink (record, checkpoint, close, result), got {out!r}"
+        )
     identity = json.dumps(
         {
             "system": _describe(system),
@@ -367,7 +365,7 @@ def _stream(
         sort_keys=True,
         default=str,
     )
-    header = io.TrajectoryHeader(
+    info = RunInfo(
         system=system,
         system_name=_system_name(system),
         scheme=flow.name,
@@ -377,34 +375,12 @@ def _stream(
         requested_steps=n_steps,
         identity=identity,
         W0=W0,
-        output=path,
-        replace=replace,
     )
-    summary, error = io.run_flow(header, flow, resume=resume, monitor=monitor)
-    if summary.status == "interrupted":
-        raise KeyboardInterrupt
-    if error is not None and on_failure == "raise":
-        raise error
-    run = io.read_diagnostics(path)
-    k = run.completed_steps
-    first = np.asarray(run.W0)
-    W = np.stack([first, run.W]) if k else first[None]
-    steps_kept = np.array([0, k] if k else [0], dtype=np.int64)
-    return Solution(
-        system=system,
-        scheme=flow.name,
-        h=h,
-        t=steps_kept * h,
-        W=W,
-        saved_steps=steps_kept,
-        iterations=run.iterations,
-        solvers=(header.solver or flow.name,) * k,
-        energy_error=run.energy_error,
-        casimir_drift=run.casimir_drift,
-        status=Status.SUCCESS if error is None else Status.FAILED,
-        failure=error,
-        wall_time=summary.wall_time,
-    )
+    return open_sink(Path(out).absolute(), info, resume=resume, replace=replace)
+
+
+def _is_sink(out: object) -> bool:
+    return all(callable(getattr(out, m, None)) for m in ("record", "checkpoint", "close", "result"))
 
 
 def integrate(
@@ -422,7 +398,7 @@ def integrate(
     on_failure: Literal["raise", "truncate"] = "raise",
     progress: bool | Monitor = False,
     engine: Engine = "auto",
-    out: str | os.PathLike[str] | None = None,
+    out: str | os.PathLike[str] | Sink | None = None,
     resume: bool = False,
     replace: bool = False,
     casimir_shift: float | Literal["auto"] = 0.0,
@@ -562,77 +538,30 @@ def integrate(
         flow = scheme_flow(stepped, scheme, solver, W0a, n_steps, engine=engine,
                            warm_start=warm_start)  # fmt: skip
 
-    if out is not None:
-        return _stream(system, scheme, flow, solver, W0a, h, n_steps, save_every=save_every,
-                       warm_start=warm_start, out=out, resume=resume, replace=replace,
-                       on_failure=on_failure, monitor=_progress_monitor(progress))  # fmt: skip
-
-    n_saved = 1 + n_steps // save_every + (1 if n_steps % save_every else 0)
-    _check_memory(n_saved * W0a.nbytes, n_steps, save_every)
-    saved_W = np.empty((n_saved, *W0a.shape), dtype=W0a.dtype)
-    saved_k = np.zeros(n_saved, dtype=np.int64)
-    saved_W[0] = W0a
-    n_kept = 1
-    iterations = np.zeros(n_steps, dtype=np.int64)
-    solvers: list[str] = []
-    diag = Diagnostics.of(system, W0a) if diagnostics else None
-    H = np.empty((n_steps + 1, *np.shape(diag.H0))) if diag is not None else None
-    C = np.empty((n_steps + 1, *np.shape(diag.C0))) if diag is not None else None
-    if diag is not None and H is not None and C is not None:
-        H[0], C[0] = diag.H0, diag.C0
-    failure: ConvergenceError | None = None
     monitor = _progress_monitor(progress)
-    done = 0
-    start = time.perf_counter()
-    if monitor is not None:
-        monitor.start(0, n_steps)
-    try:
-        for chunk in driver.advance(flow, W0a, h, n_steps):
-            a, b = chunk.start, chunk.stop
-            iterations[a:b] = chunk.iterations
-            solvers.extend(chunk.solvers)
-            err = None
-            if diag is not None and H is not None and C is not None:
-                H[a + 1 : b + 1] = diag.energy(chunk.W)
-                C[a + 1 : b + 1] = diag.casimirs(chunk.W)
-                err = float(np.max(diag.energy_error(H[a + 1 : b + 1])))
-            index = chunk.index
-            keep = np.flatnonzero((index % save_every == 0) | (index == n_steps))
-            saved_W[n_kept : n_kept + keep.size] = chunk.W[keep]
-            saved_k[n_kept : n_kept + keep.size] = index[keep]
-            n_kept += keep.size
-            if saved_k[n_kept - 1] != b:  # the last state computed so far is always at hand
-                saved_W[n_kept], saved_k[n_kept] = chunk.W[-1], b
-            done = b
-            if monitor is not None:
-                monitor.advance(chunk.size, int(chunk.iterations.sum()), err)
-    except ConvergenceError as exc:
-        if on_failure == "raise":
-            raise
-        failure = exc
-        if done and saved_k[n_kept - 1] != done:
-            n_kept += 1  # keep the last good state (written above)
-    finally:
-        if monitor is not None:
-            monitor.stop()
-    wall = time.perf_counter() - start
-
-    energy_error = casimir_drift = None
-    if diag is not None and H is not None and C is not None:
-        energy_error = diag.energy_error(H[: done + 1])
-        casimir_drift = diag.casimir_drift(C[: done + 1])
-    return Solution(
-        system=system,
-        scheme=flow.name,
-        h=h,
-        t=saved_k[:n_kept] * h,
-        W=saved_W[:n_kept],
-        saved_steps=saved_k[:n_kept].copy(),
-        iterations=iterations[:done],
-        solvers=tuple(solvers),
-        energy_error=energy_error,
-        casimir_drift=casimir_drift,
-        status=Status.SUCCESS if failure is None else Status.FAILED,
-        failure=failure,
-        wall_time=wall,
-    )
+    start, state = 0, None
+    if out is None:
+        _check_memory(MemorySink.saved_states(n_steps, save_every) * W0a.nbytes, n_steps,
+                      save_every)  # fmt: skip
+        diag = Diagnostics.of(system, W0a, save_every=save_every) if diagnostics else None
+        sink: Sink = MemorySink(system, flow.name, h, W0a, n_steps, save_every, diag)
+    else:
+        # a file records every step's diagnostics, whatever ``diagnostics`` says
+        diag = Diagnostics.of(system, W0a, save_every=save_every)
+        if _is_sink(out):
+            sink = out  # type: ignore[assignment]
+        else:
+            sink = _file_sink(system, scheme, flow, solver, W0a, h, n_steps,
+                              save_every=save_every, warm_start=warm_start, out=out,  # type: ignore[arg-type]
+                              resume=resume, replace=replace)  # fmt: skip
+        point = getattr(sink, "start", None)
+        if point is not None:
+            start, W0a = point.step, point.W
+            state = point.state(flow.init(W0a))
+    outcome = driver.run(flow, W0a, h, n_steps, sinks=(sink,), diagnostics=diag,
+                         save_every=save_every, start=start, state=state, monitor=monitor,
+                         on_failure=on_failure)  # fmt: skip
+    if outcome.status == "interrupted":
+        raise KeyboardInterrupt
+    result: Solution = sink.result()
+    return result
