@@ -1,0 +1,134 @@
+"""The one consumer loop (:func:`lieflow.driver.run`) and the sinks it feeds."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import lieflow as lf
+from lieflow.driver import Cadence
+
+RB = lf.systems.get("rigid_body", inertia=(1.0, 2.0, 3.0))
+W0 = RB.random_state(seed=0)
+MID = lf.schemes.get("midpoint")
+
+
+class Recorder:
+    """A Sink that writes down every call."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[Any, ...]] = []
+        self.kept: list[int] = []
+
+    def record(self, chunk: Any, keep: Any, diagnostics: Any) -> None:
+        self.calls.append(("record", chunk.stop))
+        self.kept += chunk.index[keep].tolist()
+        self.diagnostics = diagnostics
+
+    def checkpoint(self, *, keep_last: bool = False) -> None:
+        self.calls.append(("checkpoint", keep_last))
+
+    def close(self, status: str, failure: Any, wall_time: float) -> None:
+        self.calls.append(("close", status))
+
+    def result(self) -> str:
+        return "recorded"
+
+
+class Extra(lf.IsospectralSystem):
+    """The rigid body with an extra diagnostic (``|W|_F`` and the step's state)."""
+
+    algebra = lf.SO(3)
+    linear_B = True
+    diagnostics_every = 2
+
+    def B(self, W: np.ndarray) -> np.ndarray:
+        return RB.B(W)
+
+    def hamiltonian(self, W: np.ndarray) -> np.ndarray:
+        return RB.hamiltonian(W)
+
+    def extra_diagnostics(self, W: np.ndarray) -> dict[str, np.ndarray]:
+        return {"norm": np.asarray(np.linalg.norm(W)), "W": np.array(W)}
+
+
+def test_integrate_into_a_sink_object_returns_its_result() -> None:
+    sink = Recorder()
+    assert lf.integrate(RB, MID, W0, 0.1, steps=7, save_every=3, out=sink) == "recorded"
+    assert sink.kept == [3, 6, 7]
+    assert sink.calls[-2:] == [("checkpoint", False), ("close", "complete")]
+    # a checkpoint after each chunk holding a saved state (the default cadence)
+    saves = [i for i, c in enumerate(sink.calls) if c[0] == "checkpoint"]
+    assert [sink.calls[i - 1] for i in saves[:-1]] == [("record", 3), ("record", 6), ("record", 7)]
+
+
+@pytest.mark.parametrize(
+    ("cadence", "after"), [(Cadence(steps=4), [4, 8]), (Cadence(seconds=0), list(range(1, 11)))]
+)
+def test_checkpoint_cadence_is_not_the_save_cadence(cadence: Cadence, after: list[int]) -> None:
+    sink = Recorder()
+    flow = lf.SchemeFlow(RB, MID, lf.solvers.FixedPoint())
+    outcome = lf.driver.run(flow, W0, 0.1, 10, sinks=[sink], save_every=5, checkpoint=cadence)
+    assert outcome.status == "complete" and outcome.done == 10
+    calls = sink.calls
+    taken = [calls[i - 1][1] for i, c in enumerate(calls) if c[0] == "checkpoint"]
+    assert taken[:-1] == after and sink.kept == [5, 10]
+
+
+def test_bad_cadence_is_refused() -> None:
+    with pytest.raises(lf.InputError, match="checkpoint steps"):
+        Cadence(steps=0)
+    with pytest.raises(lf.InputError, match="checkpoint seconds"):
+        Cadence(seconds=float("nan"))
+
+
+def test_a_failed_step_keeps_the_last_state_and_closes_failed() -> None:
+    sink = Recorder()
+    solver = lf.solvers.FixedPoint(max_iter=2)
+    scheme = lf.schemes.get("gauss2")
+    flow = lf.SchemeFlow(RB, scheme, solver)
+    outcome = lf.driver.run(flow, 50 * W0, 0.5, 5, sinks=[sink], save_every=5)
+    assert outcome.status == "failed" and isinstance(outcome.failure, lf.ConvergenceError)
+    assert sink.calls[-2:] == [("checkpoint", True), ("close", "failed")]
+    sol = lf.integrate(RB, scheme, 50 * W0, 0.5, steps=5, solver=solver, on_failure="truncate")
+    assert not sol.success and sol.saved_steps[-1] == sol.n_steps == outcome.done
+
+
+def test_extra_diagnostics_reach_memory_and_file_alike(tmp_path: Path) -> None:
+    """``system.extra_diagnostics`` used to be recorded by the HDF5 writer only."""
+    system = Extra()
+    mem = lf.integrate(system, MID, W0, 0.1, steps=5, engine="numpy")
+    assert mem.extra["step"].tolist() == [0, 2, 4]
+    np.testing.assert_array_equal(mem.extra["t"], [0.0, 0.2, 0.4])
+    saved = mem.extra["W"]
+    sol = lf.integrate(system, MID, W0, 0.1, steps=5, engine="numpy", save_every=1)
+    np.testing.assert_array_equal(saved, sol.W[[0, 2, 4]])  # the states themselves
+    np.testing.assert_allclose(mem.extra["norm"], np.linalg.norm(W0), rtol=1e-14)
+    disk = lf.integrate(system, MID, W0, 0.1, steps=5, engine="numpy", out=tmp_path / "x.h5")
+    assert sorted(disk.extra) == sorted(mem.extra)
+    for name, value in mem.extra.items():
+        np.testing.assert_array_equal(disk.extra[name], value)
+
+
+def test_memory_sink_and_file_sink_see_the_same_diagnostics(tmp_path: Path) -> None:
+    mem = lf.integrate(RB, MID, W0, 0.1, steps=9, save_every=4, engine="numpy")
+    disk = lf.integrate(RB, MID, W0, 0.1, steps=9, save_every=4, engine="numpy",
+                        out=tmp_path / "r.h5")  # fmt: skip
+    assert mem.energy_error is not None and disk.energy_error is not None
+    np.testing.assert_array_equal(mem.energy_error, disk.energy_error)
+    np.testing.assert_array_equal(mem.iterations, disk.iterations)
+    np.testing.assert_array_equal(mem.W[-1], disk.W[-1])
+    # recomputed independently at the saved states; the Casimir tr W^2 is exact (isospectral)
+    H = np.array([RB.hamiltonian(W) for W in mem.W])
+    H0 = RB.hamiltonian(W0)
+    np.testing.assert_allclose(mem.energy_error[mem.saved_steps], np.abs(H - H0) / abs(H0),
+                               rtol=1e-12, atol=0)  # fmt: skip
+    assert mem.casimir_drift is not None and mem.casimir_drift.max() < 1e-13
+
+
+def test_an_unregistered_suffix_is_written_as_a_trajectory_file(tmp_path: Path) -> None:
+    sol = lf.integrate(RB, MID, W0, 0.1, steps=3, out=tmp_path / "run.dat")
+    assert sol.success and lf.open_run(tmp_path / "run.dat").W_final.shape == (3, 3)
