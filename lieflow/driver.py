@@ -342,7 +342,12 @@ class Cadence:
     def __attrs_post_init__(self) -> None:
         if self.steps is not None and (isinstance(self.steps, bool) or self.steps < 1):
             raise InputError(f"checkpoint steps must be a positive integer, got {self.steps!r}")
-        if self.seconds is not None and not (math.isfinite(self.seconds) and self.seconds >= 0):
+        seconds = self.seconds
+        if seconds is not None and (
+            isinstance(seconds, bool)
+            or not isinstance(seconds, (int, float, np.floating, np.integer))
+            or not (math.isfinite(seconds) and seconds >= 0)
+        ):
             raise InputError(f"checkpoint seconds must be >= 0 and finite, got {self.seconds!r}")
 
     @property

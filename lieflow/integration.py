@@ -401,6 +401,7 @@ def integrate(
     out: str | os.PathLike[str] | Sink | None = None,
     resume: bool = False,
     replace: bool = False,
+    checkpoint_seconds: float = 1.0,
     casimir_shift: float | Literal["auto"] = 0.0,
 ) -> Solution:
     """Integrate ``dW/dt = [B(W), W]`` from ``W0`` with a fixed step ``h``.
@@ -456,17 +457,20 @@ def integrate(
         (``n <= 128``, complex ``n <= 96``, and at least 1000 trajectory-steps, see
         :func:`lieflow.compiled.wins`: a function of the run alone, so the same run gives
         the same bits in any process), else numpy.
-    out : str or path, optional
-        Stream the run into this trajectory file — the format ``lieflow run`` writes
-        (:mod:`lieflow.app.io`; read it with :func:`lieflow.app.io.read_trajectory`, plot it with
-        ``lieflow plot``) — instead of keeping the states in memory: every
-        ``save_every``-th state (and the last) goes to the file as the run proceeds, with a
-        checkpoint at each, and memory holds one chunk of steps (a few states) whatever the
-        run's length. The returned :class:`Solution` then holds the initial and the last
-        state only (``W``, ``t`` and ``saved_steps`` of length 2), and the per-step
-        diagnostics and iterations (a few numbers per step, read back from the file; they
-        are recorded even with ``diagnostics=False``); ``solvers`` names the requested
-        solver for every step. Cost: one HDF5 write and flush per save point.
+    out : str, path or Sink, optional
+        Stream the run into this trajectory file — the format ``lieflow run`` writes (the
+        sink the plugin registry holds for the file's suffix, :func:`lieflow.sinks.open_sink`:
+        the application's HDF5 writer for ``.h5`` and any suffix no other sink claims; read it
+        with :func:`lieflow.open_run` or :func:`lieflow.app.io.read_trajectory`, plot it with
+        ``lieflow plot``) — instead of keeping the states in memory: every ``save_every``-th
+        state (and the last) goes to the file as the run proceeds, buffered and written in
+        blocks at each checkpoint (``checkpoint_seconds``), and memory holds one chunk of
+        steps (a few states) whatever the run's length. The returned :class:`Solution` then
+        holds the initial and the last state only (``W``, ``t`` and ``saved_steps`` of length
+        2), and the per-step diagnostics and iterations (a few numbers per step, read back
+        from the file; they are recorded even with ``diagnostics=False``); ``solvers`` names
+        the requested solver for every step. Or any :class:`~lieflow.sinks.Sink` object:
+        ``integrate`` then returns its :meth:`~lieflow.sinks.Sink.result`.
     resume : bool
         With ``out``: continue the file from its last checkpoint (bit-for-bit the same as
         an uninterrupted run; ``steps`` may have grown) — it must have been written by the
@@ -476,6 +480,11 @@ def integrate(
     replace : bool
         With ``out`` and no ``resume``: replace an existing file (otherwise an existing
         file is refused, so that a finished run is never overwritten by accident).
+    checkpoint_seconds : float
+        With ``out``: seconds between checkpoints — the resume point, written with the
+        buffered states and diagnostics, flushed and fsync'd (a run killed outright loses at
+        most this much work; Ctrl-C, a failed step or the end checkpoint everything). ``0``:
+        after every chunk of steps.
     casimir_shift : float or "auto"
         Step the scheme on the Hamiltonian plus a Casimir, :math:`B(W) - cW`
         (:class:`~lieflow.systems.shifted.CasimirShifted`): the same flow, and an
@@ -539,6 +548,7 @@ def integrate(
                            warm_start=warm_start)  # fmt: skip
 
     monitor = _progress_monitor(progress)
+    cadence = driver.Cadence(seconds=checkpoint_seconds)
     start, state = 0, None
     if out is None:
         _check_memory(MemorySink.saved_states(n_steps, save_every) * W0a.nbytes, n_steps,
@@ -560,7 +570,7 @@ def integrate(
             state = point.state(flow.init(W0a))
     outcome = driver.run(flow, W0a, h, n_steps, sinks=(sink,), diagnostics=diag,
                          save_every=save_every, start=start, state=state, monitor=monitor,
-                         on_failure=on_failure)  # fmt: skip
+                         checkpoint=cadence, on_failure=on_failure)  # fmt: skip
     if outcome.status == "interrupted":
         raise KeyboardInterrupt
     result: Solution = sink.result()

@@ -176,6 +176,10 @@ class DamagedOutputError(LieflowError):
     broken, or a process killed during a write left part of it unreadable."""
 
 
+#: Default seconds between the checkpoints of a trajectory file (:class:`TrajectoryHeader`).
+CHECKPOINT_SECONDS = 1.0
+
+
 @attrs.frozen(eq=False)
 class TrajectoryHeader:
     """What a :class:`TrajectoryWriter` needs to know about a run: the file's header.
@@ -206,6 +210,10 @@ class TrajectoryHeader:
         Whether a new run may replace an existing ``output``.
     config_text, config_source : str
         The configuration's text and where it came from (empty for ``integrate``).
+    checkpoint_seconds : float
+        Seconds between checkpoints (the resume point, flushed and fsync'd; and the last
+        one when the run ends however it ends): saved states and diagnostics are buffered
+        and written in blocks in between. ``0``: after every chunk of steps.
     """
 
     system: Any = attrs.field(repr=False)
@@ -221,6 +229,7 @@ class TrajectoryHeader:
     replace: bool = False
     config_text: str = attrs.field(default="", repr=False)
     config_source: str = ""
+    checkpoint_seconds: float = CHECKPOINT_SECONDS
 
 
 def _header(run: TrajectoryHeader | RunSetup) -> TrajectoryHeader:
@@ -866,15 +875,21 @@ def _stored_dtype(f: h5py.File, dtype: Any) -> Any:
 
 
 def _next_dimid(f: h5py.File) -> int:
-    """One more than the largest dimension id in the file."""
+    """One more than the largest dimension id in the file (through h5py's low-level API:
+    3x faster than ``visititems``, which builds an object per item)."""
     h5py = _h5py()
     ids = [-1]
+    key = _DIMID.encode()
 
-    def visit(name: str, obj: Any) -> None:
-        if isinstance(obj, h5py.Dataset) and _DIMID in obj.attrs:
-            ids.append(int(obj.attrs[_DIMID]))
+    def visit(name: bytes, info: Any) -> None:
+        if info.type == h5py.h5o.TYPE_DATASET and info.num_attrs:
+            if h5py.h5a.exists(f.id, key, obj_name=name):
+                attr = h5py.h5a.open(f.id, key, obj_name=name)
+                value = np.zeros(attr.shape, dtype=attr.dtype)
+                attr.read(value)
+                ids.append(int(value))
 
-    f.visititems(visit)
+    h5py.h5o.visit(f.id, visit, info=True)
     return max(ids) + 1
 
 
@@ -1324,20 +1339,20 @@ class TrajectoryWriter:
                     ds[n_saved:] = value
             _append_extra(self._f, [e for b in buf for e in b[4].extra])
             self._checkpoint(stop, stop * h, W_last, state)
-            self._f.flush()
+            _sync(self._f)
             self._n_diag, self._n_saved = n0 + H.shape[0], n_saved + steps.size
             self._buffer = []
 
     def _checkpoint(self, index: int, t: float, W: Array, state: Any) -> None:
         """Write ``W`` and the flow's ``state`` (leaf by leaf, under ``warm/<path>``) at step
-        ``index`` to the spare slot with its SHA-256 digest, flush, then point ``current``
-        at it (the commit point)."""
+        ``index`` to the spare slot with its SHA-256 digest, flush and fsync, then point
+        ``current`` at it (the commit point; :meth:`checkpoint` flushes and fsyncs it)."""
         items: dict[str, Any] = {"W": W}
         for path, leaf in tree.paths(state):
             items[f"{_STATE}/{path}" if path else _STATE] = leaf
         slot_id = 1 - self._slot
         _write_slot(self._slots[slot_id], index, t, items, self._slot_data[slot_id])
-        self._f.flush()
+        _sync(self._f)  # the rows and the slot are on disk before the commit point names them
         self._ck.attrs["current"] = slot_id  # the commit point
         self._slot, self._step = slot_id, index
 
@@ -1411,7 +1426,7 @@ class TrajectoryWriter:
             status=Status.SUCCESS if status == "complete" else Status.FAILED,
             failure=failure,
             wall_time=wall,
-            extra=read_extra(self._path),
+            extra={} if self._diagnostics.extra is None else read_extra(self._path),
         )
 
 
@@ -1432,6 +1447,12 @@ def trajectory_sink(
         identity=run.identity, W0=run.W0, output=_as_path(path, "out"), replace=replace,
     )  # fmt: skip
     return TrajectoryWriter.open(header, resume=resume)
+
+
+def _sync(f: h5py.File) -> None:
+    """Flush ``f`` and make it durable (``fsync``): a checkpoint survives a power loss."""
+    f.flush()
+    os.fsync(int(f.id.get_vfd_handle()))
 
 
 def _write_slot(
@@ -1811,7 +1832,8 @@ def run_flow(
     one consumer loop (:func:`lieflow.driver.run`) into a :class:`TrajectoryWriter`.
 
     Memory: the writer buffers each chunk's diagnostics (a few numbers per step) and only
-    the states it will save; at every checkpoint they are written.
+    the states it will save; at every checkpoint (every ``header.checkpoint_seconds``, and
+    at the end) they are written in one block.
 
     Returns
     -------
@@ -1838,7 +1860,7 @@ def run_flow(
         start=done,
         state=state,
         monitor=monitor,
-        checkpoint=Cadence(),
+        checkpoint=Cadence(seconds=header.checkpoint_seconds),
     )
     completed = writer.completed_steps
     summary = RunSummary(
