@@ -379,10 +379,6 @@ def _file_sink(
     return open_sink(Path(out).absolute(), info, resume=resume, replace=replace)
 
 
-def _is_sink(out: object) -> bool:
-    return all(callable(getattr(out, m, None)) for m in ("record", "checkpoint", "close", "result"))
-
-
 def integrate(
     system: IsospectralSystem,
     scheme: Scheme | Flow,
@@ -558,11 +554,11 @@ def integrate(
     else:
         # a file records every step's diagnostics, whatever ``diagnostics`` says
         diag = Diagnostics.of(system, W0a, save_every=save_every)
-        if _is_sink(out):
-            sink = out  # type: ignore[assignment]
+        if isinstance(out, Sink):
+            sink = out
         else:
             sink = _file_sink(system, scheme, flow, solver, W0a, h, n_steps,
-                              save_every=save_every, warm_start=warm_start, out=out,  # type: ignore[arg-type]
+                              save_every=save_every, warm_start=warm_start, out=out,
                               resume=resume, replace=replace)  # fmt: skip
         point = getattr(sink, "start", None)
         if point is not None:

@@ -199,8 +199,6 @@ class MemorySink:
     diagnostics : Diagnostics, optional
         The run's diagnostics (their step-0 values start the per-step arrays); ``None``: the
         solution has none.
-    ends_only : bool
-        Keep the initial and the last state only, whatever ``keep`` says.
     """
 
     system: Any
@@ -210,7 +208,6 @@ class MemorySink:
     steps: int
     save_every: int = 1
     diagnostics: Diagnostics | None = None
-    ends_only: bool = False
     _W: Array = attrs.field(init=False, repr=False)
     _k: Array = attrs.field(init=False, repr=False)
     _kept: int = attrs.field(init=False, default=1)
@@ -230,7 +227,7 @@ class MemorySink:
 
     def __attrs_post_init__(self) -> None:
         W0 = to_host(self.W0)
-        n = 2 if self.ends_only else self.saved_states(self.steps, self.save_every)
+        n = self.saved_states(self.steps, self.save_every)
         self._W = np.empty((n, *W0.shape), dtype=W0.dtype)
         self._k = np.zeros(n, dtype=np.int64)
         self._W[0] = W0
@@ -253,11 +250,10 @@ class MemorySink:
             self._drift[a + 1 : b + 1] = diagnostics.casimir_drift
             self._extra.extend(diagnostics.extra)
         n = self._kept
-        if not self.ends_only:
-            index = np.flatnonzero(keep)
-            self._W[n : n + index.size] = to_host(chunk.W[index])
-            self._k[n : n + index.size] = chunk.index[index]
-            n += index.size
+        index = np.flatnonzero(keep)
+        self._W[n : n + index.size] = to_host(chunk.W[index])
+        self._k[n : n + index.size] = chunk.index[index]
+        n += index.size
         self._kept = n
         # the last state computed so far is always at hand, in the spare slot after the kept
         self._pending = self._k[n - 1] != b

@@ -57,12 +57,16 @@ class Extra(lf.IsospectralSystem):
 
 def test_integrate_into_a_sink_object_returns_its_result() -> None:
     sink = Recorder()
-    assert lf.integrate(RB, MID, W0, 0.1, steps=7, save_every=3, out=sink) == "recorded"
-    assert sink.kept == [3, 6, 7]
-    assert sink.calls[-2:] == [("checkpoint", False), ("close", "complete")]
-    # a checkpoint after each chunk holding a saved state (the default cadence)
-    saves = [i for i, c in enumerate(sink.calls) if c[0] == "checkpoint"]
-    assert [sink.calls[i - 1] for i in saves[:-1]] == [("record", 3), ("record", 6), ("record", 7)]
+    out = lf.integrate(RB, MID, W0, 0.1, steps=7, save_every=3, out=sink, engine="numpy")
+    assert out == "recorded" and sink.kept == [3, 6, 7]
+    # one second between checkpoints (a short run: only the final one), then close
+    assert [c for c in sink.calls if c[0] != "record"] == [("checkpoint", False),
+                                                            ("close", "complete")]  # fmt: skip
+    sink = Recorder()
+    lf.integrate(RB, MID, W0, 0.1, steps=7, save_every=3, out=sink, engine="numpy",
+                 checkpoint_seconds=0)  # fmt: skip
+    taken = [sink.calls[i - 1] for i, c in enumerate(sink.calls) if c[0] == "checkpoint"]
+    assert taken[:-1] == [("record", k) for k in range(1, 8)]  # after every (one-step) chunk
 
 
 @pytest.mark.parametrize(
@@ -132,3 +136,20 @@ def test_memory_sink_and_file_sink_see_the_same_diagnostics(tmp_path: Path) -> N
 def test_an_unregistered_suffix_is_written_as_a_trajectory_file(tmp_path: Path) -> None:
     sol = lf.integrate(RB, MID, W0, 0.1, steps=3, out=tmp_path / "run.dat")
     assert sol.success and lf.open_run(tmp_path / "run.dat").W_final.shape == (3, 3)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"out": 123}, "file path or a Sink"),
+        ({"out": "x.h5", "checkpoint_seconds": "1"}, "checkpoint seconds"),
+        ({"out": "x.h5", "checkpoint_seconds": -1.0}, "checkpoint seconds"),
+    ],
+)
+def test_bad_outputs_are_refused_before_anything_is_written(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, kwargs: dict, match: str
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(lf.InputError, match=match):
+        lf.integrate(RB, MID, W0, 0.1, steps=3, **kwargs)
+    assert list(tmp_path.iterdir()) == []

@@ -1293,7 +1293,7 @@ class TrajectoryWriter:
 
     @property
     def completed_steps(self) -> int:
-        """Steps in the file after the last :meth:`commit` (its checkpoint's step)."""
+        """Steps in the file after the last :meth:`checkpoint` (its step)."""
         return self._step
 
     def checkpoint(self, *, keep_last: bool = False) -> None:
