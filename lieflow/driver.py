@@ -433,9 +433,9 @@ def run(
     at_saves, every, seconds = checkpoint.at_saves, checkpoint.steps, checkpoint.seconds
     last_step, began = start, time.perf_counter()
     last_time = began
-    if monitor is not None:
-        monitor.start(start, steps)
     try:
+        if monitor is not None:  # inside: Ctrl-C while a progress bar starts is an interrupt
+            monitor.start(start, steps)
         for chunk in advance(flow, W0, h, steps, start=start, state=state):
             index = chunk.index
             keep = (index % save_every == 0) | (index == steps)

@@ -178,6 +178,10 @@ class DamagedOutputError(LieflowError):
 
 #: Default seconds between the checkpoints of a trajectory file (:class:`TrajectoryHeader`).
 CHECKPOINT_SECONDS = 1.0
+#: Saved states are written ahead of the next checkpoint once the buffer holds this many
+#: bytes of them (a resume drops such rows until a checkpoint covers them): thousands of
+#: small states per write, a large one at once.
+_BUFFER_BYTES = 1 << 16
 
 
 @attrs.frozen(eq=False)
@@ -1157,6 +1161,8 @@ class TrajectoryWriter:
         # rows committed (steps 0..K)
         self._n_diag = self._diag["iterations"].shape[0] - layout.update_row0
         self._n_saved = self._traj["saved_step"].shape[0]
+        self._saved_to = int(self._traj["saved_step"][self._n_saved - 1])  # last saved step
+        self._buffered = 0  # bytes of the saved states in the buffer
         # per buffered chunk: (step indices kept, states kept, iterations, residuals, its
         # diagnostics); only the kept states, never a whole chunk (memory stays bounded)
         self._buffer: list[tuple[Array, Array, Array, Array, ChunkDiagnostics]] = []
@@ -1290,6 +1296,12 @@ class TrajectoryWriter:
         self._buffer.append(entry)
         self._last = last
         self._max_error = max(self._max_error, diag.max_energy_error)
+        if keep.any():
+            self._saved_to = int(chunk.index[keep][-1])
+            self._buffered += entry[1].nbytes
+            if self._buffered >= _BUFFER_BYTES:  # memory stays bounded between checkpoints
+                with _signals.deferred():
+                    self._write_rows()
 
     @property
     def completed_steps(self) -> int:
@@ -1298,17 +1310,32 @@ class TrajectoryWriter:
 
     def checkpoint(self, *, keep_last: bool = False) -> None:
         """Append the buffered diagnostics and saved states (and the last state, with
-        ``keep_last``), checkpoint at the last buffered step and flush.
+        ``keep_last``), checkpoint at the last recorded step, flush and fsync.
 
         Runs with interrupts deferred (:func:`lieflow._signals.deferred`): an interrupt
         cannot leave the writer's counters and the file disagreeing.
         """
         with _signals.deferred():
-            buf = self._buffer
-            if not buf or self._last is None:
+            if self._last is None:
                 return
-            n0, n_saved = self._n_diag, self._n_saved
             stop, h, W_last, state = self._last
+            last_unsaved = keep_last and self._saved_to != stop
+            if stop == self._step and not self._buffer and not last_unsaved:
+                return  # nothing new since the last checkpoint
+            self._write_rows(keep_last=keep_last)
+            self._checkpoint(stop, stop * h, W_last, state)
+            _sync(self._f)
+
+    def _write_rows(self, *, keep_last: bool = False) -> None:
+        """Append the buffered diagnostics, saved states and extra diagnostics (and the last
+        recorded state, with ``keep_last``, unless it is saved): rows after the checkpoint,
+        which a resume drops until a checkpoint covers them. Call with interrupts deferred."""
+        buf = self._buffer
+        n0, n_saved = self._n_diag, self._n_saved
+        n_rows = 0
+        steps = np.zeros(0, dtype=np.int64)
+        kept: list[Array] = []
+        if buf:
             H = np.concatenate([to_host(b[4].energy) for b in buf])
             C = np.concatenate([to_host(b[4].casimirs) for b in buf])
             columns = {
@@ -1319,8 +1346,9 @@ class TrajectoryWriter:
                 "iterations": np.concatenate([b[2] for b in buf]).astype(np.int64),
                 "residual": np.concatenate([b[3] for b in buf]).astype(float),
             }
+            n_rows = H.shape[0]
             if "step" in self._diag:
-                columns["step"] = np.arange(n0, n0 + H.shape[0], dtype=np.int64)
+                columns["step"] = np.arange(n0, n0 + n_rows, dtype=np.int64)
             for name, values in columns.items():
                 start = n0 + self._layout.update_row0 if name in _PER_UPDATE else n0
                 ds = self._diag[name]
@@ -1328,20 +1356,20 @@ class TrajectoryWriter:
                 ds[start:] = values
             steps = np.concatenate([b[0] for b in buf]).astype(np.int64)
             kept = [b[1] for b in buf]
-            if keep_last and (steps.size == 0 or steps[-1] != stop):
-                steps = np.append(steps, np.int64(stop))
-                kept.append(W_last[None])
-            if steps.size:
-                states = np.concatenate(kept)
-                for name, value in (("saved_step", steps), ("time", steps * h), ("W", states)):
-                    ds = self._traj[name]
-                    ds.resize(n_saved + steps.size, axis=0)
-                    ds[n_saved:] = value
-            _append_extra(self._f, [e for b in buf for e in b[4].extra])
-            self._checkpoint(stop, stop * h, W_last, state)
-            _sync(self._f)
-            self._n_diag, self._n_saved = n0 + H.shape[0], n_saved + steps.size
-            self._buffer = []
+        if keep_last and self._last is not None and self._saved_to != self._last[0]:
+            steps = np.append(steps, np.int64(self._last[0]))
+            kept.append(self._last[2][None])
+            self._saved_to = self._last[0]
+        if steps.size:
+            h = self._header.h
+            states = np.concatenate(kept)
+            for name, value in (("saved_step", steps), ("time", steps * h), ("W", states)):
+                ds = self._traj[name]
+                ds.resize(n_saved + steps.size, axis=0)
+                ds[n_saved:] = value
+        _append_extra(self._f, [e for b in buf for e in b[4].extra])
+        self._n_diag, self._n_saved = n0 + n_rows, n_saved + steps.size
+        self._buffer, self._buffered = [], 0
 
     def _checkpoint(self, index: int, t: float, W: Array, state: Any) -> None:
         """Write ``W`` and the flow's ``state`` (leaf by leaf, under ``warm/<path>``) at step
@@ -1842,20 +1870,25 @@ def run_flow(
         the error of a failed step (the file then holds the steps before it).
     """
     target = header.requested_steps
+    diagnostics = Diagnostics.of(header.system, header.W0, save_every=header.save_every)
     writer = TrajectoryWriter.open(header, resume=resume)
-    ck = writer.start
-    if ck is None:
-        W, state, done = header.W0, None, 0
-    else:
-        W, done = ck.W, ck.step
-        state = ck.state(flow.init(W))
+    try:
+        ck = writer.start
+        if ck is None:
+            W, state, done = header.W0, None, 0
+        else:
+            W, done = ck.W, ck.step
+            state = ck.state(flow.init(W))
+    except BaseException:  # Ctrl-C before stepping: the file says so, and is resumable
+        writer.close("interrupted", None, 0.0)
+        raise
     outcome = driver.run(
         flow,
         W,
         header.h,
         target,
         sinks=(writer,),
-        diagnostics=Diagnostics.of(header.system, header.W0, save_every=header.save_every),
+        diagnostics=diagnostics,
         save_every=header.save_every,
         start=done,
         state=state,
