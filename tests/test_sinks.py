@@ -153,3 +153,60 @@ def test_bad_outputs_are_refused_before_anything_is_written(
     with pytest.raises(lf.InputError, match=match):
         lf.integrate(RB, MID, W0, 0.1, steps=3, **kwargs)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_rows_written_ahead_of_the_checkpoint_are_dropped_on_resume(tmp_path: Path) -> None:
+    """A killed run whose states went to the file ahead of its checkpoint (the buffer
+    filled: 64 KiB of so(3) states, about 900) resumes from the checkpoint, bit for bit."""
+    import subprocess
+    import sys
+    import textwrap
+
+    from lieflow.app import io
+
+    out = tmp_path / "killed.h5"
+    script = textwrap.dedent(
+        f"""
+        import os, sys
+        import lieflow as lf
+        from lieflow.app import io
+
+        write_rows = io.TrajectoryWriter._write_rows
+
+        def spy(self, **kwargs):
+            sys.stderr.write(f"rows ahead: {{self._n_saved}}\\n")
+            sys.stderr.flush()
+            return write_rows(self, **kwargs)
+
+        io.TrajectoryWriter._write_rows = spy
+
+        class Kill:
+            def start(self, done, total): self.done = done
+            def advance(self, steps, iterations, err):
+                self.done += steps
+                if self.done == 1500:
+                    os._exit(9)
+            def stop(self): pass
+
+        body = lf.systems.get("rigid_body", inertia=(1.0, 2.0, 3.0))
+        lf.integrate(body, lf.schemes.get("midpoint"), body.random_state(0), 0.01,
+                     steps=2000, engine="numpy", out={str(out)!r}, progress=Kill(),
+                     checkpoint_seconds=1e9)
+        """
+    )
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=300)
+    assert proc.returncode == 9, proc.stderr.decode()
+    assert io.read_checkpoint(out).step == 0  # no checkpoint but the first ...
+    assert b"rows ahead: 1" in proc.stderr  # ... yet states went to the file ahead of it
+    body = lf.systems.get("rigid_body", inertia=(1.0, 2.0, 3.0))
+    args = (body, MID, body.random_state(0), 0.01)
+    resumed = lf.integrate(*args, steps=2000, engine="numpy", out=out, resume=True)
+    lf.integrate(*args, steps=2000, engine="numpy", out=tmp_path / "whole.h5")
+    a, b = io.read_trajectory(out), io.read_trajectory(tmp_path / "whole.h5")
+    for name in ("step", "W", "energy_error", "casimir_drift", "iterations", "residual"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert a.completed_steps == 2000 and resumed.success
+    memory = lf.integrate(*args, steps=2000, engine="numpy")  # no file involved
+    np.testing.assert_array_equal(a.step, memory.saved_steps)
+    np.testing.assert_array_equal(a.W, memory.W)
+    np.testing.assert_array_equal(a.energy_error, memory.energy_error)
