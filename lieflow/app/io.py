@@ -185,29 +185,16 @@ _BUFFER_BYTES = 1 << 16
 
 
 @attrs.frozen(eq=False)
-class TrajectoryHeader:
-    """What a :class:`TrajectoryWriter` needs to know about a run: the file's header.
+class TrajectoryHeader(RunInfo):
+    """What a :class:`TrajectoryWriter` needs to know about a run: the file's header, the
+    run's :class:`~lieflow.sinks.RunInfo` (system, names, ``h``, ``save_every``,
+    ``requested_steps``, ``identity``, ``W0``) and where and how to write it.
 
     ``lieflow run`` builds it from its configuration (:meth:`lieflow.app.config.RunSetup.header`),
-    :func:`lieflow.integrate` with ``out=`` from its arguments.
+    :func:`lieflow.integrate` with ``out=`` from its arguments (:func:`trajectory_sink`).
 
     Attributes
     ----------
-    system : IsospectralSystem
-        The system (diagnostics, extra diagnostics, the resume checks).
-    system_name, scheme, solver : str
-        Registry names recorded in the file (``scheme``: the scheme's or flow's name).
-    h : float
-        Step size.
-    save_every : int
-        Save every ``save_every``-th state (and the last).
-    requested_steps : int
-        Steps asked for.
-    identity : str
-        JSON of everything that defines the trajectory except its length and location; a
-        resume is refused unless the file's identity is the same.
-    W0 : ndarray
-        The initial condition.
     output : Path
         The trajectory file.
     replace : bool
@@ -220,15 +207,6 @@ class TrajectoryHeader:
         and written in blocks in between. ``0``: after every chunk of steps.
     """
 
-    system: Any = attrs.field(repr=False)
-    system_name: str
-    scheme: str
-    solver: str
-    h: float
-    save_every: int
-    requested_steps: int
-    identity: str = attrs.field(repr=False)
-    W0: Array = attrs.field(repr=False)
     output: Path
     replace: bool = False
     config_text: str = attrs.field(default="", repr=False)
@@ -1469,11 +1447,8 @@ def trajectory_sink(
     :class:`TrajectoryWriter` on ``path`` for ``run`` — continuing the file from its last
     checkpoint with ``resume`` (if it exists), else creating it (an existing file only with
     ``replace``)."""
-    header = TrajectoryHeader(
-        system=run.system, system_name=run.system_name, scheme=run.scheme, solver=run.solver,
-        h=run.h, save_every=run.save_every, requested_steps=run.requested_steps,
-        identity=run.identity, W0=run.W0, output=_as_path(path, "out"), replace=replace,
-    )  # fmt: skip
+    fields = {f.name: getattr(run, f.name) for f in attrs.fields(RunInfo)}
+    header = TrajectoryHeader(**fields, output=_as_path(path, "out"), replace=replace)
     return TrajectoryWriter.open(header, resume=resume)
 
 
