@@ -534,14 +534,12 @@ def integrate(
         _check_types(system, scheme, None)
         W0a = _validated(system, W0)
         flow: Flow = scheme
-        stepped = system
     else:
         solver = FixedPoint() if solver is None else solver
         _check_types(system, scheme, solver)
         W0a = _validated(system, W0)
-        stepped = shifted(system, W0a, casimir_shift)
-        flow = scheme_flow(stepped, scheme, solver, W0a, n_steps, engine=engine,
-                           warm_start=warm_start)  # fmt: skip
+        flow = scheme_flow(shifted(system, W0a, casimir_shift), scheme, solver, W0a, n_steps,
+                           engine=engine, warm_start=warm_start)  # fmt: skip
 
     monitor = _progress_monitor(progress)
     cadence = driver.Cadence(seconds=checkpoint_seconds)
@@ -562,8 +560,12 @@ def integrate(
                               resume=resume, replace=replace)  # fmt: skip
         point = getattr(sink, "start", None)
         if point is not None:
-            start, W0a = point.step, point.W
-            state = point.state(flow.init(W0a))
+            try:
+                start, W0a = point.step, point.W
+                state = point.state(flow.init(W0a))
+            except BaseException:  # the sink holds its file: release it, resumable
+                sink.close("interrupted", None, 0.0)
+                raise
     outcome = driver.run(flow, W0a, h, n_steps, sinks=(sink,), diagnostics=diag,
                          save_every=save_every, start=start, state=state, monitor=monitor,
                          checkpoint=cadence, on_failure=on_failure)  # fmt: skip
