@@ -22,6 +22,7 @@ from .contenders import available_engines, integrate_has_engine
 from .report import Section, render
 from .suites import (
     euler_zeitlin,
+    file_output,
     iteration_cost,
     reproduce_suite,
     rigid_body_scaling,
@@ -44,6 +45,7 @@ SUITES: tuple[tuple[str, Callable[[BenchContext], Section]], ...] = (
     ("zeitlin", euler_zeitlin.run),
     ("splitting", splitting.run),
     ("memory", streaming_memory.run),
+    ("file_output", file_output.run),
     ("sweeps", sweeps.run),
 )
 

@@ -15,12 +15,12 @@ True
 
 from __future__ import annotations
 
+import importlib
 from importlib.metadata import PackageNotFoundError, version
+from typing import TYPE_CHECKING, Any
 
-from . import algebras, driver, flows, schemes, solvers, systems, tableaus
+from . import algebras, driver, flows, schemes, sinks, solvers, systems, tableaus
 from .algebras import GL, SO, SU, LieAlgebra, U
-from .app.datasets import open_run, open_sweep
-from .app.sweeps import load_sweep, parse_sweep, sweep
 from .errors import (
     AlgebraError,
     ConvergenceError,
@@ -31,13 +31,40 @@ from .errors import (
     TableauError,
 )
 from .flows import Flow, Projected, SchemeFlow, Splitting, StepStats, WarmStart
-from .integrate import Step, integrate, iterate
+from .integration import Step, integrate, iterate
 from .plugins import Registry, RegistryBuilder, default_registry, hookimpl, load_registry
 from .schemes import Scheme, StepResult
+from .sinks import MemorySink, Sink
 from .solution import Solution, Status
 from .solvers import ImplicitProblem, Solver, SolveResult
 from .systems import IsospectralSystem
 from .tableaus import ButcherTableau
+
+if TYPE_CHECKING:
+    from .app.datasets import open_run, open_sweep
+    from .app.sweeps import load_sweep, parse_sweep, sweep
+
+#: The application's user-facing names, re-exported on first use (PEP 562): ``import
+#: lieflow`` loads no ``lieflow.app`` module.
+_APP_NAMES = {
+    "open_run": "lieflow.app.datasets",
+    "open_sweep": "lieflow.app.datasets",
+    "load_sweep": "lieflow.app.sweeps",
+    "parse_sweep": "lieflow.app.sweeps",
+    "sweep": "lieflow.app.sweeps",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name == "app":
+        return importlib.import_module("lieflow.app")
+    module = _APP_NAMES.get(name)
+    if module is None:
+        raise AttributeError(f"module 'lieflow' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
 
 try:
     __version__ = version("lieflow")
@@ -57,6 +84,7 @@ __all__ = [
     "IsospectralSystem",
     "LieAlgebra",
     "LieflowError",
+    "MemorySink",
     "PluginError",
     "Projected",
     "Registry",
@@ -64,6 +92,7 @@ __all__ = [
     "RegistryError",
     "Scheme",
     "SchemeFlow",
+    "Sink",
     "Solution",
     "SolveResult",
     "Solver",
@@ -89,6 +118,7 @@ __all__ = [
     "open_sweep",
     "parse_sweep",
     "schemes",
+    "sinks",
     "solvers",
     "sweep",
     "systems",

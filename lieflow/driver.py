@@ -1,9 +1,11 @@
-r"""The one stepping loop: advance any :class:`~lieflow.flows.Flow` in chunks.
+r"""The one stepping loop and the one consumer loop.
 
-:func:`advance` yields :class:`Chunk`\ s of consecutive completed steps; whoever consumes
-them — :func:`lieflow.integrate` (memory: a :class:`~lieflow.Solution`) or
-:func:`lieflow.app.io.run` (an HDF5 trajectory written as the run goes) — records them through
-the same :class:`Diagnostics`. A flow may advance many steps per call
+:func:`advance` yields :class:`Chunk`\ s of consecutive completed steps of any
+:class:`~lieflow.flows.Flow`. :func:`run` consumes them for every caller —
+:func:`lieflow.integrate`, ``lieflow run`` and ``lieflow sweep`` — and owns what happens
+after a step: which states are saved, the diagnostics (:class:`Diagnostics`, computed once
+per chunk), the monitor, the failure policy and the checkpoint cadence; it hands each chunk
+to :class:`~lieflow.sinks.Sink`\ s that only store it. A flow may advance many steps per call
 (:class:`MultiStepFlow`, e.g. the compiled engine); a step it does not finish is then taken
 by its plain :meth:`~lieflow.flows.Flow.step` from the last good state, so failures read
 the same on every engine.
@@ -13,19 +15,36 @@ Time is ``t_k = k h``, computed from the step index, never accumulated.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from typing import Any, Protocol, runtime_checkable
+import math
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import attrs
 import numpy as np
 
+from . import _signals
 from .algebras import Array
-from .backends import all_finite
-from .errors import ConvergenceError
+from .backends import all_finite, is_numpy, to_numpy
+from .errors import ConvergenceError, InputError
 from .flows import Flow
 from .systems.base import IsospectralSystem
 
-__all__ = ["Chunk", "Diagnostics", "Monitor", "MultiStepFlow", "advance", "chunk_steps"]
+if TYPE_CHECKING:
+    from .sinks import Ending, Sink
+
+__all__ = [
+    "Cadence",
+    "Chunk",
+    "ChunkDiagnostics",
+    "Diagnostics",
+    "Monitor",
+    "MultiStepFlow",
+    "Outcome",
+    "advance",
+    "chunk_steps",
+    "run",
+]
 
 #: At most this many steps per chunk of a multi-step flow (a progress tick each) ...
 CHUNK_STEPS = 1024
@@ -213,25 +232,71 @@ def _per_state(f: Any, W: Array) -> Array:
     return np.asarray(f(W))
 
 
+#: One sample of a system's own diagnostics: ``(step, t, {name: value})``.
+ExtraRow = tuple[int, float, Mapping[str, Any]]
+
+
+@attrs.frozen(eq=False)
+class ChunkDiagnostics:
+    """The diagnostics of a chunk's steps (computed once by :func:`run`, for every sink).
+
+    Attributes
+    ----------
+    energy, casimirs : ndarray
+        ``η(W_k)`` ``(m, *batch)`` and the Casimirs ``(m, *batch, n_casimirs)``.
+    energy_error, casimir_drift : ndarray
+        Their errors against the initial values (:class:`Diagnostics`).
+    extra : tuple of (step, t, dict)
+        Samples of ``system.extra_diagnostics`` at the chunk's steps that are multiples of
+        :attr:`Diagnostics.extra_every`.
+    """
+
+    energy: Array = attrs.field(repr=False)
+    casimirs: Array = attrs.field(repr=False)
+    energy_error: Array = attrs.field(repr=False)
+    casimir_drift: Array = attrs.field(repr=False)
+    extra: tuple[ExtraRow, ...] = attrs.field(repr=False)
+
+    @property
+    def max_energy_error(self) -> float:
+        """The largest relative energy error among the chunk's steps."""
+        return float(np.max(self.energy_error))
+
+
+def extra_hook(system: Any, save_every: int) -> tuple[Callable[[Array], Any] | None, int]:
+    """``(system.extra_diagnostics or None, interval in steps)``: the interval is
+    ``system.diagnostics_every`` (``None``: ``save_every``; ``0``: no extra diagnostics)."""
+    every = getattr(system, "diagnostics_every", None)
+    if every is not None and int(every) == 0:
+        return None, 0
+    return getattr(system, "extra_diagnostics", None), int(every) if every else save_every
+
+
 @attrs.frozen(eq=False)
 class Diagnostics:
     """Energy and Casimirs of states, and their errors against the initial values.
 
     ``energy_error = |η(W) − η(W0)| / |η(W0)|`` and
     ``casimir_drift = |C_j(W) − C_j(W0)| / ||W0||^{k_j}``
-    (:meth:`~lieflow.IsospectralSystem.casimir_scale`). Build it with :meth:`of`.
+    (:meth:`~lieflow.IsospectralSystem.casimir_scale`); and the system's own
+    ``extra_diagnostics(W)`` (if it has them) every :attr:`extra_every` steps. Build it with
+    :meth:`of`.
     """
 
     system: IsospectralSystem
     H0: Array = attrs.field(repr=False)
     C0: Array = attrs.field(repr=False)
     scale: Array = attrs.field(repr=False)
+    extra: Callable[[Array], Any] | None = attrs.field(default=None, repr=False)
+    extra_every: int = 0
 
     @classmethod
-    def of(cls, system: IsospectralSystem, W0: Array) -> Diagnostics:
-        """Diagnostics relative to the initial state ``W0``."""
+    def of(cls, system: IsospectralSystem, W0: Array, *, save_every: int = 1) -> Diagnostics:
+        """Diagnostics relative to the initial state ``W0`` (extra diagnostics every
+        ``system.diagnostics_every`` steps, by default every ``save_every``)."""
+        extra, every = extra_hook(system, save_every)
         return cls(system, np.asarray(system.hamiltonian(W0)), np.asarray(system.casimirs(W0)),
-                   np.asarray(system.casimir_scale(W0)))  # fmt: skip
+                   np.asarray(system.casimir_scale(W0)), extra, every)  # fmt: skip
 
     def energy(self, W: Array) -> Array:
         """``η`` of each state of a stack ``(m, *batch, n, n)``."""
@@ -251,3 +316,183 @@ class Diagnostics:
     def casimir_drift(self, C: Array) -> Array:
         """Casimir drift of Casimirs ``C``."""
         return np.abs(C - self.C0) / self.scale
+
+    def of_chunk(self, chunk: Chunk) -> ChunkDiagnostics:
+        """The diagnostics of ``chunk``'s steps."""
+        H, C = self.energy(chunk.W), self.casimirs(chunk.W)
+        rows: tuple[ExtraRow, ...] = ()
+        if self.extra is not None:
+            rows = tuple((int(chunk.index[j]), float(chunk.t[j]), self.extra(chunk.W[j]))
+                         for j in np.flatnonzero(chunk.index % self.extra_every == 0))  # fmt: skip
+        return ChunkDiagnostics(H, C, self.energy_error(H), self.casimir_drift(C), rows)
+
+
+@attrs.frozen
+class Cadence:
+    """When :func:`run` takes a checkpoint (the resume point of a file sink).
+
+    With neither ``steps`` nor ``seconds``: after every chunk that holds a saved state.
+    Otherwise after the first chunk (holding a saved state or not) that ends at least
+    ``steps`` steps or ``seconds`` seconds after the last checkpoint, whichever comes first.
+    A checkpoint is always taken when the run ends, however it ends (Ctrl-C included).
+    """
+
+    steps: int | None = None
+    seconds: float | None = None
+
+    def __attrs_post_init__(self) -> None:
+        if self.steps is not None and (isinstance(self.steps, bool) or self.steps < 1):
+            raise InputError(f"checkpoint steps must be a positive integer, got {self.steps!r}")
+        seconds = self.seconds
+        if seconds is not None and (
+            isinstance(seconds, bool)
+            or not isinstance(seconds, (int, float, np.floating, np.integer))
+            or not (math.isfinite(seconds) and seconds >= 0)
+        ):
+            raise InputError(f"checkpoint seconds must be >= 0 and finite, got {self.seconds!r}")
+
+    @property
+    def at_saves(self) -> bool:
+        """Whether a checkpoint follows every chunk holding a saved state."""
+        return self.steps is None and self.seconds is None
+
+
+@attrs.frozen
+class Outcome:
+    """How :func:`run` ended.
+
+    Attributes
+    ----------
+    status : {"complete", "interrupted", "failed"}
+        Every step done, stopped by ``KeyboardInterrupt`` (the sinks hold every step
+        recorded), or a step failed (they hold the steps before it).
+    start, done : int
+        The step the run started after, and the last step recorded.
+    failure : ConvergenceError or None
+        The error of the failed step.
+    wall_time : float
+        Seconds spent stepping.
+    """
+
+    status: Ending
+    start: int
+    done: int
+    failure: ConvergenceError | None
+    wall_time: float
+
+
+def run(
+    flow: Flow,
+    W0: Array,
+    h: float,
+    steps: int,
+    *,
+    sinks: Sequence[Sink],
+    diagnostics: Diagnostics | None = None,
+    save_every: int = 1,
+    start: int = 0,
+    state: Any = None,
+    monitor: Monitor | None = None,
+    checkpoint: Cadence = Cadence(),
+    on_failure: str = "truncate",
+) -> Outcome:
+    """Advance ``flow`` from ``W0`` (the state after step ``start``) up to step ``steps``,
+    handing every chunk of steps to each of ``sinks``: the one consumer loop.
+
+    Step ``k`` is saved where ``k % save_every == 0`` or ``k == steps`` (the keep mask each
+    sink receives). ``diagnostics`` (computed once per chunk) go to every sink and the
+    largest energy error to ``monitor``. Checkpoints follow ``checkpoint``
+    (:class:`Cadence`) and come once more at the end; a failed step then also keeps the last
+    good state. Every sink is closed, however the run ends.
+
+    Parameters
+    ----------
+    flow, W0, h, steps, start, state
+        As :func:`advance`.
+    sinks : sequence of Sink
+        Where the steps go.
+    diagnostics : Diagnostics, optional
+        Energy, Casimirs and extra diagnostics relative to the run's initial state.
+    save_every : int
+        Save every ``save_every``-th state (and the last).
+    monitor : Monitor, optional
+        Progress callbacks.
+    checkpoint : Cadence
+        When to make the recorded steps durable between the start and the end.
+    on_failure : {"raise", "truncate"}
+        A failed step raises its :class:`ConvergenceError` after the sinks are closed
+        (``"raise"``), or is returned in :attr:`Outcome.failure` (``"truncate"``).
+
+    Returns
+    -------
+    Outcome
+        How the run ended (``KeyboardInterrupt`` is caught: ``status == "interrupted"``).
+    """
+    status: Ending = "interrupted"
+    failure: ConvergenceError | None = None
+    done = start
+    at_saves, every, seconds = checkpoint.at_saves, checkpoint.steps, checkpoint.seconds
+    last_step, began = start, time.perf_counter()
+    last_time = began
+    try:
+        if monitor is not None:  # inside: Ctrl-C while a progress bar starts is an interrupt
+            monitor.start(start, steps)
+        for chunk in advance(flow, W0, h, steps, start=start, state=state):
+            if not is_numpy(chunk.W):  # another array library: to the host, once per chunk
+                chunk = attrs.evolve(chunk, W=to_numpy(chunk.W))
+            index = chunk.index
+            keep = (index % save_every == 0) | (index == steps)
+            diag = diagnostics.of_chunk(chunk) if diagnostics is not None else None
+            for sink in sinks:
+                sink.record(chunk, keep, diag)
+            done = chunk.stop
+            if at_saves:
+                due = bool(keep.any())
+            else:
+                now = time.perf_counter()
+                due = (every is not None and done - last_step >= every) or (
+                    seconds is not None and now - last_time >= seconds
+                )
+            if due:
+                for sink in sinks:
+                    sink.checkpoint()
+                last_step, last_time = done, time.perf_counter()
+            if monitor is not None:
+                err = None if diag is None else diag.max_energy_error
+                monitor.advance(chunk.size, int(chunk.iterations.sum()), err)
+            del chunk  # hold no chunk while the next one is computed
+        status = "complete"
+    except KeyboardInterrupt:
+        status = "interrupted"
+    except ConvergenceError as exc:
+        status, failure = "failed", exc
+    finally:
+        wall = time.perf_counter() - began
+        try:
+            if monitor is not None:
+                monitor.stop()
+        finally:
+            # Checkpoint what was computed (a failed run keeps its last state), then close.
+            # With interrupts deferred, so a second Ctrl-C cannot split the two.
+            with _signals.deferred():
+                _finish(sinks, status, failure, wall)
+    if failure is not None and on_failure == "raise":
+        raise failure
+    return Outcome(status, start, done, failure, wall)
+
+
+def _finish(
+    sinks: Sequence[Sink], status: Ending, failure: ConvergenceError | None, wall: float
+) -> None:
+    """Checkpoint and close every sink; the first error is raised after all are closed."""
+    error: BaseException | None = None
+    for sink in sinks:
+        try:
+            try:
+                sink.checkpoint(keep_last=status == "failed")
+            finally:
+                sink.close(status, failure, wall)
+        except BaseException as exc:
+            error = error or exc
+    if error is not None:
+        raise error

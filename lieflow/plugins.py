@@ -18,6 +18,12 @@ A plugin may also register *flows* — sub-steps such as dissipation or forcing 
 ``registry.add_flow("viscosity", Viscosity)``: the factory is called as
 ``factory(system=system, **params)`` and must return a :class:`~lieflow.flows.Flow`.
 
+A plugin may also register a *sink* — where a run's steps go — for a file suffix,
+``registry.add_sink(".h5", factory)``: ``integrate(..., out="run.h5")`` opens it as
+``factory(path, run, resume=..., replace=...)`` (:func:`lieflow.sinks.open_sink`). The
+application's HDF5 trajectory writer is registered this way, by its own entry point
+(``app = "lieflow.app.plugin"``), so the core never imports the application.
+
 A plugin may also register extra ``lieflow plot`` figures for trajectory files of a system,
 ``registry.add_plotter("euler_zeitlin", plot_run)`` with ``plot_run(trajectory, out_dir,
 stem) -> list of PNG paths`` (see :class:`Plotter`).
@@ -75,7 +81,8 @@ class HookSpecs:
     def lieflow_register(self, registry: RegistryBuilder) -> None:
         """Register systems, schemes and solvers by calling ``registry.add_system(...)``,
         ``registry.add_scheme(...)`` and ``registry.add_solver(...)`` (and, optionally,
-        ``lieflow plot`` figures with ``registry.add_plotter(...)``)."""
+        flows, file sinks and ``lieflow plot`` figures with ``registry.add_flow(...)``,
+        ``registry.add_sink(...)`` and ``registry.add_plotter(...)``)."""
 
 
 #: ``plotter(trajectory, out_dir, stem) -> paths``: extra PNGs of ``lieflow plot`` for a system.
@@ -170,15 +177,31 @@ class Plotter:
     source: str
 
 
+@attrs.frozen
+class SinkFormat:
+    """A file format a run can be written to: ``factory(path, run, resume=..., replace=...)``
+    returns a :class:`~lieflow.sinks.Sink` for files named ``*<suffix>``."""
+
+    suffix: str
+    factory: Callable[..., Any] = attrs.field(repr=False)
+    description: str
+    source: str
+
+
+_SUFFIX = re.compile(r"^\.[a-z0-9][a-z0-9_.-]*$")
+
+
 class RegistryBuilder:
     """Collects registrations while plugins load (handed to ``lieflow_register``)."""
 
     def __init__(self) -> None:
         self._entries: dict[Kind, dict[str, Entry]] = {k: {} for k in KINDS}
         self._plotters: dict[str, Plotter] = {}
+        self._sinks: dict[str, SinkFormat] = {}
         self._source = "?"
         self._pending: list[Entry] = []
         self._pending_plotters: list[Plotter] = []
+        self._pending_sinks: list[SinkFormat] = []
 
     def add_system(self, name: str, factory: Callable[..., Any], description: str = "") -> None:
         """Register an :class:`~lieflow.IsospectralSystem` subclass or factory."""
@@ -218,6 +241,30 @@ class RegistryBuilder:
             raise PluginError(f"a plotter for {system!r} is already registered by {taken.source}")
         doc = description or (inspect.getdoc(function) or "").split("\n")[0]
         self._pending_plotters.append(Plotter(system, function, doc, self._source))
+
+    def add_sink(self, suffix: str, factory: Callable[..., Any], description: str = "") -> None:
+        """Register the :class:`~lieflow.sinks.Sink` that writes files named ``*<suffix>``
+        (lower case, with its dot: ``".h5"``): ``factory(path, run, resume=..., replace=...)``
+        with ``run`` a :class:`~lieflow.sinks.RunInfo`; with ``resume`` the sink continues an
+        existing file and its ``start`` attribute is where (a
+        :class:`~lieflow.sinks.ResumePoint`, ``None`` for a new file). At most one sink per
+        suffix."""
+        if not isinstance(suffix, str) or not _SUFFIX.match(suffix):
+            raise PluginError(
+                f"invalid sink suffix {suffix!r}: a dot, then lower-case letters, digits, '_', "
+                "'-' or '.' (e.g. '.h5')"
+            )
+        if not callable(factory):
+            raise PluginError(f"sink {suffix!r}: the factory {factory!r} is not callable")
+        taken = self._sinks.get(suffix) or next(
+            (e for e in self._pending_sinks if e.suffix == suffix), None
+        )
+        if taken is not None:
+            raise PluginError(
+                f"a sink for {suffix!r} files is already registered by {taken.source}"
+            )
+        doc = description or (inspect.getdoc(factory) or "").split("\n")[0]
+        self._pending_sinks.append(SinkFormat(suffix, factory, doc, self._source))
 
     def _add(self, kind: Kind, name: str, factory: Callable[..., Any], description: str) -> None:
         if not isinstance(name, str) or not _NAME.match(name):
@@ -264,29 +311,34 @@ class RegistryBuilder:
             self._entries[e.kind][e.name] = e
         for p in self._pending_plotters:
             self._plotters[p.system] = p
-        self._pending = []
-        self._pending_plotters = []
+        for k in self._pending_sinks:
+            self._sinks[k.suffix] = k
+        self._discard()
 
     def _discard(self) -> None:
         self._pending = []
         self._pending_plotters = []
+        self._pending_sinks = []
 
     def freeze(self) -> Registry:
         """The immutable registry."""
         tables = {f"{k}s": MappingProxyType(dict(v)) for k, v in self._entries.items()}
-        return Registry(**tables, plotters=MappingProxyType(dict(self._plotters)))
+        return Registry(**tables, plotters=MappingProxyType(dict(self._plotters)),
+                        sinks=MappingProxyType(dict(self._sinks)))  # fmt: skip
 
 
 @attrs.frozen
 class Registry:
-    """Immutable name -> :class:`Entry` tables for systems, schemes and solvers, and the
-    system name -> :class:`Plotter` table of extra ``lieflow plot`` figures."""
+    """Immutable name -> :class:`Entry` tables for systems, schemes, solvers and flows, the
+    system name -> :class:`Plotter` table of extra ``lieflow plot`` figures, and the
+    suffix -> :class:`SinkFormat` table of file formats."""
 
     systems: Mapping[str, Entry]
     schemes: Mapping[str, Entry]
     solvers: Mapping[str, Entry]
     flows: Mapping[str, Entry] = attrs.field(factory=lambda: MappingProxyType({}))
     plotters: Mapping[str, Plotter] = attrs.field(factory=lambda: MappingProxyType({}))
+    sinks: Mapping[str, SinkFormat] = attrs.field(factory=lambda: MappingProxyType({}))
 
     def table(self, kind: Kind) -> Mapping[str, Entry]:
         """The entries of one kind."""

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import enum
+from collections.abc import Mapping
 from typing import Any
 
 import attrs
 import numpy as np
 
 from .algebras import Array
-from .errors import ConvergenceError
+from .errors import ConvergenceError, InputError
 from .systems.base import IsospectralSystem
 
 
@@ -47,6 +48,11 @@ class Solution:
         What went wrong, at which step.
     wall_time : float
         Seconds spent stepping.
+    extra : dict of str to ndarray
+        The system's own diagnostics (``system.extra_diagnostics``, e.g. Euler–Zeitlin's
+        spectra), sampled every ``system.diagnostics_every`` steps (default: every saved
+        state): ``"step"``, ``"t"`` and one array per name, one row per sample; empty if the
+        system has none or diagnostics were off.
     """
 
     system: IsospectralSystem
@@ -62,6 +68,7 @@ class Solution:
     status: Status
     failure: ConvergenceError | None
     wall_time: float
+    extra: Mapping[str, Array] = attrs.field(factory=dict, repr=False)
 
     @property
     def n_steps(self) -> int:
@@ -84,12 +91,63 @@ class Solution:
         return self.status is Status.SUCCESS
 
     def to_xarray(self) -> Any:
-        """This solution as an :class:`xarray.Dataset`, with the dimensions and names of
-        :func:`lieflow.open_run` (:func:`lieflow.app.datasets.solution_dataset`; needs the
-        ``sweep`` extra: ``pip install 'lieflow[sweep]'``)."""
-        from .app.datasets import solution_dataset
+        """This solution as an :class:`xarray.Dataset` (in memory), with the dimensions and
+        names of :func:`lieflow.open_run`: ``W (time, [ensemble,] row, col)``, ``W_final``,
+        ``iterations (step)``, ``energy_error (step, [ensemble])`` and ``casimir_drift
+        (step, [ensemble,] casimir)`` (left out when diagnostics were off), coordinates
+        ``time``, ``saved_step``, ``step``, ``step_time``, ``casimir``, ``ensemble``. Needs
+        the ``sweep`` extra (``pip install 'lieflow[sweep]'``).
 
-        return solution_dataset(self)
+        Raises
+        ------
+        InputError
+            ``xarray`` is not installed, or ``W`` has more than one batch dimension.
+        """
+        try:
+            import xarray as xr
+        except ImportError as exc:
+            raise InputError(
+                "Solution.to_xarray needs xarray: pip install 'lieflow[sweep]'"
+            ) from exc
+        W = np.asarray(self.W)
+        batch = W.shape[1:-2]
+        if len(batch) > 1:
+            raise InputError(f"one batch dimension at most, got W of shape {W.shape}")
+        ens = ("ensemble",) if batch else ()
+        k = np.arange(self.n_steps + 1)
+        iterations = np.concatenate([[0], np.asarray(self.iterations, dtype=np.int64)])
+        variables: dict[str, Any] = {
+            "W": (("time", *ens, "row", "col"), W),
+            "W_final": ((*ens, "row", "col"), W[-1]),
+            "iterations": (("step",), iterations),
+        }
+        if self.energy_error is not None:
+            variables["energy_error"] = (("step", *ens), np.asarray(self.energy_error))
+        if self.casimir_drift is not None:
+            variables["casimir_drift"] = (("step", *ens, "casimir"),
+                                          np.asarray(self.casimir_drift))  # fmt: skip
+        system = self.system
+        powers = [p for p in system.casimir_powers if p <= system.algebra.n]
+        coords: dict[str, Any] = {
+            "time": ("time", np.asarray(self.t)),
+            "saved_step": ("time", np.asarray(self.saved_steps)),
+            "step": ("step", k),
+            "step_time": ("step", k * self.h),
+        }
+        if self.casimir_drift is not None:
+            coords["casimir"] = ("casimir", np.asarray(powers[: self.casimir_drift.shape[-1]]))
+        if batch:
+            coords["ensemble"] = ("ensemble", np.arange(batch[0]))
+        attrs_ = {
+            "system": system.name,
+            "scheme": str(self.scheme),
+            "h": float(self.h),
+            "status": self.status.value,
+            "completed_steps": self.n_steps,
+            "wall_time": float(self.wall_time),
+            "failure": "" if self.failure is None else str(self.failure),
+        }
+        return xr.Dataset(variables, coords=coords, attrs=attrs_)
 
     def spectrum_drift(self) -> Array:
         """``max_i |lambda_i(W_k) - lambda_i(W_0)| / max_i |lambda_i(W_0)|`` per saved state.

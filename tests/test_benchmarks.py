@@ -127,7 +127,7 @@ def test_quick_run_writes_every_table(tmp_path: Path) -> None:
     """``python -m benchmarks --quick`` writes the page with every section and cell (the
     sweeps suite, which starts process pools and a Dask cluster, has its own test below)."""
     out = tmp_path / "benchmarks.md"
-    others = "reproduce,scaling,work_precision,scipy,so3,iteration_cost,zeitlin,memory"
+    others = "reproduce,scaling,work_precision,scipy,so3,iteration_cost,zeitlin,memory,file_output"
     assert cli.main(["--quick", "--only", others, "--out", str(out)]) == 0
     page = out.read_text(encoding="utf-8")
     for title in (
@@ -139,6 +139,7 @@ def test_quick_run_writes_every_table(tmp_path: Path) -> None:
         "Euler–Zeitlin",
         "Work–precision against scipy",
         "Bounded memory",
+        "Writing a run to a trajectory file",
         "Targets at a glance",
     ):
         assert title in page

@@ -246,7 +246,7 @@ def test_chunks_end_at_multiples_of_the_chunk_size_wherever_the_run_starts() -> 
 
 
 def test_a_complete_chunk_is_not_followed_by_a_numpy_step() -> None:
-    from lieflow.integrate import scheme_flow
+    from lieflow.integration import scheme_flow
 
     body = lf.systems.RigidBody()
     W0 = body.random_state(0)

@@ -227,13 +227,11 @@ def test_open_errors(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_a_solution_as_a_dataset_matches_the_file_of_the_same_run(tmp_path: Path) -> None:
-    from lieflow.app.datasets import solution_dataset
-
     path = run_file(tmp_path, rigid("seeds = [0, 1]"))
     setup = build(parse_config(rigid("seeds = [0, 1]")), output=tmp_path / "unused.h5")
     sol = lf.integrate(setup.system, setup.scheme, setup.W0, h=0.1, steps=30, save_every=7,
                        solver=setup.solver, engine="numpy")  # fmt: skip
-    mem, disk = solution_dataset(sol), lf.open_run(path)
+    mem, disk = sol.to_xarray(), lf.open_run(path)
     assert mem.W.dims == disk.W.dims and mem.energy_error.dims == disk.energy_error.dims
     for name in ("W", "W_final", "energy_error", "casimir_drift", "iterations"):
         np.testing.assert_allclose(mem[name].values, disk[name].values, rtol=0, atol=1e-15)
@@ -255,7 +253,7 @@ def test_every_checkpoint_reads_back_whatever_the_save_cadence(tmp_path: Path) -
         assert lf.open_run(path).W_final.shape == (3, 3)
 
 
-def test_solution_to_xarray_is_solution_dataset() -> None:
+def test_solution_to_xarray_holds_the_solution() -> None:
     body = lf.systems.get("rigid_body", inertia=(1.0, 2.0, 3.0))
     sol = lf.integrate(body, lf.schemes.get("midpoint"), body.random_state(0), 0.1, steps=10)
     ds = sol.to_xarray()

@@ -320,7 +320,7 @@ def test_splitting_config_errors() -> None:
 def test_a_run_that_cannot_fit_in_memory_is_refused_before_it_starts() -> None:
     import importlib
 
-    integrate_module = importlib.import_module("lieflow.integrate")
+    integrate_module = importlib.import_module("lieflow.integration")
 
     zeitlin_like = lf.systems.get("generalized_rigid_body", J=np.linspace(1.0, 2.0, 256))
     W0 = zeitlin_like.random_state(0)  # 512 KiB a state

@@ -373,5 +373,5 @@ def test_the_lock_follows_symlinks(tmp_path: Path) -> None:
         with pytest.raises(io.OutputBusyError, match="being written by another lieflow run"):
             io.TrajectoryWriter.reopen(alias)
     finally:
-        writer.close("interrupted", 0.0)
+        writer.close("interrupted", None, 0.0)
     assert not (tmp_path / ".traj.h5.lock").exists()

@@ -64,12 +64,49 @@ def test_input_is_not_modified() -> None:
         ({"system": "rigid_body"}, lf.InputError, "IsospectralSystem"),
         ({"scheme": "gauss2"}, lf.InputError, "Scheme"),
         ({"solver": object()}, lf.InputError, "Solver protocol"),
+        ({"solver": lf.solvers.FixedPoint}, lf.InputError, r"pass an instance: FixedPoint\(\)"),
+        ({"scheme": lf.schemes.SyDIRK}, lf.InputError, r"pass an instance: SyDIRK\(\)"),
     ],
 )
 def test_bad_input_raises_a_clear_error(kwargs: dict, error: type, match: str) -> None:
     args = {"system": RB, "scheme": MID, "W0": W0, "h": 0.1, "steps": 3} | kwargs
     with pytest.raises(error, match=match):
         lf.integrate(args.pop("system"), args.pop("scheme"), args.pop("W0"), args.pop("h"), **args)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "match"),
+    [
+        ({"h": "0.1"}, lf.InputError, "real number"),
+        ({"h": -0.1}, lf.InputError, "positive"),
+        ({"h": 0.0}, lf.InputError, "positive"),
+        ({"W0": np.eye(3)}, lf.AlgebraError, r"not in so\(3\)"),
+        ({"W0": np.zeros((4, 4))}, lf.InputError, r"shape \(4, 4\)"),
+        ({"system": "rigid_body"}, lf.InputError, "IsospectralSystem"),
+        ({"scheme": "midpoint"}, lf.InputError, "Scheme"),
+        ({"solver": lf.solvers.FixedPoint}, lf.InputError, r"pass an instance: FixedPoint\(\)"),
+        ({"solver": object()}, lf.InputError, "Solver protocol"),
+        ({"start": -1}, lf.InputError, "start"),
+    ],
+)
+def test_iterate_checks_its_arguments_when_called(kwargs: dict, error: type, match: str) -> None:
+    """``iterate`` refuses what ``integrate`` refuses, at the call (not at the first step)."""
+    args = {"system": RB, "scheme": MID, "W0": W0, "h": 0.1, "solver": lf.solvers.FixedPoint()}
+    args |= kwargs
+    with pytest.raises(error, match=match):
+        lf.iterate(args.pop("system"), args.pop("scheme"), args.pop("W0"), args.pop("h"),
+                   args.pop("solver"), **args)  # fmt: skip
+
+
+def test_iterate_steps_match_integrate() -> None:
+    """The stream's default solver is integrate's, and its states are integrate's."""
+    import itertools
+
+    steps = list(itertools.islice(lf.iterate(RB, MID, W0, 0.1), 4))
+    assert [s.index for s in steps] == [1, 2, 3, 4]
+    assert [s.t for s in steps] == [0.1 * k for k in (1, 2, 3, 4)]
+    sol = lf.integrate(RB, MID, W0, 0.1, steps=4, engine="numpy")
+    np.testing.assert_array_equal(np.stack([s.W for s in steps]), sol.W[1:])
 
 
 def test_system_parameters_are_validated() -> None:

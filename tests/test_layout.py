@@ -1,4 +1,5 @@
-"""The package layout of issue 16: the numerical core apart from the application on it."""
+"""The package layout: the numerical core below the application on it, with no arrow back up
+and no import circle (issues 16 and 26)."""
 
 from __future__ import annotations
 
@@ -10,40 +11,133 @@ from pathlib import Path
 import lieflow as lf
 
 PACKAGE = Path(lf.__file__).resolve().parent
-APP_MODULES = {"cli", "config", "datasets", "io", "plotting", "progress", "reproduce", "sweeps"}
+APP_MODULES = {"cli", "config", "datasets", "io", "plotting", "plugin", "reproduce", "sweeps"}
 
 
-def _module_level_imports(path: Path) -> list[str]:
-    """The modules a file imports outside any function (relative names kept as written)."""
-    names = []
-    for node in ast.parse(path.read_text()).body:
+def _module_name(path: Path) -> str:
+    parts = ["lieflow", *path.relative_to(PACKAGE).with_suffix("").parts]
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports(path: Path, *, anywhere: bool, module: str | None = None) -> list[str]:
+    """Absolute names of the modules (or module attributes) a file imports: at module level,
+    or ``anywhere`` (inside functions too, and ``importlib.import_module("...")`` strings).
+    ``module``: the file's module name (by default from its place in the package)."""
+    module = module or _module_name(path)
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    nodes = ast.walk(ast.parse(path.read_text())) if anywhere else ast.parse(path.read_text()).body
+    names: list[str] = []
+    for node in nodes:
         if isinstance(node, ast.ImportFrom):
-            base = "." * node.level + (node.module or "")
-            names += [base] + [f"{base}.{a.name}".replace("..", ".") for a in node.names]
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - node.level + 1]
+                root = ".".join([*base, *([node.module] if node.module else [])])
+            else:
+                root = node.module or ""
+            names += [root] + [f"{root}.{a.name}" for a in node.names]
         elif isinstance(node, ast.Import):
             names += [a.name for a in node.names]
+        elif (
+            anywhere
+            and isinstance(node, ast.Call)
+            and getattr(node.func, "attr", getattr(node.func, "id", "")) == "import_module"
+            and node.args
+            and isinstance(node.args[0], ast.Constant)
+            and isinstance(node.args[0].value, str)
+        ):
+            names.append(node.args[0].value)
     return names
+
+
+def _core_files() -> list[Path]:
+    """Every module of the core: ``lieflow`` minus ``lieflow.app``, ``__init__`` (lazy
+    re-exports) and ``__main__`` (``python -m lieflow`` runs the command line)."""
+    return [
+        p
+        for p in PACKAGE.rglob("*.py")
+        if p.relative_to(PACKAGE).parts[0] != "app"
+        and str(p.relative_to(PACKAGE)) not in ("__init__.py", "__main__.py")
+    ]
 
 
 def test_the_application_lives_in_lieflow_app() -> None:
     assert {p.stem for p in (PACKAGE / "app").glob("*.py")} == APP_MODULES | {"__init__"}
-    assert not [m for m in APP_MODULES if (PACKAGE / f"{m}.py").exists()]
+    assert not [m for m in APP_MODULES - {"plugin"} if (PACKAGE / f"{m}.py").exists()]
 
 
-def test_core_modules_do_not_import_the_application_at_module_level() -> None:
+def test_core_modules_never_import_the_application() -> None:
+    """Not at module level, not inside a function, not by ``import_module``."""
     offenders = {}
-    for path in PACKAGE.rglob("*.py"):
-        rel = path.relative_to(PACKAGE)
-        if rel.parts[0] == "app" or str(rel) in ("__init__.py", "__main__.py"):
-            continue  # re-exports of the user-facing names, and `python -m lieflow`
-        hits = [n for n in _module_level_imports(path) if "app" in n.split(".")]
+    for path in _core_files():
+        hits = [n for n in _imports(path, anywhere=True) if n.startswith("lieflow.app")]
         if hits:
-            offenders[str(rel)] = hits
+            offenders[_module_name(path)] = hits
     assert offenders == {}
 
 
+def test_the_scan_finds_lazy_imports_of_the_application(tmp_path: Path) -> None:
+    """The scan above can fail: an import inside a function, relative or absolute, and an
+    ``import_module`` string are all seen."""
+    probe = tmp_path / "probe.py"
+    probe.write_text(
+        "import importlib\n\n"
+        "def f():\n    from .app import io\n\n"
+        "def g():\n    import lieflow.app.sweeps\n\n"
+        "def h():\n    return importlib.import_module('lieflow.app.datasets')\n"
+    )
+    found = [n for n in _imports(probe, anywhere=True, module="lieflow.probe")
+             if n.startswith("lieflow.app")]  # fmt: skip
+    assert {"lieflow.app.io", "lieflow.app.sweeps", "lieflow.app.datasets"} <= set(found)
+    assert _imports(probe, anywhere=False, module="lieflow.probe") == ["importlib"]
+
+
+def test_import_lieflow_loads_no_application_module() -> None:
+    code = "import sys, lieflow; print([m for m in sys.modules if m.startswith('lieflow.app')])"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def test_the_package_has_no_import_circle() -> None:
+    """The graph of module-level imports between lieflow's modules is acyclic (the
+    application's six-module circle through the core is gone)."""
+    modules = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
+    graph = {
+        name: {m for m in _imports(path, anywhere=False) if m in modules and m != name}
+        for name, path in modules.items()
+    }
+    # a module imports its package's __init__ (the parent) implicitly: not an edge of note
+    for name, edges in graph.items():
+        edges.discard(name.rpartition(".")[0])
+    state: dict[str, int] = {}
+    cycle: list[str] = []
+
+    def visit(node: str, stack: list[str]) -> bool:
+        state[node] = 1
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                cycle.extend([*stack[stack.index(nxt) :], nxt] if nxt in stack else [node, nxt])
+                return True
+            if nxt not in state and visit(nxt, [*stack, nxt]):
+                return True
+        state[node] = 2
+        return False
+
+    for start in sorted(graph):
+        if start not in state and visit(start, [start]):
+            break
+    assert cycle == []
+
+
+def test_the_application_reaches_the_core_through_the_registry() -> None:
+    """``integrate(out="x.h5")`` finds the HDF5 writer as a registered sink."""
+    sinks = lf.default_registry().sinks
+    assert ".h5" in sinks and "'app'" in sinks[".h5"].source
+
+
 def test_documented_top_level_names_and_the_command() -> None:
-    for name in ("integrate", "open_run", "open_sweep", "sweep", "load_sweep", "parse_sweep"):
+    for name in ("integrate", "iterate", "open_run", "open_sweep", "sweep", "load_sweep",
+                 "parse_sweep", "Solution", "MemorySink", "Sink"):  # fmt: skip
         assert callable(getattr(lf, name))
     out = subprocess.run(
         [sys.executable, "-m", "lieflow", "--version"], capture_output=True, text=True, check=True

@@ -70,7 +70,7 @@ def test_streaming_options_need_out_and_memory_error_names_them() -> None:
     system, W0 = _body()
     with pytest.raises(lf.InputError, match="out=PATH"):
         lf.integrate(system, lf.schemes.get("midpoint"), W0, 0.1, steps=2, resume=True)
-    from lieflow.integrate import _check_memory
+    from lieflow.integration import _check_memory
 
     with pytest.raises(lf.InputError, match=r'out="run.h5"'):
         _check_memory(2**62, 10, 1)

@@ -34,7 +34,7 @@ from typing import TextIO
 
 from .. import __version__
 from ..errors import InputError, LieflowError
-from .progress import ProgressBar
+from ..progress import ProgressBar
 
 __all__ = ["main"]
 

@@ -26,7 +26,7 @@ settings::
     [run]
     h = 0.1
     steps = 2000         # or t_final = 200.0 (a whole number of steps h): exactly one
-    save_every = 10      # keep every 10th state and checkpoint there
+    save_every = 10      # keep every 10th state
     output = "rigid_body.h5"
     casimir_shift = "auto"  # optional: step on eta plus a Casimir (lieflow.integrate)
 
@@ -55,7 +55,7 @@ import numpy as np
 from ..algebras import Array
 from ..errors import LieflowError, PluginError
 from ..flows import Flow, Splitting
-from ..integrate import Engine, scheme_flow
+from ..integration import Engine, scheme_flow
 from ..plugins import Kind, Registry, default_registry
 from ..schemes.base import Scheme
 from ..solvers.base import Solver
@@ -237,7 +237,7 @@ class RunSettings:
     steps : int
         Number of steps (given, or ``t_final / h``).
     save_every : int
-        Keep every ``save_every``-th state (and checkpoint there).
+        Keep every ``save_every``-th state (the last is always kept).
     output : Path
         The trajectory file.
     t_final : float or None

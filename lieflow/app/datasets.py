@@ -42,7 +42,7 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.10
     pass
 
-__all__ = ["ZARR_STORE", "open_run", "open_sweep", "solution_dataset", "write_zarr_run"]
+__all__ = ["ZARR_STORE", "open_run", "open_sweep", "write_zarr_run"]
 
 
 def _xarray() -> Any:
@@ -612,51 +612,3 @@ def open_sweep(
 def _coord_name(key: str, taken: Mapping[str, Any], dims: Sequence[str]) -> str:
     short = key.split(".")[-1]
     return key if short in taken or short in dims or short in _DIAGNOSTICS else short
-
-
-def solution_dataset(solution: Any) -> Any:
-    """A :class:`lieflow.Solution` (the result of :func:`lieflow.integrate`) as an
-    :class:`xarray.Dataset` with the dimensions and names of :func:`open_run` (in memory).
-
-    A batched solution (``W`` of shape ``(saved, K, n, n)``) gets an ``ensemble`` dimension
-    labelled ``0..K-1``; diagnostics switched off (``energy_error is None``) are left out.
-    """
-    xr = _xarray()
-    W = np.asarray(solution.W)
-    batch = W.shape[1:-2]
-    if len(batch) > 1:
-        raise InputError(f"one batch dimension at most, got W of shape {W.shape}")
-    ens = ("ensemble",) if batch else ()
-    k = np.arange(solution.n_steps + 1)
-    iterations = np.concatenate([[0], np.asarray(solution.iterations, dtype=np.int64)])
-    variables: dict[str, Any] = {
-        "W": (("time", *ens, "row", "col"), W),
-        "W_final": ((*ens, "row", "col"), W[-1]),
-        "iterations": (("step",), iterations),
-    }
-    if solution.energy_error is not None:
-        variables["energy_error"] = (("step", *ens), np.asarray(solution.energy_error))
-    if solution.casimir_drift is not None:
-        variables["casimir_drift"] = (("step", *ens, "casimir"), np.asarray(solution.casimir_drift))
-    system = solution.system
-    powers = [p for p in system.casimir_powers if p <= system.algebra.n]
-    coords: dict[str, Any] = {
-        "time": ("time", np.asarray(solution.t)),
-        "saved_step": ("time", np.asarray(solution.saved_steps)),
-        "step": ("step", k),
-        "step_time": ("step", k * solution.h),
-    }
-    if solution.casimir_drift is not None:
-        coords["casimir"] = ("casimir", np.asarray(powers[: solution.casimir_drift.shape[-1]]))
-    if batch:
-        coords["ensemble"] = ("ensemble", np.arange(batch[0]))
-    attrs = {
-        "system": system.name,
-        "scheme": str(solution.scheme),
-        "h": float(solution.h),
-        "status": getattr(solution.status, "value", str(solution.status)),
-        "completed_steps": solution.n_steps,
-        "wall_time": float(solution.wall_time),
-        "failure": "" if solution.failure is None else str(solution.failure),
-    }
-    return xr.Dataset(variables, coords=coords, attrs=attrs)

@@ -57,7 +57,6 @@ import platform
 import re
 import socket
 import sys
-import time
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -69,9 +68,11 @@ import numpy as np
 
 from .. import _signals, driver, tree
 from ..algebras import Array
-from ..driver import Chunk, Diagnostics, Monitor
+from ..driver import Cadence, Chunk, ChunkDiagnostics, Diagnostics, Monitor
 from ..errors import ConvergenceError, InputError, LieflowError
 from ..flows import WarmStart
+from ..sinks import Ending, RunInfo, to_host
+from ..solution import Solution, Status
 from .config import ConfigError, RunSetup, identity_changes
 
 if sys.version_info >= (3, 11):
@@ -175,51 +176,42 @@ class DamagedOutputError(LieflowError):
     broken, or a process killed during a write left part of it unreadable."""
 
 
+#: Default seconds between the checkpoints of a trajectory file (:class:`TrajectoryHeader`).
+CHECKPOINT_SECONDS = 1.0
+#: Saved states are written ahead of the next checkpoint once the buffer holds this many
+#: bytes of them (a resume drops such rows until a checkpoint covers them): thousands of
+#: small states per write, a large one at once.
+_BUFFER_BYTES = 1 << 16
+
+
 @attrs.frozen(eq=False)
-class TrajectoryHeader:
-    """What a :class:`TrajectoryWriter` needs to know about a run: the file's header.
+class TrajectoryHeader(RunInfo):
+    """What a :class:`TrajectoryWriter` needs to know about a run: the file's header, the
+    run's :class:`~lieflow.sinks.RunInfo` (system, names, ``h``, ``save_every``,
+    ``requested_steps``, ``identity``, ``W0``) and where and how to write it.
 
     ``lieflow run`` builds it from its configuration (:meth:`lieflow.app.config.RunSetup.header`),
-    :func:`lieflow.integrate` with ``out=`` from its arguments.
+    :func:`lieflow.integrate` with ``out=`` from its arguments (:func:`trajectory_sink`).
 
     Attributes
     ----------
-    system : IsospectralSystem
-        The system (diagnostics, extra diagnostics, the resume checks).
-    system_name, scheme, solver : str
-        Registry names recorded in the file (``scheme``: the scheme's or flow's name).
-    h : float
-        Step size.
-    save_every : int
-        Save every ``save_every``-th state (and the last).
-    requested_steps : int
-        Steps asked for.
-    identity : str
-        JSON of everything that defines the trajectory except its length and location; a
-        resume is refused unless the file's identity is the same.
-    W0 : ndarray
-        The initial condition.
     output : Path
         The trajectory file.
     replace : bool
         Whether a new run may replace an existing ``output``.
     config_text, config_source : str
         The configuration's text and where it came from (empty for ``integrate``).
+    checkpoint_seconds : float
+        Seconds between checkpoints (the resume point, flushed and fsync'd; and the last
+        one when the run ends however it ends): saved states and diagnostics are buffered
+        and written in blocks in between. ``0``: after every chunk of steps.
     """
 
-    system: Any = attrs.field(repr=False)
-    system_name: str
-    scheme: str
-    solver: str
-    h: float
-    save_every: int
-    requested_steps: int
-    identity: str = attrs.field(repr=False)
-    W0: Array = attrs.field(repr=False)
     output: Path
     replace: bool = False
     config_text: str = attrs.field(default="", repr=False)
     config_source: str = ""
+    checkpoint_seconds: float = CHECKPOINT_SECONDS
 
 
 def _header(run: TrajectoryHeader | RunSetup) -> TrajectoryHeader:
@@ -750,16 +742,7 @@ def read_extra(path: Path | str) -> dict[str, Array]:
         return {name: ds[:n] for name, ds in group.items() if not _is_scale(ds)}
 
 
-def _extra_hook(system: Any, save_every: int) -> tuple[Any, int]:
-    """``(system.extra_diagnostics or None, interval in steps)``: the interval is
-    ``system.diagnostics_every`` (``None``: ``save_every``; ``0``: no extra diagnostics)."""
-    every = getattr(system, "diagnostics_every", None)
-    if every is not None and int(every) == 0:
-        return None, 0
-    return getattr(system, "extra_diagnostics", None), int(every) if every else save_every
-
-
-def _append_extra(f: h5py.File, rows: list[tuple[int, float, dict[str, Any]]]) -> None:
+def _append_extra(f: h5py.File, rows: list[tuple[int, float, Mapping[str, Any]]]) -> None:
     """Append ``(step, t, {name: value})`` rows to ``/diagnostics/extra`` (datasets are
     created at the first row, shaped like its values; in a netCDF-4 file along the unlimited
     dimension ``sample``, an ensemble's member axis on ``ensemble``)."""
@@ -874,15 +857,21 @@ def _stored_dtype(f: h5py.File, dtype: Any) -> Any:
 
 
 def _next_dimid(f: h5py.File) -> int:
-    """One more than the largest dimension id in the file."""
+    """One more than the largest dimension id in the file (through h5py's low-level API:
+    3x faster than ``visititems``, which builds an object per item)."""
     h5py = _h5py()
     ids = [-1]
+    key = _DIMID.encode()
 
-    def visit(name: str, obj: Any) -> None:
-        if isinstance(obj, h5py.Dataset) and _DIMID in obj.attrs:
-            ids.append(int(obj.attrs[_DIMID]))
+    def visit(name: bytes, info: Any) -> None:
+        if info.type == h5py.h5o.TYPE_DATASET and info.num_attrs:
+            if h5py.h5a.exists(f.id, key, obj_name=name):
+                attr = h5py.h5a.open(f.id, key, obj_name=name)
+                value = np.zeros(attr.shape, dtype=attr.dtype)
+                attr.read(value)
+                ids.append(int(value))
 
-    f.visititems(visit)
+    h5py.h5o.visit(f.id, visit, info=True)
     return max(ids) + 1
 
 
@@ -1100,13 +1089,15 @@ def _verify_for_resume(header: TrajectoryHeader) -> Checkpoint:
 
 
 class TrajectoryWriter:
-    """Appends a run to an open trajectory file.
+    """Appends a run to an open trajectory file: the application's
+    :class:`~lieflow.sinks.Sink` for ``.h5`` files (``TrajectorySink``).
 
-    Create one with :meth:`create` (a new file) or :meth:`reopen` (resume). Feed every
-    :class:`~lieflow.driver.Chunk` of steps to :meth:`record`; call :meth:`commit` at save
-    points (it appends the buffered diagnostics and saved states, writes a checkpoint and
-    flushes) and :meth:`close` at the end. A commit runs with interrupts deferred and writes
-    to explicit positions, so an interrupt cannot leave it half-done.
+    Create one with :meth:`create` (a new file), :meth:`reopen` (resume) or :meth:`open`
+    (either). :func:`lieflow.driver.run` feeds every :class:`~lieflow.driver.Chunk` of steps
+    to :meth:`record` (buffered), calls :meth:`checkpoint` at its checkpoint cadence (it
+    appends the buffered diagnostics and saved states, writes a checkpoint and flushes) and
+    :meth:`close` at the end. A checkpoint runs with interrupts deferred and writes to
+    explicit positions, so an interrupt cannot leave it half-done.
 
     A writer holds an exclusive lock on its output path from :meth:`create` or
     :meth:`reopen` to :meth:`close` (one writer per file: a second is refused with
@@ -1124,12 +1115,19 @@ class TrajectoryWriter:
         self._file_id = _file_id(f)
         self._layout = layout = _check_format(f, self._path)
         at = layout.paths
+        extra, every = driver.extra_hook(header.system, header.save_every)
         self._diagnostics = Diagnostics(
             header.system,
             f[at["energy"]][0],
             f[at["casimirs"]][0],
             header.system.casimir_scale(f[at["W0"]][()]),
+            extra,
+            every,
         )
+        self._header = header
+        #: where a reopened file continues (:meth:`reopen`); ``None`` for a new file
+        self.start: Checkpoint | None = None
+        self._ending: tuple[Ending, ConvergenceError | None, float] | None = None
         # h5py path lookups cost tens of microseconds each: keep the handles (``step``: the
         # per-step coordinate of a netCDF-4 file, appended with the diagnostics)
         per_step = (*_PER_STEP, *(("step",) if "step" in at else ()))
@@ -1141,14 +1139,15 @@ class TrajectoryWriter:
         # rows committed (steps 0..K)
         self._n_diag = self._diag["iterations"].shape[0] - layout.update_row0
         self._n_saved = self._traj["saved_step"].shape[0]
-        # per buffered chunk: (step indices kept, states kept, iterations, residuals, H, C,
-        # extra rows); only the kept states, never a whole chunk (memory stays bounded)
-        self._buffer: list[tuple[Array, Array, Array, Array, Array, Array, list[Any]]] = []
+        self._saved_to = int(self._traj["saved_step"][self._n_saved - 1])  # last saved step
+        self._buffered = 0  # bytes of the saved states in the buffer
+        # per buffered chunk: (step indices kept, states kept, iterations, residuals, its
+        # diagnostics); only the kept states, never a whole chunk (memory stays bounded)
+        self._buffer: list[tuple[Array, Array, Array, Array, ChunkDiagnostics]] = []
         self._last: tuple[int, float, Array, Any] | None = None  # (step, h, W, flow state)
         self._slot = int(self._ck.attrs["current"])
         self._step = int(self._slots[self._slot].attrs["step"])  # the checkpoint's step
         self._max_error = float(np.max(self._diag["energy_error"][: self._n_diag]))
-        self._extra, self._extra_every = _extra_hook(header.system, header.save_every)
 
     @property
     def path(self) -> Path:
@@ -1249,59 +1248,85 @@ class TrajectoryWriter:
             raise
         return writer, ck
 
+    @classmethod
+    def open(cls, run: TrajectoryHeader | RunSetup, *, resume: bool = False) -> TrajectoryWriter:
+        """:meth:`reopen` ``run.output`` if ``resume`` and it exists (the writer's
+        :attr:`start` is then its last checkpoint), else :meth:`create` it."""
+        setup = _header(run)
+        if resume and setup.output.exists():
+            writer, ck = cls.reopen(setup)
+            writer.start = ck
+            return writer
+        return cls.create(setup)
+
     # -- writing ---------------------------------------------------------------------------
 
-    def record(self, chunk: Chunk, keep: Array) -> float:
-        """Buffer ``chunk``: its diagnostics, its states where ``keep`` is true, and its last
-        state and flow state for the next checkpoint. Returns the largest relative energy
-        error among its steps. Nothing is written until :meth:`commit`."""
-        H = self._diagnostics.energy(chunk.W)
-        C = self._diagnostics.casimirs(chunk.W)
-        err = float(np.max(self._diagnostics.energy_error(H)))
-        extra = []
-        if self._extra is not None:
-            for j in np.flatnonzero(chunk.index % self._extra_every == 0):
-                extra.append((int(chunk.index[j]), float(chunk.t[j]), self._extra(chunk.W[j])))
+    def record(self, chunk: Chunk, keep: Array, diagnostics: ChunkDiagnostics | None) -> None:
+        """Buffer ``chunk``: its diagnostics (computed here when ``None``: a file always
+        records them), its states where ``keep`` is true, and its last state and flow state
+        for the next checkpoint. Nothing is written until :meth:`checkpoint`."""
+        diag = self._diagnostics.of_chunk(chunk) if diagnostics is None else diagnostics
         keep = np.asarray(keep, dtype=bool)
-        entry = (chunk.index[keep], chunk.W[keep], np.asarray(chunk.iterations),
-                 np.asarray(chunk.residuals), H, C, extra)  # fmt: skip
-        last = (chunk.stop, chunk.h, np.array(chunk.W[-1]), chunk.state)
+        entry = (chunk.index[keep], to_host(chunk.W[keep]), to_host(chunk.iterations),
+                 to_host(chunk.residuals), diag)  # fmt: skip
+        last = (chunk.stop, chunk.h, np.array(to_host(chunk.W[-1])), chunk.state)
         # one append and one assignment: recorded entirely or not at all
         self._buffer.append(entry)
         self._last = last
-        self._max_error = max(self._max_error, err)
-        return err
+        self._max_error = max(self._max_error, diag.max_energy_error)
+        if keep.any():
+            self._saved_to = int(chunk.index[keep][-1])
+            self._buffered += entry[1].nbytes
+            if self._buffered >= _BUFFER_BYTES:  # memory stays bounded between checkpoints
+                with _signals.deferred():
+                    self._write_rows()
 
     @property
     def completed_steps(self) -> int:
-        """Steps in the file after the last :meth:`commit` (its checkpoint's step)."""
+        """Steps in the file after the last :meth:`checkpoint` (its step)."""
         return self._step
 
-    def commit(self, *, keep_last: bool = False) -> None:
+    def checkpoint(self, *, keep_last: bool = False) -> None:
         """Append the buffered diagnostics and saved states (and the last state, with
-        ``keep_last``), checkpoint at the last buffered step and flush.
+        ``keep_last``), checkpoint at the last recorded step, flush and fsync.
 
         Runs with interrupts deferred (:func:`lieflow._signals.deferred`): an interrupt
         cannot leave the writer's counters and the file disagreeing.
         """
         with _signals.deferred():
-            buf = self._buffer
-            if not buf or self._last is None:
+            if self._last is None:
                 return
-            n0, n_saved = self._n_diag, self._n_saved
             stop, h, W_last, state = self._last
-            H = np.concatenate([b[4] for b in buf])
-            C = np.concatenate([b[5] for b in buf])
+            last_unsaved = keep_last and self._saved_to != stop
+            if stop == self._step and not self._buffer and not last_unsaved:
+                return  # nothing new since the last checkpoint
+            self._write_rows(keep_last=keep_last)
+            self._checkpoint(stop, stop * h, W_last, state)
+            _sync(self._f)
+
+    def _write_rows(self, *, keep_last: bool = False) -> None:
+        """Append the buffered diagnostics, saved states and extra diagnostics (and the last
+        recorded state, with ``keep_last``, unless it is saved): rows after the checkpoint,
+        which a resume drops until a checkpoint covers them. Call with interrupts deferred."""
+        buf = self._buffer
+        n0, n_saved = self._n_diag, self._n_saved
+        n_rows = 0
+        steps = np.zeros(0, dtype=np.int64)
+        kept: list[Array] = []
+        if buf:
+            H = np.concatenate([to_host(b[4].energy) for b in buf])
+            C = np.concatenate([to_host(b[4].casimirs) for b in buf])
             columns = {
                 "energy": H,
-                "energy_error": self._diagnostics.energy_error(H),
+                "energy_error": np.concatenate([to_host(b[4].energy_error) for b in buf]),
                 "casimirs": C,
-                "casimir_drift": self._diagnostics.casimir_drift(C),
+                "casimir_drift": np.concatenate([to_host(b[4].casimir_drift) for b in buf]),
                 "iterations": np.concatenate([b[2] for b in buf]).astype(np.int64),
                 "residual": np.concatenate([b[3] for b in buf]).astype(float),
             }
+            n_rows = H.shape[0]
             if "step" in self._diag:
-                columns["step"] = np.arange(n0, n0 + H.shape[0], dtype=np.int64)
+                columns["step"] = np.arange(n0, n0 + n_rows, dtype=np.int64)
             for name, values in columns.items():
                 start = n0 + self._layout.update_row0 if name in _PER_UPDATE else n0
                 ds = self._diag[name]
@@ -1309,36 +1334,39 @@ class TrajectoryWriter:
                 ds[start:] = values
             steps = np.concatenate([b[0] for b in buf]).astype(np.int64)
             kept = [b[1] for b in buf]
-            if keep_last and (steps.size == 0 or steps[-1] != stop):
-                steps = np.append(steps, np.int64(stop))
-                kept.append(W_last[None])
-            if steps.size:
-                states = np.concatenate(kept)
-                for name, value in (("saved_step", steps), ("time", steps * h), ("W", states)):
-                    ds = self._traj[name]
-                    ds.resize(n_saved + steps.size, axis=0)
-                    ds[n_saved:] = value
-            _append_extra(self._f, [e for b in buf for e in b[6]])
-            self._checkpoint(stop, stop * h, W_last, state)
-            self._f.flush()
-            self._n_diag, self._n_saved = n0 + H.shape[0], n_saved + steps.size
-            self._buffer = []
+        if keep_last and self._last is not None and self._saved_to != self._last[0]:
+            steps = np.append(steps, np.int64(self._last[0]))
+            kept.append(self._last[2][None])
+            self._saved_to = self._last[0]
+        if steps.size:
+            h = self._header.h
+            states = np.concatenate(kept)
+            for name, value in (("saved_step", steps), ("time", steps * h), ("W", states)):
+                ds = self._traj[name]
+                ds.resize(n_saved + steps.size, axis=0)
+                ds[n_saved:] = value
+        _append_extra(self._f, [e for b in buf for e in b[4].extra])
+        self._n_diag, self._n_saved = n0 + n_rows, n_saved + steps.size
+        self._buffer, self._buffered = [], 0
 
     def _checkpoint(self, index: int, t: float, W: Array, state: Any) -> None:
         """Write ``W`` and the flow's ``state`` (leaf by leaf, under ``warm/<path>``) at step
-        ``index`` to the spare slot with its SHA-256 digest, flush, then point ``current``
-        at it (the commit point)."""
+        ``index`` to the spare slot with its SHA-256 digest, flush and fsync, then point
+        ``current`` at it (the commit point; :meth:`checkpoint` flushes and fsyncs it)."""
         items: dict[str, Any] = {"W": W}
         for path, leaf in tree.paths(state):
             items[f"{_STATE}/{path}" if path else _STATE] = leaf
         slot_id = 1 - self._slot
         _write_slot(self._slots[slot_id], index, t, items, self._slot_data[slot_id])
-        self._f.flush()
+        _sync(self._f)  # the rows and the slot are on disk before the commit point names them
         self._ck.attrs["current"] = slot_id  # the commit point
         self._slot, self._step = slot_id, index
 
-    def close(self, status: str, wall_time: float, failure: str = "") -> None:
-        """Record the final status and the time spent, close the file and release its lock.
+    def close(
+        self, status: Ending, failure: ConvergenceError | str | None, wall_time: float
+    ) -> None:
+        """Record the final status, the failure's message and the time spent, close the file
+        and release its lock.
 
         Raises
         ------
@@ -1348,11 +1376,12 @@ class TrajectoryWriter:
         """
         f = self._f
         lost = False
+        self._last, self._buffer = None, []  # hold no state once closed
         try:
             f.attrs["completed_steps"] = self._step
             f.attrs["status"] = status
             f.attrs["wall_time"] = float(f.attrs.get("wall_time", 0.0)) + wall_time
-            f.attrs["failure"] = failure
+            f.attrs["failure"] = "" if failure is None else str(failure)
             f.flush()
         finally:
             try:
@@ -1365,6 +1394,8 @@ class TrajectoryWriter:
             finally:
                 if self._lock is not None:
                     self._lock.release()
+        error = failure if isinstance(failure, ConvergenceError) else None
+        self._ending = (status, error, wall_time)
         if lost:
             raise LieflowError(
                 f"{_where(self._path)} was deleted or replaced by another program while this "
@@ -1373,6 +1404,58 @@ class TrajectoryWriter:
                 "move or delete the output during a run (`lieflow run --force` on a running "
                 "output is refused; `rm` or `mv` are not), and run again."
             )
+
+    def result(self) -> Solution:
+        """The run as a :class:`~lieflow.Solution` (after :meth:`close`): the initial and the
+        last state (``W``, ``t``, ``saved_steps`` of length 2), and every step's iterations
+        and diagnostics read back from the file; ``solvers`` names the requested solver."""
+        if self._ending is None:
+            raise LieflowError("TrajectoryWriter.result() before the run was closed")
+        status, failure, wall = self._ending
+        header = self._header
+        run = read_diagnostics(self._path)
+        k = run.completed_steps
+        first = np.asarray(run.W0)
+        W = np.stack([first, run.W]) if k else first[None]
+        steps_kept = np.array([0, k] if k else [0], dtype=np.int64)
+        return Solution(
+            system=header.system,
+            scheme=header.scheme,
+            h=header.h,
+            t=steps_kept * header.h,
+            W=W,
+            saved_steps=steps_kept,
+            iterations=run.iterations,
+            solvers=(header.solver or header.scheme,) * k,
+            energy_error=run.energy_error,
+            casimir_drift=run.casimir_drift,
+            status=Status.SUCCESS if status == "complete" else Status.FAILED,
+            failure=failure,
+            wall_time=wall,
+            extra={} if self._diagnostics.extra is None else read_extra(self._path),
+        )
+
+
+#: The application's sink for trajectory files (:class:`lieflow.sinks.Sink`).
+TrajectorySink = TrajectoryWriter
+
+
+def trajectory_sink(
+    path: Path, run: RunInfo, *, resume: bool = False, replace: bool = False
+) -> TrajectoryWriter:
+    """The sink factory registered for ``.h5`` (:func:`lieflow.sinks.open_sink`): a
+    :class:`TrajectoryWriter` on ``path`` for ``run`` — continuing the file from its last
+    checkpoint with ``resume`` (if it exists), else creating it (an existing file only with
+    ``replace``)."""
+    fields = {f.name: getattr(run, f.name) for f in attrs.fields(RunInfo)}
+    header = TrajectoryHeader(**fields, output=_as_path(path, "out"), replace=replace)
+    return TrajectoryWriter.open(header, resume=resume)
+
+
+def _sync(f: h5py.File) -> None:
+    """Flush ``f`` and make it durable (``fsync``): a checkpoint survives a power loss."""
+    f.flush()
+    os.fsync(int(f.id.get_vfd_handle()))
 
 
 def _write_slot(
@@ -1606,7 +1689,7 @@ def _initialise(f: h5py.File, header: TrajectoryHeader) -> None:
     for ds, value in rows.items():
         ds.resize(1, axis=0)
         ds[0] = value
-    extra, _ = _extra_hook(system, header.save_every)
+    extra, _ = driver.extra_hook(system, header.save_every)
     if extra is not None:
         _append_extra(f, [(0, 0.0, extra(W0))])
     ck = f.create_group("checkpoint")
@@ -1749,10 +1832,11 @@ def run_flow(
     monitor: Monitor | None = None,
 ) -> tuple[RunSummary, ConvergenceError | None]:
     """Advance ``flow`` and write the trajectory to ``header.output`` as it proceeds: the
-    loop of :func:`run` (``lieflow run``) and of :func:`lieflow.integrate` with ``out=``.
+    one consumer loop (:func:`lieflow.driver.run`) into a :class:`TrajectoryWriter`.
 
     Memory: the writer buffers each chunk's diagnostics (a few numbers per step) and only
-    the states it will save; at every save point they are written and a checkpoint taken.
+    the states it will save; at every checkpoint (every ``header.checkpoint_seconds``, and
+    at the end) they are written in one block.
 
     Returns
     -------
@@ -1761,59 +1845,40 @@ def run_flow(
         the error of a failed step (the file then holds the steps before it).
     """
     target = header.requested_steps
-    if resume and header.output.exists():
-        writer, ck = TrajectoryWriter.reopen(header)
-        W, done = ck.W, ck.step
-        state = ck.state(flow.init(W))
-    else:
-        writer = TrajectoryWriter.create(header)
-        W, state, done = header.W0, None, 0
-    if done >= target:
-        writer.close("complete", 0.0)
-        summary = RunSummary(header.output, "complete", done, target, 0, 0.0,
-                             writer.max_energy_error)  # fmt: skip
-        return summary, None
-
-    status, failure, error = "running", "", None
-    start = time.perf_counter()
-    if monitor is not None:
-        monitor.start(done, target)
+    diagnostics = Diagnostics.of(header.system, header.W0, save_every=header.save_every)
+    writer = TrajectoryWriter.open(header, resume=resume)
     try:
-        for chunk in driver.advance(flow, W, header.h, target, start=done, state=state):
-            keep = (chunk.index % header.save_every == 0) | (chunk.index == target)
-            err = writer.record(chunk, keep)
-            if keep.any():
-                writer.commit()
-            if monitor is not None:
-                monitor.advance(chunk.size, int(chunk.iterations.sum()), err)
-            del chunk  # hold no chunk while the next one is computed
-        status = "complete"
-    except KeyboardInterrupt:
-        status = "interrupted"
-    except ConvergenceError as exc:
-        status, failure, error = "failed", str(exc), exc
-    finally:
-        wall = time.perf_counter() - start
-        try:
-            if monitor is not None:
-                monitor.stop()
-        finally:
-            # Checkpoint what was computed (a failed run keeps its last state); then record
-            # the status. Both with interrupts deferred, so a second Ctrl-C cannot split them.
-            with _signals.deferred():
-                try:
-                    writer.commit(keep_last=status == "failed")
-                finally:
-                    writer.close(status if status != "running" else "interrupted", wall, failure)
+        ck = writer.start
+        if ck is None:
+            W, state, done = header.W0, None, 0
+        else:
+            W, done = ck.W, ck.step
+            state = ck.state(flow.init(W))
+    except BaseException:  # Ctrl-C before stepping: the file says so, and is resumable
+        writer.close("interrupted", None, 0.0)
+        raise
+    outcome = driver.run(
+        flow,
+        W,
+        header.h,
+        target,
+        sinks=(writer,),
+        diagnostics=diagnostics,
+        save_every=header.save_every,
+        start=done,
+        state=state,
+        monitor=monitor,
+        checkpoint=Cadence(seconds=header.checkpoint_seconds),
+    )
     completed = writer.completed_steps
     summary = RunSummary(
         header.output,
-        status,
+        outcome.status,
         completed,
         target,
         completed - done,
-        wall,
+        outcome.wall_time,
         writer.max_energy_error,
-        failure,
+        "" if outcome.failure is None else str(outcome.failure),
     )
-    return summary, error
+    return summary, outcome.failure

@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from ..errors import InputError
+from .errors import InputError
 
 
 class ProgressBar:

@@ -1,6 +1,6 @@
-"""The one entry point that runs many steps, :func:`integrate`, and the step stream
-:func:`iterate`: both over the one stepping loop, :func:`lieflow.driver.advance` (which the
-command line's HDF5 runner, :func:`lieflow.app.io.run`, drives too)."""
+"""The one entry point that runs many steps, :func:`integrate` (over the one consumer loop,
+:func:`lieflow.driver.run`, into a :class:`~lieflow.sinks.Sink`), and the step stream
+:func:`iterate` (over the one stepping loop, :func:`lieflow.driver.advance`)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,6 @@ import json
 import math
 import os
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Literal
@@ -22,10 +21,11 @@ from . import driver
 from .algebras import Array
 from .backends import from_host, is_foreign_array, is_numpy, to_numpy
 from .driver import Diagnostics, Monitor
-from .errors import ConvergenceError, InputError
+from .errors import InputError
 from .flows import Flow, SchemeFlow, StepStats, WarmStart
 from .schemes.base import Scheme
-from .solution import Solution, Status
+from .sinks import MemorySink, RunInfo, Sink, open_sink
+from .solution import Solution
 from .solvers.base import Solver
 from .solvers.fixed_point import FixedPoint
 from .systems.base import IsospectralSystem
@@ -61,7 +61,19 @@ def check_step_size(h: float) -> float:
     return hf
 
 
+def _not_a_class(value: object, what: str) -> None:
+    """Refuse a class passed where an instance is expected (``solver=FixedPoint``)."""
+    if isinstance(value, type):
+        raise InputError(
+            f"{what} must be an instance, got the class {value.__name__}; "
+            f"pass an instance: {value.__name__}()"
+        )
+
+
 def _check_types(system: object, scheme: object, solver: object) -> None:
+    _not_a_class(system, "system")
+    _not_a_class(scheme, "scheme")
+    _not_a_class(solver, "solver")
     if not isinstance(system, IsospectralSystem):
         raise InputError(
             f"system must be an IsospectralSystem, got {type(system).__name__}; "
@@ -83,23 +95,48 @@ def _check_types(system: object, scheme: object, solver: object) -> None:
 def iterate(
     system: IsospectralSystem,
     scheme: Scheme,
-    W0: Array,
+    W0: ArrayLike,
     h: float,
-    solver: Solver,
+    solver: Solver | None = None,
     *,
     start: int = 0,
     warm: WarmStart | None = None,
     warm_start: bool | int = True,
 ) -> Iterator[Step]:
-    """Yield steps ``start + 1, start + 2, ...`` from the (already validated) state ``W0``:
-    an endless stream over :func:`lieflow.driver.advance` of a :class:`SchemeFlow`.
+    """Yield steps ``start + 1, start + 2, ...`` from ``W0``: an endless stream over
+    :func:`lieflow.driver.advance` of a :class:`SchemeFlow`.
+
+    The arguments are checked as :func:`integrate` checks them, when ``iterate`` is called
+    (not at the first step): ``h`` positive and finite, ``W0`` in the system's phase space,
+    a system, a scheme and a solver instance (``FixedPoint()`` by default), ``start`` a
+    non-negative step index.
 
     ``t`` is computed as ``index * h`` (never accumulated). ``warm`` seeds the first step's
     initial guess (pass the last :attr:`Step.warm` to resume a run bit-for-bit). A failed
     step raises :class:`ConvergenceError` carrying its index and time; a step whose result is
     not finite raises it too (reason ``"non_finite"``).
+
+    Raises
+    ------
+    InputError
+        A bad argument, named.
     """
+    hf = check_step_size(h)
+    solver = FixedPoint() if solver is None else solver
+    _check_types(system, scheme, solver)
+    if not isinstance(scheme, Scheme):
+        raise InputError(
+            f"iterate steps a Scheme, got {type(scheme).__name__}; step a Flow with "
+            "lieflow.driver.advance, or run it with lieflow.integrate"
+        )
+    if isinstance(start, bool) or not isinstance(start, (int, np.integer)) or start < 0:
+        raise InputError(f"start must be a non-negative step index, got {start!r}")
+    W0a = _validated(system, W0)
     flow = SchemeFlow(system, scheme, solver, warm_start)
+    return _steps(flow, W0a, hf, int(start), warm)
+
+
+def _steps(flow: Flow, W0: Array, h: float, start: int, warm: Any) -> Iterator[Step]:
     for chunk in driver.advance(flow, W0, h, sys.maxsize, start=start, state=warm):
         yield Step(
             chunk.stop,
@@ -249,7 +286,7 @@ def _progress_monitor(progress: bool | Monitor) -> Monitor | None:
     if progress is False:
         return None
     if progress is True:
-        from .app.progress import ProgressBar
+        from .progress import ProgressBar
 
         return ProgressBar()
     if not all(callable(getattr(progress, m, None)) for m in ("start", "advance", "stop")):
@@ -304,7 +341,7 @@ def _shift_identity(flow: Flow) -> dict[str, float]:
     return {"casimir_shift": stepped.c} if isinstance(stepped, CasimirShifted) else {}
 
 
-def _stream(
+def _file_sink(
     system: IsospectralSystem,
     scheme: Scheme | Flow,
     flow: Flow,
@@ -315,18 +352,16 @@ def _stream(
     *,
     save_every: int,
     warm_start: bool | int,
-    out: Any,
+    out: str | os.PathLike[str],
     resume: bool,
     replace: bool,
-    on_failure: str,
-    monitor: Monitor | None,
-) -> Solution:
-    """``integrate(..., out=path)``: run through :func:`lieflow.app.io.run_flow` into a
-    trajectory file; the :class:`Solution` holds the initial and last states and the
-    per-step diagnostics read back from the file."""
-    from .app import io
-
-    path = Path(io._as_path(out, "out")).absolute()
+) -> Sink:
+    """``integrate(..., out=path)``: the sink registered for the path's suffix (the
+    application's HDF5 trajectory writer for ``.h5``), opened for this run."""
+    if isinstance(out, bytes) or not isinstance(out, (str, os.PathLike)) or not str(out):
+        raise InputError(
+            f"out must be a file path or a Sink (record, checkpoint, close, result), got {out!r}"
+        )
     identity = json.dumps(
         {
             "system": _describe(system),
@@ -340,7 +375,7 @@ def _stream(
         sort_keys=True,
         default=str,
     )
-    header = io.TrajectoryHeader(
+    info = RunInfo(
         system=system,
         system_name=_system_name(system),
         scheme=flow.name,
@@ -350,34 +385,8 @@ def _stream(
         requested_steps=n_steps,
         identity=identity,
         W0=W0,
-        output=path,
-        replace=replace,
     )
-    summary, error = io.run_flow(header, flow, resume=resume, monitor=monitor)
-    if summary.status == "interrupted":
-        raise KeyboardInterrupt
-    if error is not None and on_failure == "raise":
-        raise error
-    run = io.read_diagnostics(path)
-    k = run.completed_steps
-    first = np.asarray(run.W0)
-    W = np.stack([first, run.W]) if k else first[None]
-    steps_kept = np.array([0, k] if k else [0], dtype=np.int64)
-    return Solution(
-        system=system,
-        scheme=flow.name,
-        h=h,
-        t=steps_kept * h,
-        W=W,
-        saved_steps=steps_kept,
-        iterations=run.iterations,
-        solvers=(header.solver or flow.name,) * k,
-        energy_error=run.energy_error,
-        casimir_drift=run.casimir_drift,
-        status=Status.SUCCESS if error is None else Status.FAILED,
-        failure=error,
-        wall_time=summary.wall_time,
-    )
+    return open_sink(Path(out).absolute(), info, resume=resume, replace=replace)
 
 
 def integrate(
@@ -395,9 +404,10 @@ def integrate(
     on_failure: Literal["raise", "truncate"] = "raise",
     progress: bool | Monitor = False,
     engine: Engine = "auto",
-    out: str | os.PathLike[str] | None = None,
+    out: str | os.PathLike[str] | Sink | None = None,
     resume: bool = False,
     replace: bool = False,
+    checkpoint_seconds: float = 1.0,
     casimir_shift: float | Literal["auto"] = 0.0,
 ) -> Solution:
     """Integrate ``dW/dt = [B(W), W]`` from ``W0`` with a fixed step ``h``.
@@ -453,17 +463,20 @@ def integrate(
         (``n <= 128``, complex ``n <= 96``, and at least 1000 trajectory-steps, see
         :func:`lieflow.compiled.wins`: a function of the run alone, so the same run gives
         the same bits in any process), else numpy.
-    out : str or path, optional
-        Stream the run into this trajectory file — the format ``lieflow run`` writes
-        (:mod:`lieflow.app.io`; read it with :func:`lieflow.app.io.read_trajectory`, plot it with
-        ``lieflow plot``) — instead of keeping the states in memory: every
-        ``save_every``-th state (and the last) goes to the file as the run proceeds, with a
-        checkpoint at each, and memory holds one chunk of steps (a few states) whatever the
-        run's length. The returned :class:`Solution` then holds the initial and the last
-        state only (``W``, ``t`` and ``saved_steps`` of length 2), and the per-step
-        diagnostics and iterations (a few numbers per step, read back from the file; they
-        are recorded even with ``diagnostics=False``); ``solvers`` names the requested
-        solver for every step. Cost: one HDF5 write and flush per save point.
+    out : str, path or Sink, optional
+        Stream the run into this trajectory file — the format ``lieflow run`` writes (the
+        sink the plugin registry holds for the file's suffix, :func:`lieflow.sinks.open_sink`:
+        the application's HDF5 writer for ``.h5`` and any suffix no other sink claims; read it
+        with :func:`lieflow.open_run` or :func:`lieflow.app.io.read_trajectory`, plot it with
+        ``lieflow plot``) — instead of keeping the states in memory: every ``save_every``-th
+        state (and the last) goes to the file as the run proceeds, buffered and written in
+        blocks at each checkpoint (``checkpoint_seconds``), and memory holds one chunk of
+        steps (a few states) whatever the run's length. The returned :class:`Solution` then
+        holds the initial and the last state only (``W``, ``t`` and ``saved_steps`` of length
+        2), and the per-step diagnostics and iterations (a few numbers per step, read back
+        from the file; they are recorded even with ``diagnostics=False``); ``solvers`` names
+        the requested solver for every step. Or any :class:`~lieflow.sinks.Sink` object:
+        ``integrate`` then returns its :meth:`~lieflow.sinks.Sink.result`.
     resume : bool
         With ``out``: continue the file from its last checkpoint (bit-for-bit the same as
         an uninterrupted run; ``steps`` may have grown) — it must have been written by the
@@ -473,6 +486,11 @@ def integrate(
     replace : bool
         With ``out`` and no ``resume``: replace an existing file (otherwise an existing
         file is refused, so that a finished run is never overwritten by accident).
+    checkpoint_seconds : float
+        With ``out``: seconds between checkpoints — the resume point, written with the
+        buffered states and diagnostics, flushed and fsync'd (a run killed outright loses at
+        most this much work; Ctrl-C, a failed step or the end checkpoint everything). ``0``:
+        after every chunk of steps.
     casimir_shift : float or "auto"
         Step the scheme on the Hamiltonian plus a Casimir, :math:`B(W) - cW`
         (:class:`~lieflow.systems.shifted.CasimirShifted`): the same flow, and an
@@ -526,88 +544,51 @@ def integrate(
         _check_types(system, scheme, None)
         W0a = _validated(system, W0)
         flow: Flow = scheme
-        stepped = system
     else:
         solver = FixedPoint() if solver is None else solver
         _check_types(system, scheme, solver)
         W0a = _validated(system, W0)
-        stepped = shifted(system, W0a, casimir_shift)
-        flow = scheme_flow(stepped, scheme, solver, W0a, n_steps, engine=engine,
-                           warm_start=warm_start)  # fmt: skip
+        flow = scheme_flow(shifted(system, W0a, casimir_shift), scheme, solver, W0a, n_steps,
+                           engine=engine, warm_start=warm_start)  # fmt: skip
 
-    if out is not None:
-        return _stream(system, scheme, flow, solver, W0a, h, n_steps, save_every=save_every,
-                       warm_start=warm_start, out=out, resume=resume, replace=replace,
-                       on_failure=on_failure, monitor=_progress_monitor(progress))  # fmt: skip
-
-    n_saved = 1 + n_steps // save_every + (1 if n_steps % save_every else 0)
-    W0_device, W0a = W0a, to_numpy(W0a)  # states reach the host here, a chunk at a time
-    _check_memory(n_saved * W0a.nbytes, n_steps, save_every)
-    saved_W = np.empty((n_saved, *W0a.shape), dtype=W0a.dtype)
-    saved_k = np.zeros(n_saved, dtype=np.int64)
-    saved_W[0] = W0a
-    n_kept = 1
-    iterations = np.zeros(n_steps, dtype=np.int64)
-    solvers: list[str] = []
-    diag = Diagnostics.of(system, W0a) if diagnostics else None
-    H = np.empty((n_steps + 1, *np.shape(diag.H0))) if diag is not None else None
-    C = np.empty((n_steps + 1, *np.shape(diag.C0))) if diag is not None else None
-    if diag is not None and H is not None and C is not None:
-        H[0], C[0] = diag.H0, diag.C0
-    failure: ConvergenceError | None = None
+    if out is not None and not is_numpy(W0a):
+        raise InputError(
+            "a run on arrays of another library (lieflow.backends) is kept in memory: its "
+            "states reach the host a chunk at a time; streaming it to a file (out=) is not "
+            "supported yet. To fix: leave out out=, or pass W0 as a numpy array"
+        )
     monitor = _progress_monitor(progress)
-    done = 0
-    start = time.perf_counter()
-    if monitor is not None:
-        monitor.start(0, n_steps)
-    try:
-        for chunk in driver.advance(flow, W0_device, h, n_steps):
-            chunk = attrs.evolve(chunk, W=to_numpy(chunk.W))
-            a, b = chunk.start, chunk.stop
-            iterations[a:b] = chunk.iterations
-            solvers.extend(chunk.solvers)
-            err = None
-            if diag is not None and H is not None and C is not None:
-                H[a + 1 : b + 1] = diag.energy(chunk.W)
-                C[a + 1 : b + 1] = diag.casimirs(chunk.W)
-                err = float(np.max(diag.energy_error(H[a + 1 : b + 1])))
-            index = chunk.index
-            keep = np.flatnonzero((index % save_every == 0) | (index == n_steps))
-            saved_W[n_kept : n_kept + keep.size] = chunk.W[keep]
-            saved_k[n_kept : n_kept + keep.size] = index[keep]
-            n_kept += keep.size
-            if saved_k[n_kept - 1] != b:  # the last state computed so far is always at hand
-                saved_W[n_kept], saved_k[n_kept] = chunk.W[-1], b
-            done = b
-            if monitor is not None:
-                monitor.advance(chunk.size, int(chunk.iterations.sum()), err)
-    except ConvergenceError as exc:
-        if on_failure == "raise":
-            raise
-        failure = exc
-        if done and saved_k[n_kept - 1] != done:
-            n_kept += 1  # keep the last good state (written above)
-    finally:
-        if monitor is not None:
-            monitor.stop()
-    wall = time.perf_counter() - start
-
-    energy_error = casimir_drift = None
-    if diag is not None and H is not None and C is not None:
-        energy_error = diag.energy_error(H[: done + 1])
-        casimir_drift = diag.casimir_drift(C[: done + 1])
-    return Solution(
-        system=system,
-        scheme=flow.name,
-        h=h,
-        t=saved_k[:n_kept] * h,
-        W=saved_W[:n_kept],
-        saved_steps=saved_k[:n_kept].copy(),
-        iterations=iterations[:done],
-        solvers=tuple(solvers),
-        energy_error=energy_error,
-        casimir_drift=casimir_drift,
-        status=Status.SUCCESS if failure is None else Status.FAILED,
-        failure=failure,
-        wall_time=wall,
-    )
+    W0_device, W0a = W0a, to_numpy(W0a)  # states reach the host at the sinks, a chunk at a time
+    cadence = driver.Cadence(seconds=checkpoint_seconds)
+    start, state = 0, None
+    if out is None:
+        _check_memory(MemorySink.saved_states(n_steps, save_every) * W0a.nbytes, n_steps,
+                      save_every)  # fmt: skip
+        diag = Diagnostics.of(system, W0a, save_every=save_every) if diagnostics else None
+        sink: Sink = MemorySink(system, flow.name, h, W0a, n_steps, save_every, diag)
+    else:
+        # a file records every step's diagnostics, whatever ``diagnostics`` says
+        diag = Diagnostics.of(system, W0a, save_every=save_every)
+        if isinstance(out, Sink):
+            sink = out
+        else:
+            sink = _file_sink(system, scheme, flow, solver, W0a, h, n_steps,
+                              save_every=save_every, warm_start=warm_start, out=out,
+                              resume=resume, replace=replace)  # fmt: skip
+        point = getattr(sink, "start", None)
+        if point is not None:
+            try:
+                start, W0a = point.step, point.W
+                state = point.state(flow.init(W0a))
+            except BaseException:  # the sink holds its file: release it, resumable
+                sink.close("interrupted", None, 0.0)
+                raise
+    if start:  # resumed from a file (numpy arrays only): the checkpoint's state
+        W0_device = W0a
+    outcome = driver.run(flow, W0_device, h, n_steps, sinks=(sink,), diagnostics=diag,
+                         save_every=save_every, start=start, state=state, monitor=monitor,
+                         checkpoint=cadence, on_failure=on_failure)  # fmt: skip
+    if outcome.status == "interrupted":
+        raise KeyboardInterrupt
+    result: Solution = sink.result()
+    return result

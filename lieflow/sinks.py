@@ -1,0 +1,300 @@
+r"""Where a run's steps go: the :class:`Sink` protocol, and :class:`MemorySink` (a
+:class:`~lieflow.Solution`).
+
+:func:`lieflow.driver.run` is the one consumer loop: it takes each
+:class:`~lieflow.driver.Chunk` of steps from :func:`lieflow.driver.advance`, decides which
+states are saved (every ``save_every``-th and the last), computes the diagnostics once
+(:class:`~lieflow.driver.ChunkDiagnostics`), and hands both to every sink. A sink only
+stores: in memory (:class:`MemorySink`, this module), in an HDF5 trajectory file (the
+application's ``TrajectorySink``, :mod:`lieflow.app.io`), or wherever a plugin writes.
+
+A file format is found by its suffix in the plugin registry
+(``registry.add_sink(".h5", factory)``, :meth:`lieflow.RegistryBuilder.add_sink`), so that
+``integrate(out="run.h5")`` reaches the application's writer without the core importing the
+application.
+
+Arrays of a chunk may live on a device (a GPU array library); a sink copies them to the host
+with :func:`to_host`, the one place that conversion happens.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal, Protocol, runtime_checkable
+
+import attrs
+import numpy as np
+
+from .algebras import Array
+from .backends import to_numpy
+from .errors import ConvergenceError, InputError
+from .solution import Solution, Status
+
+if TYPE_CHECKING:
+    from .driver import Chunk, ChunkDiagnostics, Diagnostics
+
+__all__ = [
+    "DEFAULT_SUFFIX",
+    "Ending",
+    "MemorySink",
+    "ResumePoint",
+    "RunInfo",
+    "Sink",
+    "SinkFactory",
+    "open_sink",
+    "to_host",
+]
+
+#: How a run ended: every step done, stopped by Ctrl-C (resumable), or a step failed.
+Ending = Literal["complete", "interrupted", "failed"]
+
+
+def to_host(x: Any) -> Array:
+    """``x`` as a numpy array in host memory: the one device → host conversion of the sinks
+    (:func:`lieflow.backends.to_numpy`: a no-op for numpy arrays, one copy for an array of
+    another library)."""
+    return to_numpy(x)
+
+
+@runtime_checkable
+class Sink(Protocol):
+    """Receives a run's steps from :func:`lieflow.driver.run`.
+
+    The driver calls :meth:`record` for every chunk of steps, in order; :meth:`checkpoint`
+    at its checkpoint cadence and once at the end; :meth:`close` exactly once, however the
+    run ends; :meth:`result` after that, for what the caller gets back.
+    """
+
+    def record(self, chunk: Chunk, keep: Array, diagnostics: ChunkDiagnostics | None) -> None:
+        """Store the chunk's steps: the states where ``keep`` is true (a boolean per step),
+        its iterations, residuals and solvers, and its ``diagnostics`` (``None`` when the
+        run computes none). May buffer; nothing recorded is final until :meth:`checkpoint`."""
+        ...
+
+    def checkpoint(self, *, keep_last: bool = False) -> None:
+        """Make everything recorded durable, with a resume point at the last recorded step
+        (its state and the chunk's flow state resume bit-for-bit). ``keep_last``: also save
+        the last recorded state (a failed run keeps its last good state)."""
+        ...
+
+    def close(self, status: Ending, failure: ConvergenceError | None, wall_time: float) -> None:
+        """The run ended with ``status`` (the error of a failed step in ``failure``) after
+        ``wall_time`` seconds of stepping; release what the sink holds."""
+        ...
+
+    def result(self) -> Any:
+        """What the run gives its caller (:func:`lieflow.integrate` returns it): a
+        :class:`~lieflow.Solution` for the built-in sinks."""
+        ...
+
+
+class ResumePoint(Protocol):
+    """Where a resumable sink's stored run continues: the state ``W`` after step ``step``
+    and the flow's state then."""
+
+    @property
+    def step(self) -> int: ...
+
+    @property
+    def W(self) -> Array: ...
+
+    def state(self, template: Any) -> Any:
+        """The flow's state, shaped like ``template`` (the flow's ``init(W)``)."""
+        ...
+
+
+@attrs.frozen(eq=False)
+class RunInfo:
+    """What a file sink records about a run besides its steps (its header).
+
+    Attributes
+    ----------
+    system : IsospectralSystem
+        The system (diagnostics, the resume checks).
+    system_name, scheme, solver : str
+        Registry names recorded with the run (``scheme``: the scheme's or flow's name).
+    h : float
+        Step size.
+    save_every : int
+        Every ``save_every``-th state is saved (and the last).
+    requested_steps : int
+        Steps asked for.
+    identity : str
+        JSON of everything that defines the trajectory except its length and location: a
+        resume is refused unless the stored run's identity is the same.
+    W0 : ndarray
+        The initial condition.
+    """
+
+    system: Any = attrs.field(repr=False)
+    system_name: str
+    scheme: str
+    solver: str
+    h: float
+    save_every: int
+    requested_steps: int
+    identity: str = attrs.field(repr=False)
+    W0: Array = attrs.field(repr=False)
+
+
+#: ``factory(path, run, resume=..., replace=...) -> Sink``: a file format's sink, registered
+#: for a suffix; with ``resume`` it continues an existing file, and has a ``start``
+#: (:class:`ResumePoint`, ``None`` for a new file).
+SinkFactory = Callable[..., Sink]
+
+
+#: The suffix whose sink writes a path that no registered sink claims by its suffix (the
+#: trajectory format of ``lieflow run``, which takes any file name).
+DEFAULT_SUFFIX = ".h5"
+
+
+def open_sink(path: Path, run: RunInfo, *, resume: bool, replace: bool) -> Sink:
+    """The sink the registry holds for ``path``'s suffix (for another suffix, or none, the
+    one for :data:`DEFAULT_SUFFIX`), opened for ``run``.
+
+    Raises
+    ------
+    InputError
+        No installed plugin writes such files.
+    """
+    from .plugins import default_registry
+
+    formats = default_registry().sinks
+    entry = formats.get(path.suffix.lower()) or formats.get(DEFAULT_SUFFIX)
+    if entry is None:
+        known = ", ".join(sorted(formats)) or "none"
+        raise InputError(
+            f"no sink is registered to write {str(path)!r} (registered suffixes: {known}). "
+            "To fix: reinstall lieflow so that its entry points are registered "
+            "(pip install -e .; the application registers '.h5'), or pass a Sink object"
+        )
+    sink: Sink = entry.factory(path, run, resume=resume, replace=replace)
+    return sink
+
+
+@attrs.define(eq=False)
+class MemorySink:
+    """Keeps a run in memory and builds its :class:`~lieflow.Solution`.
+
+    Saved states go into one array allocated up front (``1 + steps // save_every`` states,
+    plus the last), so memory is the saved states only; per-step iterations, solvers and
+    diagnostics are kept for every step.
+
+    Parameters
+    ----------
+    system : IsospectralSystem
+        The system (stored on the :class:`~lieflow.Solution`).
+    scheme : str
+        The scheme's or flow's name.
+    h : float
+        Step size.
+    W0 : ndarray
+        The initial state (saved as step 0).
+    steps : int
+        Steps asked for.
+    save_every : int
+        Every ``save_every``-th state is saved (and the last): sizes the saved-state array.
+    diagnostics : Diagnostics, optional
+        The run's diagnostics (their step-0 values start the per-step arrays); ``None``: the
+        solution has none.
+    """
+
+    system: Any
+    scheme: str
+    h: float
+    W0: Array
+    steps: int
+    save_every: int = 1
+    diagnostics: Diagnostics | None = None
+    _W: Array = attrs.field(init=False, repr=False)
+    _k: Array = attrs.field(init=False, repr=False)
+    _kept: int = attrs.field(init=False, default=1)
+    _pending: bool = attrs.field(init=False, default=False)
+    _iterations: Array = attrs.field(init=False, repr=False)
+    _solvers: list[str] = attrs.field(init=False, factory=list, repr=False)
+    _err: Array | None = attrs.field(init=False, default=None, repr=False)
+    _drift: Array | None = attrs.field(init=False, default=None, repr=False)
+    _extra: list[tuple[int, float, Mapping[str, Any]]] = attrs.field(init=False, factory=list)
+    _done: int = attrs.field(init=False, default=0)
+    _solution: Solution | None = attrs.field(init=False, default=None, repr=False)
+
+    @staticmethod
+    def saved_states(steps: int, save_every: int) -> int:
+        """Slots for saved states: the initial one, every ``save_every``-th, and the last."""
+        return 2 + steps // save_every
+
+    def __attrs_post_init__(self) -> None:
+        W0 = to_host(self.W0)
+        n = self.saved_states(self.steps, self.save_every)
+        self._W = np.empty((n, *W0.shape), dtype=W0.dtype)
+        self._k = np.zeros(n, dtype=np.int64)
+        self._W[0] = W0
+        self._iterations = np.zeros(self.steps, dtype=np.int64)
+        diag = self.diagnostics
+        if diag is not None:
+            H0, C0 = np.shape(diag.H0), np.shape(diag.C0)
+            self._err = np.zeros((self.steps + 1, *H0))
+            self._drift = np.zeros((self.steps + 1, *C0))
+            if diag.extra is not None:
+                self._extra.append((0, 0.0, diag.extra(W0)))
+
+    def record(self, chunk: Chunk, keep: Array, diagnostics: ChunkDiagnostics | None) -> None:
+        """Keep the chunk's saved states, iterations, solvers and diagnostics."""
+        a, b = chunk.start, chunk.stop
+        self._iterations[a:b] = to_host(chunk.iterations)
+        self._solvers.extend(chunk.solvers)
+        if diagnostics is not None and self._err is not None and self._drift is not None:
+            self._err[a + 1 : b + 1] = diagnostics.energy_error
+            self._drift[a + 1 : b + 1] = diagnostics.casimir_drift
+            self._extra.extend(diagnostics.extra)
+        n = self._kept
+        index = np.flatnonzero(keep)
+        self._W[n : n + index.size] = to_host(chunk.W[index])
+        self._k[n : n + index.size] = chunk.index[index]
+        n += index.size
+        self._kept = n
+        # the last state computed so far is always at hand, in the spare slot after the kept
+        self._pending = self._k[n - 1] != b
+        if self._pending:
+            self._W[n], self._k[n] = to_host(chunk.W[-1]), b
+        self._done = b
+
+    def checkpoint(self, *, keep_last: bool = False) -> None:
+        """Nothing to make durable; ``keep_last`` saves the last recorded state."""
+        if keep_last and self._pending:
+            self._kept += 1
+            self._pending = False
+
+    def close(self, status: Ending, failure: ConvergenceError | None, wall_time: float) -> None:
+        """Build the :class:`~lieflow.Solution` (the last state is always saved)."""
+        self.checkpoint(keep_last=True)
+        done, n = self._done, self._kept
+        extra: dict[str, Array] = {}
+        if self._extra:
+            extra["step"] = np.array([e[0] for e in self._extra], dtype=np.int64)
+            extra["t"] = np.array([e[1] for e in self._extra])
+            for name in self._extra[0][2]:
+                extra[name] = np.stack([to_host(e[2][name]) for e in self._extra])
+        self._solution = Solution(
+            system=self.system,
+            scheme=self.scheme,
+            h=self.h,
+            t=self._k[:n] * self.h,
+            W=self._W[:n],
+            saved_steps=self._k[:n].copy(),
+            iterations=self._iterations[:done],
+            solvers=tuple(self._solvers),
+            energy_error=None if self._err is None else self._err[: done + 1],
+            casimir_drift=None if self._drift is None else self._drift[: done + 1],
+            status=Status.SUCCESS if status == "complete" else Status.FAILED,
+            failure=failure,
+            wall_time=wall_time,
+            extra=extra,
+        )
+
+    def result(self) -> Solution:
+        """The :class:`~lieflow.Solution` (after :meth:`close`)."""
+        if self._solution is None:
+            raise InputError("MemorySink.result() before the run was closed")
+        return self._solution

@@ -1,0 +1,212 @@
+"""The one consumer loop (:func:`lieflow.driver.run`) and the sinks it feeds."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import lieflow as lf
+from lieflow.driver import Cadence
+
+RB = lf.systems.get("rigid_body", inertia=(1.0, 2.0, 3.0))
+W0 = RB.random_state(seed=0)
+MID = lf.schemes.get("midpoint")
+
+
+class Recorder:
+    """A Sink that writes down every call."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[Any, ...]] = []
+        self.kept: list[int] = []
+
+    def record(self, chunk: Any, keep: Any, diagnostics: Any) -> None:
+        self.calls.append(("record", chunk.stop))
+        self.kept += chunk.index[keep].tolist()
+        self.diagnostics = diagnostics
+
+    def checkpoint(self, *, keep_last: bool = False) -> None:
+        self.calls.append(("checkpoint", keep_last))
+
+    def close(self, status: str, failure: Any, wall_time: float) -> None:
+        self.calls.append(("close", status))
+
+    def result(self) -> str:
+        return "recorded"
+
+
+class Extra(lf.IsospectralSystem):
+    """The rigid body with an extra diagnostic (``|W|_F`` and the step's state)."""
+
+    algebra = lf.SO(3)
+    linear_B = True
+    diagnostics_every = 2
+
+    def B(self, W: np.ndarray) -> np.ndarray:
+        return RB.B(W)
+
+    def hamiltonian(self, W: np.ndarray) -> np.ndarray:
+        return RB.hamiltonian(W)
+
+    def extra_diagnostics(self, W: np.ndarray) -> dict[str, np.ndarray]:
+        return {"norm": np.asarray(np.linalg.norm(W)), "W": np.array(W)}
+
+
+def test_integrate_into_a_sink_object_returns_its_result() -> None:
+    sink = Recorder()
+    out = lf.integrate(RB, MID, W0, 0.1, steps=7, save_every=3, out=sink, engine="numpy")
+    assert out == "recorded" and sink.kept == [3, 6, 7]
+    # one second between checkpoints (a short run: only the final one), then close
+    assert [c for c in sink.calls if c[0] != "record"] == [("checkpoint", False),
+                                                            ("close", "complete")]  # fmt: skip
+    sink = Recorder()
+    lf.integrate(RB, MID, W0, 0.1, steps=7, save_every=3, out=sink, engine="numpy",
+                 checkpoint_seconds=0)  # fmt: skip
+    taken = [sink.calls[i - 1] for i, c in enumerate(sink.calls) if c[0] == "checkpoint"]
+    assert taken[:-1] == [("record", k) for k in range(1, 8)]  # after every (one-step) chunk
+
+
+@pytest.mark.parametrize(
+    ("cadence", "after"), [(Cadence(steps=4), [4, 8]), (Cadence(seconds=0), list(range(1, 11)))]
+)
+def test_checkpoint_cadence_is_not_the_save_cadence(cadence: Cadence, after: list[int]) -> None:
+    sink = Recorder()
+    flow = lf.SchemeFlow(RB, MID, lf.solvers.FixedPoint())
+    outcome = lf.driver.run(flow, W0, 0.1, 10, sinks=[sink], save_every=5, checkpoint=cadence)
+    assert outcome.status == "complete" and outcome.done == 10
+    calls = sink.calls
+    taken = [calls[i - 1][1] for i, c in enumerate(calls) if c[0] == "checkpoint"]
+    assert taken[:-1] == after and sink.kept == [5, 10]
+
+
+def test_bad_cadence_is_refused() -> None:
+    with pytest.raises(lf.InputError, match="checkpoint steps"):
+        Cadence(steps=0)
+    with pytest.raises(lf.InputError, match="checkpoint seconds"):
+        Cadence(seconds=float("nan"))
+
+
+def test_a_failed_step_keeps_the_last_state_and_closes_failed() -> None:
+    sink = Recorder()
+    solver = lf.solvers.FixedPoint(max_iter=2)
+    scheme = lf.schemes.get("gauss2")
+    flow = lf.SchemeFlow(RB, scheme, solver)
+    outcome = lf.driver.run(flow, 50 * W0, 0.5, 5, sinks=[sink], save_every=5)
+    assert outcome.status == "failed" and isinstance(outcome.failure, lf.ConvergenceError)
+    assert sink.calls[-2:] == [("checkpoint", True), ("close", "failed")]
+    sol = lf.integrate(RB, scheme, 50 * W0, 0.5, steps=5, solver=solver, on_failure="truncate")
+    assert not sol.success and sol.saved_steps[-1] == sol.n_steps == outcome.done
+
+
+def test_extra_diagnostics_reach_memory_and_file_alike(tmp_path: Path) -> None:
+    """``system.extra_diagnostics`` used to be recorded by the HDF5 writer only."""
+    system = Extra()
+    mem = lf.integrate(system, MID, W0, 0.1, steps=5, engine="numpy")
+    assert mem.extra["step"].tolist() == [0, 2, 4]
+    np.testing.assert_array_equal(mem.extra["t"], [0.0, 0.2, 0.4])
+    saved = mem.extra["W"]
+    sol = lf.integrate(system, MID, W0, 0.1, steps=5, engine="numpy", save_every=1)
+    np.testing.assert_array_equal(saved, sol.W[[0, 2, 4]])  # the states themselves
+    np.testing.assert_allclose(mem.extra["norm"], np.linalg.norm(W0), rtol=1e-14)
+    disk = lf.integrate(system, MID, W0, 0.1, steps=5, engine="numpy", out=tmp_path / "x.h5")
+    assert sorted(disk.extra) == sorted(mem.extra)
+    for name, value in mem.extra.items():
+        np.testing.assert_array_equal(disk.extra[name], value)
+
+
+def test_memory_sink_and_file_sink_see_the_same_diagnostics(tmp_path: Path) -> None:
+    mem = lf.integrate(RB, MID, W0, 0.1, steps=9, save_every=4, engine="numpy")
+    disk = lf.integrate(RB, MID, W0, 0.1, steps=9, save_every=4, engine="numpy",
+                        out=tmp_path / "r.h5")  # fmt: skip
+    assert mem.energy_error is not None and disk.energy_error is not None
+    np.testing.assert_array_equal(mem.energy_error, disk.energy_error)
+    np.testing.assert_array_equal(mem.iterations, disk.iterations)
+    np.testing.assert_array_equal(mem.W[-1], disk.W[-1])
+    # recomputed independently at the saved states; the Casimir tr W^2 is exact (isospectral)
+    H = np.array([RB.hamiltonian(W) for W in mem.W])
+    H0 = RB.hamiltonian(W0)
+    np.testing.assert_allclose(mem.energy_error[mem.saved_steps], np.abs(H - H0) / abs(H0),
+                               rtol=1e-12, atol=0)  # fmt: skip
+    assert mem.casimir_drift is not None and mem.casimir_drift.max() < 1e-13
+
+
+def test_an_unregistered_suffix_is_written_as_a_trajectory_file(tmp_path: Path) -> None:
+    sol = lf.integrate(RB, MID, W0, 0.1, steps=3, out=tmp_path / "run.dat")
+    assert sol.success and lf.open_run(tmp_path / "run.dat").W_final.shape == (3, 3)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"out": 123}, "file path or a Sink"),
+        ({"out": "x.h5", "checkpoint_seconds": "1"}, "checkpoint seconds"),
+        ({"out": "x.h5", "checkpoint_seconds": -1.0}, "checkpoint seconds"),
+    ],
+)
+def test_bad_outputs_are_refused_before_anything_is_written(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, kwargs: dict, match: str
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(lf.InputError, match=match):
+        lf.integrate(RB, MID, W0, 0.1, steps=3, **kwargs)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_rows_written_ahead_of_the_checkpoint_are_dropped_on_resume(tmp_path: Path) -> None:
+    """A killed run whose states went to the file ahead of its checkpoint (the buffer
+    filled: 64 KiB of so(3) states, about 900) resumes from the checkpoint, bit for bit."""
+    import subprocess
+    import sys
+    import textwrap
+
+    from lieflow.app import io
+
+    out = tmp_path / "killed.h5"
+    script = textwrap.dedent(
+        f"""
+        import os, sys
+        import lieflow as lf
+        from lieflow.app import io
+
+        write_rows = io.TrajectoryWriter._write_rows
+
+        def spy(self, **kwargs):
+            sys.stderr.write(f"rows ahead: {{self._n_saved}}\\n")
+            sys.stderr.flush()
+            return write_rows(self, **kwargs)
+
+        io.TrajectoryWriter._write_rows = spy
+
+        class Kill:
+            def start(self, done, total): self.done = done
+            def advance(self, steps, iterations, err):
+                self.done += steps
+                if self.done == 1500:
+                    os._exit(9)
+            def stop(self): pass
+
+        body = lf.systems.get("rigid_body", inertia=(1.0, 2.0, 3.0))
+        lf.integrate(body, lf.schemes.get("midpoint"), body.random_state(0), 0.01,
+                     steps=2000, engine="numpy", out={str(out)!r}, progress=Kill(),
+                     checkpoint_seconds=1e9)
+        """
+    )
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=300)
+    assert proc.returncode == 9, proc.stderr.decode()
+    assert io.read_checkpoint(out).step == 0  # no checkpoint but the first ...
+    assert b"rows ahead: 1" in proc.stderr  # ... yet states went to the file ahead of it
+    body = lf.systems.get("rigid_body", inertia=(1.0, 2.0, 3.0))
+    args = (body, MID, body.random_state(0), 0.01)
+    resumed = lf.integrate(*args, steps=2000, engine="numpy", out=out, resume=True)
+    lf.integrate(*args, steps=2000, engine="numpy", out=tmp_path / "whole.h5")
+    a, b = io.read_trajectory(out), io.read_trajectory(tmp_path / "whole.h5")
+    for name in ("step", "W", "energy_error", "casimir_drift", "iterations", "residual"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert a.completed_steps == 2000 and resumed.success
+    memory = lf.integrate(*args, steps=2000, engine="numpy")  # no file involved
+    np.testing.assert_array_equal(a.step, memory.saved_steps)
+    np.testing.assert_array_equal(a.W, memory.W)
+    np.testing.assert_array_equal(a.energy_error, memory.energy_error)
