@@ -299,7 +299,7 @@ def test_a_compiled_flow_stays_compiled_inside_a_splitting(
     """Issue 26.3: the sub-steps of a compiled scheme flow inside a Splitting (and a
     Projected) are taken by the compiled loops — the scheme's numpy step never runs — and
     agree with the numpy engine's to roundoff (the reference: the same splitting on numpy)."""
-    from lieflow.integrate import scheme_flow
+    from lieflow.integration import scheme_flow
 
     body = lf.systems.RigidBody(inertia=(1.0, 2.0, 3.0))
     W0 = body.random_state(3)
