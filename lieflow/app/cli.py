@@ -5,6 +5,8 @@ Subcommands::
     lieflow list                      systems, schemes and solvers (plugins included)
     lieflow run CONFIG.toml           integrate a TOML configuration into an HDF5 file
             [--resume] [--out FILE] [--force] [--no-progress]
+    lieflow salvage FILE.h5           cut a damaged trajectory file back to its last
+                                      verified checkpoint (then run --resume)
     lieflow reproduce [--out DIR]     the paper's experiments: figures, report.md, results.csv
             [--quick] [--seed N]
     lieflow plot FILE.h5 [--out DIR]  energy error, Casimir drift and iterations per step,
@@ -138,6 +140,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return EXIT_TERMINATED if _Terminated.received else EXIT_INTERRUPTED
+    return EXIT_OK
+
+
+def _cmd_salvage(args: argparse.Namespace) -> int:
+    from .salvage import salvage
+
+    print(salvage(args.file).describe())
     return EXIT_OK
 
 
@@ -284,7 +293,10 @@ def _parser() -> argparse.ArgumentParser:
             "optional [solver], and [run] tables; see examples/*.toml). The trajectory, "
             "diagnostics and a checkpoint are written to HDF5 at every save, so an "
             "interrupted run can be continued bit-for-bit with --resume. Paths inside CONFIG "
-            "are relative to its directory; --out is relative to the current directory."
+            "are relative to its directory; --out is relative to the current directory. "
+            "A damaged output (a process killed while it wrote, a truncated copy, flipped "
+            "bits) is refused by --resume; `lieflow salvage FILE` cuts it back to its last "
+            "verified checkpoint, and --resume then continues from there."
         ),
     )
     p.add_argument("config", type=Path, metavar="CONFIG.toml")
@@ -293,6 +305,21 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace an existing output file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser(
+        "salvage",
+        help="cut a damaged trajectory file back to its last verified checkpoint",
+        description=(
+            "Make a damaged trajectory file (refused by `lieflow run --resume` and the "
+            "readers) resumable again: keep every step up to the latest one whose data all "
+            "read back with verified checksums and that has a verified checkpoint (resumed "
+            "bit for bit) or saved state (resumed with a cold solver start), drop the rest, "
+            "and mark the file interrupted. The damaged original is kept as FILE.damaged. "
+            "Then continue it with `lieflow run CONFIG --resume`."
+        ),
+    )
+    p.add_argument("file", type=Path, metavar="FILE.h5")
+    p.set_defaults(func=_cmd_salvage)
 
     p = sub.add_parser(
         "reproduce",

@@ -412,15 +412,30 @@ def _open(path: Path, mode: str, fix: str = _READ_FIX) -> h5py.File:
             "first."
         ) from None
     except OSError as exc:
-        if "lock" in str(exc).lower():
+        if _HDF5_LOCKED.search(str(exc)):
             raise OutputBusyError(
                 f"cannot open {_where(path)}: another process has it open for writing "
                 f"({exc}). To fix: wait until that run has finished, or stop it first."
             ) from None
-        raise LieflowError(
-            f"cannot open {_where(path)} as HDF5: the file is damaged or truncated ({exc}). "
-            f"To fix: {fix}."
+        what = "truncated (shorter than HDF5 recorded)" if "truncated file" in str(exc) else (
+            "damaged")  # fmt: skip
+        raise DamagedOutputError(
+            f"cannot open {_where(path)} as HDF5: the file is {what} ({exc}). To fix: "
+            f"{salvage_fix(path)}; or {fix}."
         ) from None
+
+
+#: HDF5's own message when another process holds its lock on the file: the only open
+#: error that means "busy" (a truncated file's message names ``sblock``, not a lock).
+_HDF5_LOCKED = re.compile(r"unable to lock file", re.IGNORECASE)
+
+
+def salvage_fix(path: Path) -> str:
+    """The fix offered for a damaged trajectory file: :func:`lieflow.app.salvage.salvage`."""
+    return (
+        f"`lieflow salvage {path}` cuts it back to its last verified checkpoint (the damaged "
+        "original is kept next to it), then continue it with --resume"
+    )
 
 
 def _damaged(path: Path, exc: BaseException) -> DamagedOutputError:
@@ -428,7 +443,8 @@ def _damaged(path: Path, exc: BaseException) -> DamagedOutputError:
         f"{_where(path)} is damaged: reading it failed ({type(exc).__name__}: {exc}). Its "
         "bytes were changed on disk (a checksum did not match, e.g. after a process was "
         "killed while it wrote, or its structure is broken). "
-        "To fix: restore it from a backup, or run the configuration again (--force)."
+        f"To fix: {salvage_fix(path)}; or restore it from a backup, or run the configuration "
+        "again (--force)."
     )
 
 
@@ -543,7 +559,7 @@ def _read_checkpoint(f: h5py.File, path: Path | None = None) -> Checkpoint:
     if slot_id not in (0, 1):
         raise LieflowError(
             f"{where} is damaged: its checkpoint pointer is {slot_id}, not 0 or 1. To fix: "
-            "run the configuration again (--force)."
+            f"{salvage_fix(Path(f.filename))}; or run the configuration again (--force)."
         )
     slot = group[f"slot{slot_id}"]
     step, t = int(slot.attrs["step"]), float(slot.attrs["t"])
@@ -553,8 +569,9 @@ def _read_checkpoint(f: h5py.File, path: Path | None = None) -> Checkpoint:
         raise LieflowError(
             f"{where} is damaged: the checkpoint at step {step} does not match its SHA-256 "
             "checksum (its bytes changed on disk after lieflow wrote them), so continuing "
-            "from it would silently continue a wrong state. To fix: restore the file from a "
-            "backup, or run the configuration again from the start (--force)."
+            "from it would silently continue a wrong state. To fix: "
+            f"{salvage_fix(Path(f.filename))}; or restore the file from a backup, or run the "
+            "configuration again from the start (--force)."
         )
     if "W" not in items:
         raise LieflowError(f"{where} is damaged: its checkpoint has no state W.")
@@ -573,7 +590,8 @@ def _check_lengths(f: h5py.File, k: int, path: Path, layout: _Layout) -> None:
     if min(per_step) < k + 1 or f[at["iterations"]].shape[0] < k + 1 + layout.update_row0:
         raise LieflowError(
             f"{_where(path)} is damaged: its diagnostics end before its checkpoint at step "
-            f"{k}. To fix: start the run again without --resume (use --force)."
+            f"{k}. To fix: {salvage_fix(Path(f.filename))}; or start the run again without "
+            "--resume (use --force)."
         )
 
 
@@ -615,6 +633,63 @@ def _check_coordinates(f: h5py.File, k: int, path: Path, layout: _Layout) -> Non
             f"{_where(path)} is damaged: its step coordinate is not 0..{k}. To fix: restore "
             "it from a backup, or run the configuration again (--force)."
         )
+
+
+def _readable_rows(ds: h5py.Dataset, rows: int | None = None) -> int:
+    """How many of the first ``rows`` rows of ``ds`` (default: all) read back, every chunk's
+    Fletcher-32 checksum verified: read chunk by chunk, so memory holds one chunk."""
+    n = ds.shape[0] if rows is None else min(rows, ds.shape[0])
+    if not ds.shape:
+        try:
+            ds[()]
+        except _DAMAGE:
+            return 0
+        return 1
+    size = (ds.chunks or (max(n, 1),))[0]
+    for start in range(0, n, size):
+        try:
+            ds[start : min(start + size, n)]
+        except _DAMAGE:
+            return start
+    return n
+
+
+def _kept_rows(f: h5py.File, k: int, layout: _Layout) -> dict[str, tuple[h5py.Dataset, int]]:
+    """Every dataset a file that ends at step ``k`` keeps, with the rows it keeps of it."""
+    at = layout.paths
+    rows: dict[str, tuple[h5py.Dataset, int]] = {}
+    for name in (*_PER_STEP, *(("step",) if "step" in at else ())):
+        rows[at[name]] = (f[at[name]], k + 1)
+    for name in _PER_UPDATE:
+        rows[at[name]] = (f[at[name]], k + 1 + layout.update_row0)
+    n_saved = int(np.searchsorted(f[at["saved_step"]][()], k, side="right"))
+    for name in ("saved_step", "time", "W"):
+        rows[at[name]] = (f[at[name]], n_saved)
+    rows[at["W0"]] = (f[at["W0"]], f[at["W0"]].shape[0] if f[at["W0"]].shape else 1)
+    for name in _LABELS:
+        if name in f:
+            rows[name] = (f[name], f[name].shape[0])
+    group = f.get(_EXTRA)
+    if group is not None:
+        n_extra = int(np.searchsorted(group["step"][()], k, side="right"))
+        for ds in group.values():
+            if not _is_scale(ds):
+                rows[ds.name] = (ds, n_extra)
+    return rows
+
+
+def _check_kept(f: h5py.File, k: int, path: Path, layout: _Layout) -> None:
+    """Read back every row a resume keeps (steps ``0..k``), so that a file whose data was
+    damaged on disk is refused before it is continued, not reported ``complete``."""
+    for name, (ds, rows) in _kept_rows(f, k, layout).items():
+        good = _readable_rows(ds, rows)
+        if good < rows:
+            raise DamagedOutputError(
+                f"{_where(path)} is damaged: {name!r} fails its checksum from row {good} on "
+                f"(the file keeps {rows} rows of it up to its checkpoint at step {k}; its bytes "
+                "changed on disk, e.g. after a process was killed while it wrote). To fix: "
+                f"{salvage_fix(path)}; or run the configuration again (--force)."
+            )
 
 
 @contextmanager
@@ -1088,6 +1163,7 @@ def _verify_for_resume(header: TrajectoryHeader) -> Checkpoint:
         _check_lengths(f, ck.step, path, layout)
         _check_coordinates(f, ck.step, path, layout)
         _check_invariants(f, ck, header.system, path, layout)
+        _check_kept(f, ck.step, path, layout)
         if ck.step > header.requested_steps:
             raise ConfigError(
                 f"--resume: {_where(path)} already holds {ck.step} steps, more than the "
@@ -1645,7 +1721,8 @@ def _truncate(f: h5py.File, k: int, layout: _Layout) -> None:
     if min(f[at[n]].shape[0] for n in per_step) != k + 1 or f[at["iterations"]].shape[0] != updates:
         raise LieflowError(
             f"{f.filename!r} is damaged: its diagnostics end before its checkpoint at step "
-            f"{k}. To fix: start the run again without --resume (use --force)."
+            f"{k}. To fix: {salvage_fix(Path(f.filename))}; or start the run again without "
+            "--resume (use --force)."
         )
     n = int(np.searchsorted(f[at["saved_step"]][()], k, side="right"))
     for name in ("saved_step", "time", "W"):
