@@ -91,6 +91,8 @@ __all__ = [
     "FORMAT",
     "FORMAT_VERSION",
     "Checkpoint",
+    "DamagedOutputError",
+    "DiskFullError",
     "Monitor",
     "OutputBusyError",
     "RunDiagnostics",
@@ -168,6 +170,65 @@ _DAMAGE = (OSError, KeyError, RuntimeError, ValueError, TypeError, IndexError, A
 
 class OutputBusyError(LieflowError):
     """Another process is writing the output file (or holds its lock)."""
+
+
+class DiskFullError(LieflowError):
+    """The disk filled up while a trajectory file was written; the file keeps its last
+    checkpoint, and the same command continues it once space is freed."""
+
+
+#: What h5py raises when a write fails: OSError from a write, RuntimeError from a flush or
+#: a close whose metadata cache could not be written.
+_WRITE_ERRORS = (OSError, RuntimeError)
+
+
+def _no_space(exc: BaseException) -> bool:
+    """Whether ``exc`` (or what it was raised from) is a full disk or an exceeded quota."""
+    while exc is not None:
+        if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        text = str(exc)
+        if "No space left on device" in text or "errno = 28," in text or "quota" in text.lower():
+            return True
+        exc = exc.__cause__ or exc.__context__  # type: ignore[assignment]
+    return False
+
+
+def _disk_full(path: Path, steps: int | None = None) -> DiskFullError:
+    kept = (
+        f"the file keeps its last checkpoint (step {steps}); nothing before it is lost"
+        if steps is not None
+        else "nothing was changed or lost"
+    )
+    return DiskFullError(
+        f"no space left on device writing {_where(path)}: {kept}. To fix: free space on that "
+        "disk and run the same command again to continue (`lieflow run CONFIG --resume`, or "
+        "integrate(..., out=..., resume=True))."
+    )
+
+
+#: Free space kept in reserve on the output's disk: a write is not started unless this much
+#: (plus what it writes) is free, because HDF5 interrupted by a full disk can leave the
+#: file's superblock pointing past its end (measured: a resume on a full disk made the file
+#: unopenable, "addr overflow"). Enough for the metadata and new chunks of a few commits.
+_SPACE_MARGIN = 1 << 20
+
+
+def _ensure_space(path: Path, nbytes: int = 0) -> None:
+    """Raise ENOSPC (before anything is written) unless ``nbytes`` plus the margin are free
+    on the disk holding ``path``."""
+    try:
+        st = os.statvfs(path.parent)
+    except (OSError, AttributeError):  # pragma: no cover - no statvfs: HDF5 reports it
+        return
+    if st.f_bavail * st.f_frsize < nbytes + _SPACE_MARGIN:
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+
+def _close_quietly(f: Any) -> None:
+    """Close an h5py file whose writes failed (its close may fail too: the error is moot)."""
+    with contextlib.suppress(*_WRITE_ERRORS, ValueError):
+        f.close()
 
 
 class DamagedOutputError(LieflowError):
@@ -462,6 +523,8 @@ class _Reading:
     ) -> Literal[False]:
         if exc is None or isinstance(exc, LieflowError) or not isinstance(exc, _DAMAGE):
             return False
+        if _no_space(exc):
+            raise _disk_full(self.path) from None
         raise _damaged(self.path, exc) from None
 
 
@@ -1270,11 +1333,20 @@ class TrajectoryWriter:
                 raise _exists_error(out)
             tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
             try:
-                with h5py.File(tmp, "w", rdcc_nbytes=_CHUNK_CACHE_BYTES) as f:
+                f = h5py.File(tmp, "w", rdcc_nbytes=_CHUNK_CACHE_BYTES)
+                try:
                     _initialise(f, setup)
+                except BaseException:
+                    _close_quietly(f)
+                    raise
+                f.close()
                 _publish(tmp, out, setup.replace)
-            except OSError as exc:
-                raise _cannot_create(out, exc) from None
+            except _WRITE_ERRORS as exc:
+                if _no_space(exc):
+                    raise _disk_full(out) from None
+                if isinstance(exc, OSError):
+                    raise _cannot_create(out, exc) from None
+                raise
             finally:
                 tmp.unlink(missing_ok=True)
             return cls(_open(out, "r+"), setup, lock)
@@ -1308,6 +1380,10 @@ class TrajectoryWriter:
         lock = _OutputLock.acquire(path)
         try:
             ck = _verify_for_resume(setup)
+            try:
+                _ensure_space(path)
+            except OSError:
+                raise _disk_full(path, ck.step) from None
             f = _open(path, "r+", _RESUME_FIX)
             try:
                 with _Reading(path):
@@ -1317,8 +1393,10 @@ class TrajectoryWriter:
                     f.attrs["status"] = "running"
                     f.flush()
                 writer = cls(f, setup, lock)
-            except BaseException:
-                f.close()
+            except BaseException as exc:
+                _close_quietly(f)
+                if isinstance(exc, _WRITE_ERRORS) and _no_space(exc):
+                    raise _disk_full(path, ck.step) from None
                 raise
         except BaseException:
             lock.release()
@@ -1364,6 +1442,7 @@ class TrajectoryWriter:
             buf = self._buffer
             if not buf or self._last is None:
                 return
+            _ensure_space(self._path, sum(a.nbytes for b in buf for a in b[:6]))
             n0, n_saved = self._n_diag, self._n_saved
             stop, h, W_last, state = self._last
             H = np.concatenate([b[4] for b in buf])
@@ -1412,6 +1491,15 @@ class TrajectoryWriter:
         self._f.flush()
         self._ck.attrs["current"] = slot_id  # the commit point
         self._slot, self._step = slot_id, index
+
+    def abandon(self) -> None:
+        """Close the file without writing more (after a failed write, e.g. a full disk:
+        the last checkpoint on disk stays the one to resume from) and release its lock."""
+        try:
+            _close_quietly(self._f)
+        finally:
+            if self._lock is not None:
+                self._lock.release()
 
     def close(self, status: str, wall_time: float, failure: str = "") -> None:
         """Record the final status and the time spent, close the file and release its lock.
@@ -1818,6 +1906,24 @@ def run(
     return summary
 
 
+def _finish(writer: TrajectoryWriter, status: str, wall: float, failure: str, out: Path) -> None:
+    """Commit what was computed and close with the final status; on a full disk (now or
+    during the run) leave the file at its last checkpoint and raise :class:`DiskFullError`."""
+    try:
+        if status == "no space":  # stopped before (or by) a write the disk had no room for
+            writer.close("interrupted", wall, failure)
+            raise OSError(errno.ENOSPC, "No space left on device")
+        try:
+            writer.commit(keep_last=status == "failed")
+        finally:
+            writer.close(status if status != "running" else "interrupted", wall, failure)
+    except _WRITE_ERRORS as exc:
+        if not _no_space(exc):
+            raise
+        writer.abandon()
+        raise _disk_full(out, writer.completed_steps) from None
+
+
 def run_flow(
     header: TrajectoryHeader,
     flow: Any,
@@ -1869,6 +1975,10 @@ def run_flow(
         status = "interrupted"
     except ConvergenceError as exc:
         status, failure, error = "failed", str(exc), exc
+    except _WRITE_ERRORS as exc:
+        if not _no_space(exc):
+            raise
+        status = "no space"
     finally:
         wall = time.perf_counter() - start
         try:
@@ -1878,10 +1988,7 @@ def run_flow(
             # Checkpoint what was computed (a failed run keeps its last state); then record
             # the status. Both with interrupts deferred, so a second Ctrl-C cannot split them.
             with _signals.deferred():
-                try:
-                    writer.commit(keep_last=status == "failed")
-                finally:
-                    writer.close(status if status != "running" else "interrupted", wall, failure)
+                _finish(writer, status, wall, failure, header.output)
     completed = writer.completed_steps
     summary = RunSummary(
         header.output,
