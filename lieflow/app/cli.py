@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import shlex
 import signal
 import sys
 from collections.abc import Callable, Iterator, Sequence
@@ -107,6 +108,19 @@ def _show_progress(args: argparse.Namespace) -> bool:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    try:
+        return _run_command(args)
+    except KeyboardInterrupt:  # before the run had its file (once it has, run returns)
+        how = "terminated (SIGTERM)" if _Terminated.received else "interrupted"
+        print(
+            f"lieflow: {how} before the run started: nothing was written"
+            + (f"; continue with: {_resume_command(args)}" if args.resume else ""),
+            file=sys.stderr,
+        )
+        return EXIT_TERMINATED if _Terminated.received else EXIT_INTERRUPTED
+
+
+def _run_command(args: argparse.Namespace) -> int:
     from .config import ConfigError, build, load_config
     from .io import run
 
@@ -119,13 +133,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
             "--resume to continue it, --force to replace it, or choose another output.",
             key,
         )
-    _Terminated.received = False
-    with _sigterm_as_interrupt():
-        summary = run(
-            setup,
-            resume=args.resume,
-            monitor=ProgressBar() if _show_progress(args) else None,
-        )
+    summary = run(
+        setup,
+        resume=args.resume,
+        monitor=ProgressBar() if _show_progress(args) else None,
+    )
     rate = summary.new_steps / summary.wall_time if summary.wall_time > 0 else 0.0
     print(
         f"{summary.status}: {summary.completed_steps}/{summary.requested_steps} steps "
@@ -134,13 +146,18 @@ def _cmd_run(args: argparse.Namespace) -> int:
     )
     if summary.status == "interrupted":
         how = "terminated (SIGTERM)" if _Terminated.received else "interrupted"
-        print(
-            f"lieflow: {how}; continue with: lieflow run {args.config} --resume"
-            + (f" --out {args.out}" if args.out is not None else ""),
-            file=sys.stderr,
-        )
+        print(f"lieflow: {how}; continue with: {_resume_command(args)}", file=sys.stderr)
         return EXIT_TERMINATED if _Terminated.received else EXIT_INTERRUPTED
     return EXIT_OK
+
+
+def _resume_command(args: argparse.Namespace) -> str:
+    """The command that was run, as it continues the run: with ``--resume``, without
+    ``--force`` (which would replace the file)."""
+    argv = [a for a in args.argv if a != "--force"]
+    if "--resume" not in argv:
+        argv.append("--resume")
+    return shlex.join(["lieflow", *argv])
 
 
 def _cmd_salvage(args: argparse.Namespace) -> int:
@@ -250,11 +267,9 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
         print(f"{len(grid.runs)} runs ({' x '.join(map(str, grid.shape)) or '1'}) -> "
               f"{grid.directory}")  # fmt: skip
         return EXIT_OK
-    _Terminated.received = False
-    with _sigterm_as_interrupt():
-        result = sweep(grid, args.executor, workers=args.workers, scheduler=args.scheduler,
-                       monitor=SweepProgress(live=_show_progress(args)),
-                       store=args.store)  # fmt: skip
+    result = sweep(grid, args.executor, workers=args.workers, scheduler=args.scheduler,
+                   monitor=SweepProgress(live=_show_progress(args)),
+                   store=args.store)  # fmt: skip
     c = result.counts
     print(
         f"sweep {grid.source}: {len(result.runs)} runs: {c['complete']} complete "
@@ -267,7 +282,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
         print(f"  failed: {rec['output']}: {error[0] if error else ''}", file=sys.stderr)
     if result.interrupted:
         print(f"lieflow: sweep interrupted; run the same command again to continue: "
-              f"lieflow sweep {args.grid}", file=sys.stderr)  # fmt: skip
+              f"{shlex.join(['lieflow', *args.argv])}", file=sys.stderr)  # fmt: skip
         return EXIT_TERMINATED if _Terminated.received else EXIT_INTERRUPTED
     return EXIT_OK if result.ok else EXIT_RUNS_FAILED
 
@@ -412,8 +427,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # --help, --version, usage errors
         return exc.code if isinstance(exc.code, int) else EXIT_ERROR
     func: Callable[[argparse.Namespace], int] = args.func
+    args.argv = list(sys.argv[1:] if argv is None else argv)
+    _Terminated.received = False
     try:
-        return func(args)
+        with _sigterm_as_interrupt():  # for the whole command, before anything is created
+            return func(args)
     except LieflowError as exc:
         print(f"lieflow: error: {exc}", file=sys.stderr)
         return EXIT_ERROR

@@ -1944,51 +1944,57 @@ def run_flow(
         the error of a failed step (the file then holds the steps before it).
     """
     target = header.requested_steps
-    if resume and header.output.exists():
-        writer, ck = TrajectoryWriter.reopen(header)
-        W, done = ck.W, ck.step
-        state = ck.state(flow.init(W))
-    else:
-        writer = TrajectoryWriter.create(header)
-        W, state, done = header.W0, None, 0
-    if done >= target:
-        writer.close("complete", 0.0)
-        summary = RunSummary(header.output, "complete", done, target, 0, 0.0,
-                             writer.max_energy_error)  # fmt: skip
-        return summary, None
-
-    status, failure, error = "running", "", None
-    start = time.perf_counter()
-    if monitor is not None:
-        monitor.start(done, target)
-    try:
-        for chunk in driver.advance(flow, W, header.h, target, start=done, state=state):
-            keep = (chunk.index % header.save_every == 0) | (chunk.index == target)
-            err = writer.record(chunk, keep)
-            if keep.any():
-                writer.commit()
-            if monitor is not None:
-                monitor.advance(chunk.size, int(chunk.iterations.sum()), err)
-            del chunk  # hold no chunk while the next one is computed
-        status = "complete"
-    except KeyboardInterrupt:
-        status = "interrupted"
-    except ConvergenceError as exc:
-        status, failure, error = "failed", str(exc), exc
-    except _WRITE_ERRORS as exc:
-        if not _no_space(exc):
-            raise
-        status = "no space"
-    finally:
-        wall = time.perf_counter() - start
+    with _signals.Interrupts() as stop:  # held until the file is set up, then raised
+        ck: Checkpoint | None = None
+        if resume and header.output.exists():
+            writer, ck = TrajectoryWriter.reopen(header)
+            W, done = ck.W, ck.step
+        else:
+            writer = TrajectoryWriter.create(header)
+            W, done = header.W0, 0
+        status, failure, error = "running", "", None
+        start = time.perf_counter()
+        shown = False
         try:
-            if monitor is not None:
-                monitor.stop()
+            state = None if ck is None else ck.state(flow.init(W))
+            if done >= target:
+                status = "complete"
+            else:
+                if monitor is not None:
+                    monitor.start(done, target)
+                    shown = True
+                stop.arm()
+                for chunk in driver.advance(flow, W, header.h, target, start=done, state=state):
+                    keep = (chunk.index % header.save_every == 0) | (chunk.index == target)
+                    err = writer.record(chunk, keep)
+                    if keep.any():
+                        writer.commit()
+                    if monitor is not None:
+                        monitor.advance(chunk.size, int(chunk.iterations.sum()), err)
+                    del chunk  # hold no chunk while the next one is computed
+                    stop.check()  # an interrupt Python swallowed (raised in a finalizer)
+                status = "complete"
+        except KeyboardInterrupt:
+            status = "interrupted"
+        except ConvergenceError as exc:
+            status, failure, error = "failed", str(exc), exc
+        except _WRITE_ERRORS as exc:
+            if not _no_space(exc):
+                raise
+            status = "no space"
         finally:
-            # Checkpoint what was computed (a failed run keeps its last state); then record
-            # the status. Both with interrupts deferred, so a second Ctrl-C cannot split them.
-            with _signals.deferred():
-                _finish(writer, status, wall, failure, header.output)
+            stop.disarm()
+            stop.consume()  # the status below records it, or the run had finished
+            wall = time.perf_counter() - start
+            try:
+                if monitor is not None and shown:
+                    monitor.stop()
+            finally:
+                # Checkpoint what was computed (a failed run keeps its last state); then
+                # record the status. Both with interrupts deferred, so a second Ctrl-C
+                # cannot split them.
+                with _signals.deferred():
+                    _finish(writer, status, wall, failure, header.output)
     completed = writer.completed_steps
     summary = RunSummary(
         header.output,
