@@ -56,7 +56,8 @@ class Interrupts:
 
     On exit the previous handler is restored; an interrupt recorded but never raised (the
     block ended normally before :meth:`arm`) is raised then, unless :meth:`consume` was
-    called. Outside the main thread it does nothing (Python's handlers apply).
+    called. Outside the main thread, or where SIGINT is ignored (a sweep's worker: its
+    coordinator stops it), it does nothing.
     """
 
     def __init__(self) -> None:
@@ -67,7 +68,8 @@ class Interrupts:
         self._installed = False
 
     def __enter__(self) -> Interrupts:
-        if threading.current_thread() is threading.main_thread():
+        main = threading.current_thread() is threading.main_thread()
+        if main and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
             self._previous = signal.signal(signal.SIGINT, self._handle)
             self._installed = True
         return self

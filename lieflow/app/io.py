@@ -1983,17 +1983,16 @@ def run_flow(
                 raise
             status = "no space"
         finally:
-            stop.disarm()
-            stop.consume()  # the status below records it, or the run had finished
-            wall = time.perf_counter() - start
-            try:
-                if monitor is not None and shown:
-                    monitor.stop()
-            finally:
-                # Checkpoint what was computed (a failed run keeps its last state); then
-                # record the status. Both with interrupts deferred, so a second Ctrl-C
-                # cannot split them.
-                with _signals.deferred():
+            # Checkpoint what was computed (a failed run keeps its last state); then record
+            # the status. With interrupts deferred, so a second Ctrl-C cannot split them.
+            with _signals.deferred():
+                stop.disarm()
+                stop.consume()  # the status below records it, or the run had finished
+                wall = time.perf_counter() - start
+                try:
+                    if monitor is not None and shown:
+                        monitor.stop()
+                finally:
                     _finish(writer, status, wall, failure, header.output)
     completed = writer.completed_steps
     summary = RunSummary(
