@@ -453,7 +453,8 @@ def integrate(
         state only (``W``, ``t`` and ``saved_steps`` of length 2), and the per-step
         diagnostics and iterations (a few numbers per step, read back from the file; they
         are recorded even with ``diagnostics=False``); ``solvers`` names the requested
-        solver for every step. Cost: one HDF5 write and flush per save point.
+        solver for every step. Cost: one HDF5 write and flush per save point. Its
+        directory must exist (it is not created).
     resume : bool
         With ``out``: continue the file from its last checkpoint (bit-for-bit the same as
         an uninterrupted run; ``steps`` may have grown) — it must have been written by the

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import shlex
 import signal
 import sys
@@ -36,7 +37,7 @@ from types import FrameType
 from typing import TextIO
 
 from .. import __version__
-from ..errors import InputError, LieflowError
+from ..errors import InputError, LieflowError, shorten
 from .progress import ProgressBar
 
 __all__ = ["main"]
@@ -45,6 +46,7 @@ EXIT_OK = 0
 EXIT_ERROR = 2
 EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143  # 128 + SIGTERM, what a shell reports for a process SIGTERM stopped
+EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE: what `cmd | head` gives for a Unix tool
 
 
 class _Terminated:
@@ -133,16 +135,22 @@ def _run_command(args: argparse.Namespace) -> int:
             "--resume to continue it, --force to replace it, or choose another output.",
             key,
         )
+    if args.resume and not setup.output.exists():  # --resume means "resume if present"
+        print(f"lieflow: --resume: {str(setup.output)!r} does not exist yet; starting a new run",
+              file=sys.stderr)  # fmt: skip
     summary = run(
         setup,
         resume=args.resume,
         monitor=ProgressBar() if _show_progress(args) else None,
     )
     rate = summary.new_steps / summary.wall_time if summary.wall_time > 0 else 0.0
+    # with [splitting] flows (dissipation, forcing) the energy changes by design: its
+    # relative change is the run's energy budget, not an error of the scheme
+    energy = "energy change (not conserved: [splitting])" if setup.flows else "energy error"
     print(
         f"{summary.status}: {summary.completed_steps}/{summary.requested_steps} steps "
         f"({summary.new_steps} new, {summary.wall_time:.2f} s, {rate:,.0f} steps/s), "
-        f"max energy error {summary.max_energy_error:.3e} -> {summary.path}"
+        f"max {energy} {summary.max_energy_error:.3e} -> {summary.path}"
     )
     if summary.status == "interrupted":
         how = "terminated (SIGTERM)" if _Terminated.received else "interrupted"
@@ -315,7 +323,9 @@ def _parser() -> argparse.ArgumentParser:
         ),
     )
     p.add_argument("config", type=Path, metavar="CONFIG.toml")
-    p.add_argument("--resume", action="store_true", help="continue the output file")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the output file from its last checkpoint (a missing file is "
+                        "started afresh, and said so)")  # fmt: skip
     p.add_argument("--out", type=Path, metavar="FILE", help="output file (overrides [run])")
     p.add_argument("--force", action="store_true", help="replace an existing output file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -433,11 +443,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         with _sigterm_as_interrupt():  # for the whole command, before anything is created
             return func(args)
     except LieflowError as exc:
-        print(f"lieflow: error: {exc}", file=sys.stderr)
+        print(f"lieflow: error: {shorten(exc, 4000)}", file=sys.stderr)
         return EXIT_ERROR
     except KeyboardInterrupt:
         print("lieflow: interrupted", file=sys.stderr)
         return EXIT_TERMINATED if _Terminated.received else EXIT_INTERRUPTED
+    except (
+        BrokenPipeError
+    ):  # `lieflow list | head`: the reader left; stop quietly, as Unix tools do
+        with contextlib.suppress(OSError):  # no second error when Python flushes stdout at exit
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
     except OSError as exc:  # a file system error no check foresaw (disk full, I/O error)
         print(
             f"lieflow: error: {exc}. To fix: check the disk and the paths given, then run "

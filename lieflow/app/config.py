@@ -53,7 +53,7 @@ import attrs
 import numpy as np
 
 from ..algebras import Array
-from ..errors import LieflowError, PluginError
+from ..errors import LieflowError, PluginError, quote, shorten
 from ..flows import Flow, Splitting
 from ..integrate import Engine, scheme_flow
 from ..plugins import Kind, Registry, default_registry
@@ -367,6 +367,7 @@ class RunSetup:
             W0=self.W0,
             output=self.output,
             replace=self.replace,
+            make_directory=True,
             config_text=cfg.text,
             config_source=cfg.source,
         )
@@ -890,7 +891,7 @@ def _create(
     except Exception as exc:
         raise ConfigError(
             f"{source}: {params_key}: {kind} {comp.name!r} rejected its parameters "
-            f"{dict(comp.params)!r}: {exc}. To fix: correct {params_key}.",
+            f"{quote(dict(comp.params))}: {shorten(exc)}. To fix: correct {params_key}.",
             params_key,
         ) from None
 
@@ -924,6 +925,22 @@ def _initial_state(config: Config, system: IsospectralSystem) -> Array:
             W = W + 1j * np.array(init.imag)
     else:
         assert init.file is not None
+        try:
+            with open(init.file, "rb") as fh:
+                magic = fh.read(6)
+        except OSError as exc:
+            raise ConfigError(
+                f"{source}: {key}: cannot read {str(init.file)!r} ({exc.strerror or exc}). "
+                "To fix: check the path and its permissions.",
+                key,
+            ) from None
+        if magic != b"\x93NUMPY":
+            raise ConfigError(
+                f"{source}: {key}: {str(init.file)!r} exists but is not a .npy file (it does "
+                "not start with numpy's .npy header; text, .npz archives and pickles are not "
+                "read). To fix: save W0 with numpy.save(path, W0).",
+                key,
+            )
         try:
             W = np.load(init.file, allow_pickle=False)
         except (OSError, ValueError) as exc:

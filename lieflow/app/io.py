@@ -264,6 +264,10 @@ class TrajectoryHeader:
         The trajectory file.
     replace : bool
         Whether a new run may replace an existing ``output``.
+    make_directory : bool
+        Whether a missing directory of ``output`` is created (``lieflow run``: yes, as
+        ``--out results/run.h5`` promises) or refused (:func:`lieflow.integrate`: a library
+        call creates no directory tree its caller did not ask for).
     config_text, config_source : str
         The configuration's text and where it came from (empty for ``integrate``).
     """
@@ -280,6 +284,7 @@ class TrajectoryHeader:
     output: Path
     replace: bool = False
     config_text: str = attrs.field(default="", repr=False)
+    make_directory: bool = False
     config_source: str = ""
 
 
@@ -1307,9 +1312,11 @@ class TrajectoryWriter:
         :class:`TrajectoryHeader`, or a :class:`~lieflow.app.config.RunSetup` for its header).
 
         The file is written under a temporary name in the same directory and then given its
-        name, so a failure leaves no partial file. An existing file is replaced only if
-        ``setup.replace`` (atomically); otherwise the name is taken with an exclusive create,
-        so of two runs started on one new path, one is refused.
+        name, so a failure leaves no partial file. A missing directory is created only with
+        ``make_directory`` (``lieflow run``), else refused (``integrate(out=...)``: it used to
+        create ``/nonexistent`` for ``out="/nonexistent/a.h5"``). An existing file is
+        replaced only if ``setup.replace`` (atomically); otherwise the name is taken with an
+        exclusive create, so of two runs started on one new path, one is refused.
 
         Raises
         ------
@@ -1323,10 +1330,18 @@ class TrajectoryWriter:
         h5py = _h5py()
         setup = _header(run)
         out = setup.output
-        try:
-            out.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise _cannot_create(out, exc) from None
+        if setup.make_directory and not out.parent.exists():
+            try:
+                out.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise _cannot_create(out, exc) from None
+        if not out.parent.is_dir():  # never a directory tree the caller did not ask for
+            what = "is not a directory" if out.parent.exists() else "does not exist"
+            raise LieflowError(
+                f"cannot create {_where(out)}: its directory {str(out.parent)!r} {what} "
+                "(lieflow creates the file, not directories). To fix: create the directory "
+                f"first (mkdir -p {out.parent}), or choose an output in an existing directory."
+            )
         lock = _OutputLock.acquire(out)
         try:
             if not setup.replace and os.path.lexists(out):
