@@ -240,3 +240,44 @@ def test_a_change_in_any_checkpoint_item_fails_the_sha256(
         io.read_checkpoint(victim)
     with pytest.raises(lf.LieflowError, match="SHA-256"):
         io.read_trajectory(victim)
+
+
+def test_damaged_data_in_the_spare_slot_is_overwritten_by_the_next_checkpoint(
+    tmp_path: Path, reference: io.Trajectory
+) -> None:
+    """Readers never read the spare slot, and the next checkpoint overwrites its arrays
+    whole: damaged data there costs nothing (the resume is the uninterrupted run)."""
+    config, out = _run(tmp_path, "run")
+    with h5py.File(out, "r") as f:
+        spare = f"checkpoint/slot{1 - int(f['checkpoint'].attrs['current'])}/W"
+        offset = int(f[spare].id.get_chunk_info(0).byte_offset)
+    data = bytearray(out.read_bytes())
+    data[offset + 1] ^= 2
+    out.write_bytes(bytes(data))
+    io.read_trajectory(out)
+    config.write_text(CONFIG.format(steps=STEPS + 100, name="run"), encoding="utf-8")
+    assert main(["run", str(config), "--no-progress", "--resume"]) == 0
+    _same(io.read_trajectory(out), reference)
+
+
+def test_a_slot_whose_structure_is_damaged_is_refused_not_a_traceback(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A flipped byte in the object header of the current slot's warm start: salvage falls
+    back to the other slot, but HDF5 cannot remove the damaged one (it reads its members
+    as it frees them), where the next checkpoint would go. It used to be "salvaged" and
+    then fail at the resume's first checkpoint with h5py's "Can't visit links (dataspace dim
+    2 size of 1048579 is greater than maxdim size of 3)"; now it is refused, file unchanged."""
+    config, out = _run(tmp_path, "run")
+    with h5py.File(out, "r") as f:
+        slot = f[f"checkpoint/slot{int(f['checkpoint'].attrs['current'])}"]
+        header = int(h5py.h5o.get_info(slot["warm/previous/3"].id).addr)
+    data = bytearray(out.read_bytes())
+    data[header + 50] ^= 1 << 4  # in its dataspace message
+    out.write_bytes(bytes(data))
+    before = out.read_bytes()
+    assert main(["run", str(config), "--no-progress", "--resume"]) == 2
+    assert main(["salvage", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "cannot remove it" in err and "Traceback" not in err
+    assert out.read_bytes() == before

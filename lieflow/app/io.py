@@ -760,6 +760,33 @@ def _check_kept(f: h5py.File, k: int, path: Path, layout: _Layout) -> None:
             )
 
 
+def _visit_structure(group: h5py.Group) -> None:
+    """Open every object under ``group`` and its attributes (their headers), not reading any
+    dataset's data: what writing over them needs intact (data is overwritten whole)."""
+
+    def visit(_: str, obj: Any) -> None:
+        dict(obj.attrs)
+
+    dict(group.attrs)
+    group.visititems(visit)
+
+
+def _check_spare(f: h5py.File, path: Path) -> None:
+    """The spare checkpoint slot, where the next checkpoint goes, has an intact structure
+    (a damaged one would fail that write half-way; damaged *data* there is harmless, as
+    the next checkpoint overwrites it whole)."""
+    group = f["checkpoint"]
+    name = f"slot{1 - int(group.attrs['current'])}"
+    try:
+        _visit_structure(group[name])
+    except _DAMAGE as exc:
+        raise DamagedOutputError(
+            f"{_where(path)} is damaged: its spare checkpoint slot {name!r}, where the next "
+            f"checkpoint goes, does not read back ({type(exc).__name__}: {exc}). To fix: "
+            f"{salvage_fix(path)}; or run the configuration again (--force)."
+        ) from None
+
+
 @contextmanager
 def _opened(path: Path | str) -> Iterator[tuple[h5py.File, Checkpoint, _Layout]]:
     """A trajectory file open for reading, with its verified checkpoint and its layout;
@@ -1232,6 +1259,7 @@ def _verify_for_resume(header: TrajectoryHeader) -> Checkpoint:
         _check_coordinates(f, ck.step, path, layout)
         _check_invariants(f, ck, header.system, path, layout)
         _check_kept(f, ck.step, path, layout)
+        _check_spare(f, path)
         if ck.step > header.requested_steps:
             raise ConfigError(
                 f"--resume: {_where(path)} already holds {ck.step} steps, more than the "
@@ -1655,6 +1683,32 @@ def _prune(slot: h5py.Group, keep: set[str]) -> None:
             if isinstance(obj, h5py.Group) != (i < len(parts)):
                 _drop(slot, sub)
                 break
+
+
+def _renew_spare(f: h5py.File) -> None:
+    """Replace the spare checkpoint slot by an empty one if its structure is damaged (the
+    next checkpoint, written there, would fail half-way). The spare slot is never read
+    otherwise, so nothing is lost."""
+    group = f["checkpoint"]
+    name = f"slot{1 - int(group.attrs['current'])}"
+    try:
+        _visit_structure(group[name])
+        return
+    except _DAMAGE:
+        pass
+    with contextlib.suppress(*_DAMAGE):
+        _drop(group, name)  # detaching the dimensions it can
+    try:
+        if name in group:
+            del group[name]
+        group.create_group(name)
+    except _DAMAGE as exc:  # HDF5 frees a group's members as it unlinks it: it reads them
+        raise DamagedOutputError(
+            f"{_where(Path(f.filename))}: the HDF5 structure of its checkpoint slot {name!r} "
+            f"is damaged ({type(exc).__name__}: {exc}), and HDF5 cannot remove it to write "
+            "the next checkpoint there. To fix: restore the file from a backup, or run the "
+            "configuration again from the start (--force)."
+        ) from None
 
 
 def _drop(group: h5py.Group, name: str) -> None:

@@ -50,6 +50,7 @@ from .io import (
     _OutputLock,
     _plain,
     _readable_rows,
+    _renew_spare,
     _slot_items,
     _truncate,
     _where,
@@ -190,6 +191,7 @@ def _cut_back(tmp: Path, original: Path) -> tuple[int, int, bool]:
                 _write_slot(group[f"slot{slot_id}"], k, t, {"W": W}, {})
             group.attrs["current"] = slot_id
             _truncate(f, k, layout)
+            _renew_spare(f)  # the slot given up (if damaged) is where the next one goes
             f.attrs["status"] = "interrupted"
             f.attrs["salvaged"] = (
                 f"cut back from step {recorded} to step {k} by `lieflow salvage` "
