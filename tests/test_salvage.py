@@ -160,6 +160,20 @@ def test_salvage_of_a_damaged_last_chunk_keeps_the_checkpoint_before_it(
     _same(io.read_trajectory(out), reference)
 
 
+def test_salvage_of_an_intact_file_changes_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _, out = _run(tmp_path, "run", 60)
+    before = out.read_bytes()
+    capsys.readouterr()
+    assert main(["salvage", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "verifies" in said and "nothing to salvage, the file is unchanged" in said
+    assert out.read_bytes() == before
+    assert io.read_trajectory(out).status == "complete"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.h5", "run.toml"]
+
+
 def test_salvage_refuses_what_it_cannot_verify_and_leaves_it(tmp_path: Path) -> None:
     _, out = _run(tmp_path, "run", 60)
     damage_last_chunk(out, "energy")  # the only chunk: not even step 0 is verified

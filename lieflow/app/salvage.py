@@ -44,9 +44,12 @@ from .io import (
     DamagedOutputError,
     _as_path,
     _check_format,
+    _check_kept,
     _check_signature,
+    _check_spare,
     _h5py,
     _Layout,
+    _opened,
     _OutputLock,
     _plain,
     _readable_rows,
@@ -71,8 +74,8 @@ class SalvageReport:
     ----------
     path : Path
         The salvaged file (resumable with ``lieflow run CONFIG --resume``).
-    backup : Path
-        The damaged original, kept unchanged.
+    backup : Path or None
+        The damaged original, kept unchanged (None: the file verified, nothing was done).
     recorded_steps : int
         Steps the damaged file claimed (its ``completed_steps``; -1 if unreadable).
     kept_steps : int
@@ -83,13 +86,18 @@ class SalvageReport:
     """
 
     path: Path
-    backup: Path
+    backup: Path | None
     recorded_steps: int
     kept_steps: int
     bit_for_bit: bool
 
     def describe(self) -> str:
         """One line for the command line."""
+        if self.backup is None:
+            return (
+                f"{str(self.path)!r} verifies (every row and its checkpoints read back "
+                f"intact, {self.kept_steps} steps): nothing to salvage, the file is unchanged"
+            )
         how = (
             "from its last verified checkpoint: --resume continues bit for bit"
             if self.bit_for_bit
@@ -129,6 +137,9 @@ def salvage(path: Path | str) -> SalvageReport:
     lock = _OutputLock.acquire(p)
     tmp = p.with_name(f".{p.name}.{os.getpid()}.salvage")
     try:
+        intact = _intact_steps(p)
+        if intact is not None:
+            return SalvageReport(p, None, intact, intact, True)
         shutil.copyfile(p, tmp)
         _pad_truncated(tmp)
         recorded, kept, exact = _cut_back(tmp, p)
@@ -147,6 +158,18 @@ def salvage(path: Path | str) -> SalvageReport:
         tmp.unlink(missing_ok=True)
         lock.release()
     return SalvageReport(p, backup, recorded, kept, exact)
+
+
+def _intact_steps(path: Path) -> int | None:
+    """The steps of a file that passes every check of a resume (nothing to salvage), else
+    None."""
+    try:
+        with _opened(path) as (f, ck, layout):
+            _check_kept(f, ck.step, path, layout)
+            _check_spare(f, path)
+            return ck.step
+    except LieflowError:
+        return None
 
 
 def _free_name(path: Path) -> Path:
