@@ -10,7 +10,17 @@ from pathlib import Path
 import lieflow as lf
 
 PACKAGE = Path(lf.__file__).resolve().parent
-APP_MODULES = {"cli", "config", "datasets", "io", "plotting", "progress", "reproduce", "salvage", "sweeps"}
+APP_MODULES = {
+    "cli",
+    "config",
+    "datasets",
+    "io",
+    "plotting",
+    "progress",
+    "reproduce",
+    "salvage",
+    "sweeps",
+}
 
 
 def _module_level_imports(path: Path) -> list[str]:
