@@ -395,6 +395,7 @@ def run(
     monitor: Monitor | None = None,
     checkpoint: Cadence = Cadence(),
     on_failure: str = "truncate",
+    interrupts: _signals.Interrupts | None = None,
 ) -> Outcome:
     """Advance ``flow`` from ``W0`` (the state after step ``start``) up to step ``steps``,
     handing every chunk of steps to each of ``sinks``: the one consumer loop.
@@ -422,6 +423,11 @@ def run(
     on_failure : {"raise", "truncate"}
         A failed step raises its :class:`ConvergenceError` after the sinks are closed
         (``"raise"``), or is returned in :attr:`Outcome.failure` (``"truncate"``).
+    interrupts : lieflow._signals.Interrupts, optional
+        A Ctrl-C handler that has held interrupts while the sinks were set up: armed while
+        stepping (a held interrupt is raised at the first step, so the sinks record
+        "interrupted"), checked after every chunk (an interrupt Python swallowed in a
+        finalizer still stops the run), held again while the sinks are closed.
 
     Returns
     -------
@@ -435,6 +441,8 @@ def run(
     last_step, began = start, time.perf_counter()
     last_time = began
     try:
+        if interrupts is not None:
+            interrupts.arm()
         if monitor is not None:  # inside: Ctrl-C while a progress bar starts is an interrupt
             monitor.start(start, steps)
         for chunk in advance(flow, W0, h, steps, start=start, state=state):
@@ -461,12 +469,17 @@ def run(
                 err = None if diag is None else diag.max_energy_error
                 monitor.advance(chunk.size, int(chunk.iterations.sum()), err)
             del chunk  # hold no chunk while the next one is computed
+            if interrupts is not None:
+                interrupts.check()
         status = "complete"
     except KeyboardInterrupt:
         status = "interrupted"
     except ConvergenceError as exc:
         status, failure = "failed", exc
     finally:
+        if interrupts is not None:
+            interrupts.disarm()
+            interrupts.consume()  # the sinks record it below, or the run had finished
         wall = time.perf_counter() - began
         try:
             if monitor is not None:

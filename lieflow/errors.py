@@ -6,7 +6,31 @@ wrong and what to do about it.
 
 from __future__ import annotations
 
+import reprlib
 from collections.abc import Sequence
+from typing import Any
+
+_SHORT = reprlib.Repr()
+_SHORT.maxlist = _SHORT.maxtuple = _SHORT.maxdict = _SHORT.maxset = 8
+_SHORT.maxstring = _SHORT.maxother = 80
+_SHORT.maxlevel = 4
+
+
+def quote(value: Any) -> str:
+    """``repr(value)`` cut short for an error message: at most 8 items of a list, tuple or
+    dict and 80 characters of a string (``...`` marks what was left out), so that a message
+    quoting a user's 100 000-entry parameter list stays one readable line."""
+    return _SHORT.repr(value)
+
+
+def shorten(text: object, limit: int = 1000) -> str:
+    """``str(text)`` with its middle cut out if it is longer than ``limit`` characters (the
+    start names the problem, the end says what to do; both are kept)."""
+    text = str(text)
+    if len(text) <= limit:
+        return text
+    keep = (limit - 40) // 2
+    return f"{text[:keep]} ... [{len(text) - 2 * keep} characters left out] ... {text[-keep:]}"
 
 
 class LieflowError(Exception):

@@ -476,7 +476,8 @@ def integrate(
         2), and the per-step diagnostics and iterations (a few numbers per step, read back
         from the file; they are recorded even with ``diagnostics=False``); ``solvers`` names
         the requested solver for every step. Or any :class:`~lieflow.sinks.Sink` object:
-        ``integrate`` then returns its :meth:`~lieflow.sinks.Sink.result`.
+        ``integrate`` then returns its :meth:`~lieflow.sinks.Sink.result`. A file's directory must
+        exist (it is not created).
     resume : bool
         With ``out``: continue the file from its last checkpoint (bit-for-bit the same as
         an uninterrupted run; ``steps`` may have grown) — it must have been written by the

@@ -55,7 +55,7 @@ from typing import Any, Literal
 import attrs
 import pluggy
 
-from .errors import InputError, LieflowError, PluginError, RegistryError
+from .errors import InputError, LieflowError, PluginError, RegistryError, quote, shorten
 
 PROJECT = "lieflow"
 ENTRY_POINT_GROUP = "lieflow"
@@ -122,9 +122,9 @@ class Entry:
             ) from exc
         except (ValueError, ArithmeticError, LookupError, AttributeError) as exc:
             raise InputError(
-                f"{self.kind} {self.name!r} rejected its parameters {params!r}: "
-                f"{type(exc).__name__}: {exc}. To fix: check their values; its parameters are "
-                f"{_signature(self.factory)}"
+                f"{self.kind} {self.name!r} rejected its parameters {quote(params)}: "
+                f"{type(exc).__name__}: {shorten(exc)}. To fix: check their values; its "
+                f"parameters are {_signature(self.factory)}"
             ) from exc
         problem = _check_kind(self.kind, obj)
         if problem:

@@ -11,7 +11,17 @@ from pathlib import Path
 import lieflow as lf
 
 PACKAGE = Path(lf.__file__).resolve().parent
-APP_MODULES = {"cli", "config", "datasets", "io", "plotting", "plugin", "reproduce", "sweeps"}
+APP_MODULES = {
+    "cli",
+    "config",
+    "datasets",
+    "io",
+    "plotting",
+    "plugin",
+    "reproduce",
+    "salvage",
+    "sweeps",
+}
 
 
 def _module_name(path: Path) -> str:

@@ -5,6 +5,8 @@ Subcommands::
     lieflow list                      systems, schemes and solvers (plugins included)
     lieflow run CONFIG.toml           integrate a TOML configuration into an HDF5 file
             [--resume] [--out FILE] [--force] [--no-progress]
+    lieflow salvage FILE.h5           cut a damaged trajectory file back to its last
+                                      verified checkpoint (then run --resume)
     lieflow reproduce [--out DIR]     the paper's experiments: figures, report.md, results.csv
             [--quick] [--seed N]
     lieflow plot FILE.h5 [--out DIR]  energy error, Casimir drift and iterations per step,
@@ -25,6 +27,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
+import shlex
 import signal
 import sys
 from collections.abc import Callable, Iterator, Sequence
@@ -33,7 +37,7 @@ from types import FrameType
 from typing import TextIO
 
 from .. import __version__
-from ..errors import InputError, LieflowError
+from ..errors import InputError, LieflowError, shorten
 from ..progress import ProgressBar
 
 __all__ = ["main"]
@@ -42,6 +46,7 @@ EXIT_OK = 0
 EXIT_ERROR = 2
 EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143  # 128 + SIGTERM, what a shell reports for a process SIGTERM stopped
+EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE: what `cmd | head` gives for a Unix tool
 
 
 class _Terminated:
@@ -105,6 +110,19 @@ def _show_progress(args: argparse.Namespace) -> bool:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    try:
+        return _run_command(args)
+    except KeyboardInterrupt:  # before the run had its file (once it has, run returns)
+        how = "terminated (SIGTERM)" if _Terminated.received else "interrupted"
+        print(
+            f"lieflow: {how} before the run started: nothing was written"
+            + (f"; continue with: {_resume_command(args)}" if args.resume else ""),
+            file=sys.stderr,
+        )
+        return EXIT_TERMINATED if _Terminated.received else EXIT_INTERRUPTED
+
+
+def _run_command(args: argparse.Namespace) -> int:
     from .config import ConfigError, build, load_config
     from .io import run
 
@@ -117,27 +135,43 @@ def _cmd_run(args: argparse.Namespace) -> int:
             "--resume to continue it, --force to replace it, or choose another output.",
             key,
         )
-    _Terminated.received = False
-    with _sigterm_as_interrupt():
-        summary = run(
-            setup,
-            resume=args.resume,
-            monitor=ProgressBar() if _show_progress(args) else None,
-        )
+    if args.resume and not setup.output.exists():  # --resume means "resume if present"
+        print(f"lieflow: --resume: {str(setup.output)!r} does not exist yet; starting a new run",
+              file=sys.stderr)  # fmt: skip
+    summary = run(
+        setup,
+        resume=args.resume,
+        monitor=ProgressBar() if _show_progress(args) else None,
+    )
     rate = summary.new_steps / summary.wall_time if summary.wall_time > 0 else 0.0
+    # with [splitting] flows (dissipation, forcing) the energy changes by design: its
+    # relative change is the run's energy budget, not an error of the scheme
+    energy = "energy change (not conserved: [splitting])" if setup.flows else "energy error"
     print(
         f"{summary.status}: {summary.completed_steps}/{summary.requested_steps} steps "
         f"({summary.new_steps} new, {summary.wall_time:.2f} s, {rate:,.0f} steps/s), "
-        f"max energy error {summary.max_energy_error:.3e} -> {summary.path}"
+        f"max {energy} {summary.max_energy_error:.3e} -> {summary.path}"
     )
     if summary.status == "interrupted":
         how = "terminated (SIGTERM)" if _Terminated.received else "interrupted"
-        print(
-            f"lieflow: {how}; continue with: lieflow run {args.config} --resume"
-            + (f" --out {args.out}" if args.out is not None else ""),
-            file=sys.stderr,
-        )
+        print(f"lieflow: {how}; continue with: {_resume_command(args)}", file=sys.stderr)
         return EXIT_TERMINATED if _Terminated.received else EXIT_INTERRUPTED
+    return EXIT_OK
+
+
+def _resume_command(args: argparse.Namespace) -> str:
+    """The command that was run, as it continues the run: with ``--resume``, without
+    ``--force`` (which would replace the file)."""
+    argv = [a for a in args.argv if a != "--force"]
+    if "--resume" not in argv:
+        argv.append("--resume")
+    return shlex.join(["lieflow", *argv])
+
+
+def _cmd_salvage(args: argparse.Namespace) -> int:
+    from .salvage import salvage
+
+    print(salvage(args.file).describe())
     return EXIT_OK
 
 
@@ -241,11 +275,9 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
         print(f"{len(grid.runs)} runs ({' x '.join(map(str, grid.shape)) or '1'}) -> "
               f"{grid.directory}")  # fmt: skip
         return EXIT_OK
-    _Terminated.received = False
-    with _sigterm_as_interrupt():
-        result = sweep(grid, args.executor, workers=args.workers, scheduler=args.scheduler,
-                       monitor=SweepProgress(live=_show_progress(args)),
-                       store=args.store)  # fmt: skip
+    result = sweep(grid, args.executor, workers=args.workers, scheduler=args.scheduler,
+                   monitor=SweepProgress(live=_show_progress(args)),
+                   store=args.store)  # fmt: skip
     c = result.counts
     print(
         f"sweep {grid.source}: {len(result.runs)} runs: {c['complete']} complete "
@@ -258,7 +290,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
         print(f"  failed: {rec['output']}: {error[0] if error else ''}", file=sys.stderr)
     if result.interrupted:
         print(f"lieflow: sweep interrupted; run the same command again to continue: "
-              f"lieflow sweep {args.grid}", file=sys.stderr)  # fmt: skip
+              f"{shlex.join(['lieflow', *args.argv])}", file=sys.stderr)  # fmt: skip
         return EXIT_TERMINATED if _Terminated.received else EXIT_INTERRUPTED
     return EXIT_OK if result.ok else EXIT_RUNS_FAILED
 
@@ -284,15 +316,35 @@ def _parser() -> argparse.ArgumentParser:
             "optional [solver], and [run] tables; see examples/*.toml). The trajectory, "
             "diagnostics and a checkpoint are written to HDF5 at every save, so an "
             "interrupted run can be continued bit-for-bit with --resume. Paths inside CONFIG "
-            "are relative to its directory; --out is relative to the current directory."
+            "are relative to its directory; --out is relative to the current directory. "
+            "A damaged output (a process killed while it wrote, a truncated copy, flipped "
+            "bits) is refused by --resume; `lieflow salvage FILE` cuts it back to its last "
+            "verified checkpoint, and --resume then continues from there."
         ),
     )
     p.add_argument("config", type=Path, metavar="CONFIG.toml")
-    p.add_argument("--resume", action="store_true", help="continue the output file")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the output file from its last checkpoint (a missing file is "
+                        "started afresh, and said so)")  # fmt: skip
     p.add_argument("--out", type=Path, metavar="FILE", help="output file (overrides [run])")
     p.add_argument("--force", action="store_true", help="replace an existing output file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser(
+        "salvage",
+        help="cut a damaged trajectory file back to its last verified checkpoint",
+        description=(
+            "Make a damaged trajectory file (refused by `lieflow run --resume` and the "
+            "readers) resumable again: keep every step up to the latest one whose data all "
+            "read back with verified checksums and that has a verified checkpoint (resumed "
+            "bit for bit) or saved state (resumed with a cold solver start), drop the rest, "
+            "and mark the file interrupted. The damaged original is kept as FILE.damaged. "
+            "Then continue it with `lieflow run CONFIG --resume`."
+        ),
+    )
+    p.add_argument("file", type=Path, metavar="FILE.h5")
+    p.set_defaults(func=_cmd_salvage)
 
     p = sub.add_parser(
         "reproduce",
@@ -385,14 +437,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # --help, --version, usage errors
         return exc.code if isinstance(exc.code, int) else EXIT_ERROR
     func: Callable[[argparse.Namespace], int] = args.func
+    args.argv = list(sys.argv[1:] if argv is None else argv)
+    _Terminated.received = False
     try:
-        return func(args)
+        with _sigterm_as_interrupt():  # for the whole command, before anything is created
+            return func(args)
     except LieflowError as exc:
-        print(f"lieflow: error: {exc}", file=sys.stderr)
+        print(f"lieflow: error: {shorten(exc, 4000)}", file=sys.stderr)
         return EXIT_ERROR
     except KeyboardInterrupt:
         print("lieflow: interrupted", file=sys.stderr)
         return EXIT_TERMINATED if _Terminated.received else EXIT_INTERRUPTED
+    except (
+        BrokenPipeError
+    ):  # `lieflow list | head`: the reader left; stop quietly, as Unix tools do
+        with contextlib.suppress(OSError):  # no second error when Python flushes stdout at exit
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
     except OSError as exc:  # a file system error no check foresaw (disk full, I/O error)
         print(
             f"lieflow: error: {exc}. To fix: check the disk and the paths given, then run "

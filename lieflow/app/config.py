@@ -29,6 +29,7 @@ settings::
     save_every = 10      # keep every 10th state
     output = "rigid_body.h5"
     casimir_shift = "auto"  # optional: step on eta plus a Casimir (lieflow.integrate)
+    checkpoint = 1.0     # optional: seconds between checkpoints (default 1), or "saves"
 
 :func:`parse_config` turns the text into a frozen :class:`Config` (checking every key's
 presence and type, refusing unknown keys), and :func:`build` turns a :class:`Config` into
@@ -53,7 +54,7 @@ import attrs
 import numpy as np
 
 from ..algebras import Array
-from ..errors import LieflowError, PluginError
+from ..errors import LieflowError, PluginError, quote, shorten
 from ..flows import Flow, Splitting
 from ..integration import Engine, scheme_flow
 from ..plugins import Kind, Registry, default_registry
@@ -250,6 +251,10 @@ class RunSettings:
         Step the scheme on the Hamiltonian plus a Casimir (:func:`lieflow.integrate`'s
         ``casimir_shift``); ``0`` (default): the scheme as defined. Part of the identity
         when not 0.
+    checkpoint : float or None
+        Seconds between checkpoints (the resume point; saved states are written in blocks
+        between them), ``None`` (``checkpoint = "saves"``): at every saved state. Not part
+        of the identity.
     """
 
     h: float
@@ -259,6 +264,7 @@ class RunSettings:
     t_final: float | None = None
     engine: str = "auto"
     casimir_shift: float | str = 0.0
+    checkpoint: float | None = 1.0
 
 
 @attrs.frozen
@@ -367,8 +373,10 @@ class RunSetup:
             W0=self.W0,
             output=self.output,
             replace=self.replace,
+            make_directory=True,
             config_text=cfg.text,
             config_source=cfg.source,
+            checkpoint_seconds=cfg.run.checkpoint,
         )
 
 
@@ -714,6 +722,22 @@ def _run(raw: Mapping[str, Any], source: str, base: Path, default_output: str) -
             )
     elif sec.has("casimir_shift"):
         shift = sec.number("casimir_shift", positive=False) or 0.0
+    checkpoint: float | None = 1.0
+    if isinstance(sec.data.get("checkpoint"), str):
+        if sec.string("checkpoint") != "saves":
+            raise sec.error(
+                "checkpoint",
+                f'expected a number of seconds or "saves", got {sec.data["checkpoint"]!r}',
+                'write checkpoint = 1.0 (seconds between checkpoints) or "saves"',
+            )
+        checkpoint = None
+    elif sec.has("checkpoint"):
+        checkpoint = sec.number("checkpoint", positive=False)
+        if checkpoint is None or checkpoint < 0:
+            raise sec.error(
+                "checkpoint", f"must be >= 0 seconds, got {checkpoint!r}",
+                'write checkpoint = 1.0 (seconds between checkpoints) or "saves"',
+            )  # fmt: skip
     sec.finish()
     out = Path(output or default_output).expanduser()
     return RunSettings(
@@ -724,6 +748,7 @@ def _run(raw: Mapping[str, Any], source: str, base: Path, default_output: str) -
         t_final,
         engine,
         shift,
+        checkpoint,
     )
 
 
@@ -890,7 +915,7 @@ def _create(
     except Exception as exc:
         raise ConfigError(
             f"{source}: {params_key}: {kind} {comp.name!r} rejected its parameters "
-            f"{dict(comp.params)!r}: {exc}. To fix: correct {params_key}.",
+            f"{quote(dict(comp.params))}: {shorten(exc)}. To fix: correct {params_key}.",
             params_key,
         ) from None
 
@@ -924,6 +949,22 @@ def _initial_state(config: Config, system: IsospectralSystem) -> Array:
             W = W + 1j * np.array(init.imag)
     else:
         assert init.file is not None
+        try:
+            with open(init.file, "rb") as fh:
+                magic = fh.read(6)
+        except OSError as exc:
+            raise ConfigError(
+                f"{source}: {key}: cannot read {str(init.file)!r} ({exc.strerror or exc}). "
+                "To fix: check the path and its permissions.",
+                key,
+            ) from None
+        if magic != b"\x93NUMPY":
+            raise ConfigError(
+                f"{source}: {key}: {str(init.file)!r} exists but is not a .npy file (it does "
+                "not start with numpy's .npy header; text, .npz archives and pickles are not "
+                "read). To fix: save W0 with numpy.save(path, W0).",
+                key,
+            )
         try:
             W = np.load(init.file, allow_pickle=False)
         except (OSError, ValueError) as exc:

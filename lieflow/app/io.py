@@ -92,6 +92,8 @@ __all__ = [
     "FORMAT",
     "FORMAT_VERSION",
     "Checkpoint",
+    "DamagedOutputError",
+    "DiskFullError",
     "Monitor",
     "OutputBusyError",
     "RunDiagnostics",
@@ -171,6 +173,65 @@ class OutputBusyError(LieflowError):
     """Another process is writing the output file (or holds its lock)."""
 
 
+class DiskFullError(LieflowError):
+    """The disk filled up while a trajectory file was written; the file keeps its last
+    checkpoint, and the same command continues it once space is freed."""
+
+
+#: What h5py raises when a write fails: OSError from a write, RuntimeError from a flush or
+#: a close whose metadata cache could not be written.
+_WRITE_ERRORS = (OSError, RuntimeError)
+
+
+def _no_space(exc: BaseException) -> bool:
+    """Whether ``exc`` (or what it was raised from) is a full disk or an exceeded quota."""
+    while exc is not None:
+        if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        text = str(exc)
+        if "No space left on device" in text or "errno = 28," in text or "quota" in text.lower():
+            return True
+        exc = exc.__cause__ or exc.__context__  # type: ignore[assignment]
+    return False
+
+
+def _disk_full(path: Path, steps: int | None = None) -> DiskFullError:
+    kept = (
+        f"the file keeps its last checkpoint (step {steps}); nothing before it is lost"
+        if steps is not None
+        else "nothing was changed or lost"
+    )
+    return DiskFullError(
+        f"no space left on device writing {_where(path)}: {kept}. To fix: free space on that "
+        "disk and run the same command again to continue (`lieflow run CONFIG --resume`, or "
+        "integrate(..., out=..., resume=True))."
+    )
+
+
+#: Free space kept in reserve on the output's disk: a write is not started unless this much
+#: (plus what it writes) is free, because HDF5 interrupted by a full disk can leave the
+#: file's superblock pointing past its end (measured: a resume on a full disk made the file
+#: unopenable, "addr overflow"). Enough for the metadata and new chunks of a few commits.
+_SPACE_MARGIN = 1 << 20
+
+
+def _ensure_space(path: Path, nbytes: int = 0) -> None:
+    """Raise ENOSPC (before anything is written) unless ``nbytes`` plus the margin are free
+    on the disk holding ``path``."""
+    try:
+        st = os.statvfs(path.parent)
+    except (OSError, AttributeError):  # pragma: no cover - no statvfs: HDF5 reports it
+        return
+    if st.f_bavail * st.f_frsize < nbytes + _SPACE_MARGIN:
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+
+def _close_quietly(f: Any) -> None:
+    """Close an h5py file whose writes failed (its close may fail too: the error is moot)."""
+    with contextlib.suppress(*_WRITE_ERRORS, ValueError):
+        f.close()
+
+
 class DamagedOutputError(LieflowError):
     """The output file's bytes are damaged: a checksum does not match, its structure is
     broken, or a process killed during a write left part of it unreadable."""
@@ -199,19 +260,25 @@ class TrajectoryHeader(RunInfo):
         The trajectory file.
     replace : bool
         Whether a new run may replace an existing ``output``.
+    make_directory : bool
+        Whether a missing directory of ``output`` is created (``lieflow run``: yes, as
+        ``--out results/run.h5`` promises) or refused (:func:`lieflow.integrate`: a library
+        call creates no directory tree its caller did not ask for).
     config_text, config_source : str
         The configuration's text and where it came from (empty for ``integrate``).
-    checkpoint_seconds : float
+    checkpoint_seconds : float or None
         Seconds between checkpoints (the resume point, flushed and fsync'd; and the last
         one when the run ends however it ends): saved states and diagnostics are buffered
-        and written in blocks in between. ``0``: after every chunk of steps.
+        and written in blocks in between. ``0``: after every chunk of steps; ``None``:
+        after every chunk that holds a saved state (``[run] checkpoint = "saves"``).
     """
 
     output: Path
     replace: bool = False
     config_text: str = attrs.field(default="", repr=False)
+    make_directory: bool = False
     config_source: str = ""
-    checkpoint_seconds: float = CHECKPOINT_SECONDS
+    checkpoint_seconds: float | None = CHECKPOINT_SECONDS
 
 
 def _header(run: TrajectoryHeader | RunSetup) -> TrajectoryHeader:
@@ -404,15 +471,30 @@ def _open(path: Path, mode: str, fix: str = _READ_FIX) -> h5py.File:
             "first."
         ) from None
     except OSError as exc:
-        if "lock" in str(exc).lower():
+        if _HDF5_LOCKED.search(str(exc)):
             raise OutputBusyError(
                 f"cannot open {_where(path)}: another process has it open for writing "
                 f"({exc}). To fix: wait until that run has finished, or stop it first."
             ) from None
-        raise LieflowError(
-            f"cannot open {_where(path)} as HDF5: the file is damaged or truncated ({exc}). "
-            f"To fix: {fix}."
+        what = "truncated (shorter than HDF5 recorded)" if "truncated file" in str(exc) else (
+            "damaged")  # fmt: skip
+        raise DamagedOutputError(
+            f"cannot open {_where(path)} as HDF5: the file is {what} ({exc}). To fix: "
+            f"{salvage_fix(path)}; or {fix}."
         ) from None
+
+
+#: HDF5's own message when another process holds its lock on the file: the only open
+#: error that means "busy" (a truncated file's message names ``sblock``, not a lock).
+_HDF5_LOCKED = re.compile(r"unable to lock file", re.IGNORECASE)
+
+
+def salvage_fix(path: Path) -> str:
+    """The fix offered for a damaged trajectory file: :func:`lieflow.app.salvage.salvage`."""
+    return (
+        f"`lieflow salvage {path}` cuts it back to its last verified checkpoint (the damaged "
+        "original is kept next to it), then continue it with --resume"
+    )
 
 
 def _damaged(path: Path, exc: BaseException) -> DamagedOutputError:
@@ -420,7 +502,8 @@ def _damaged(path: Path, exc: BaseException) -> DamagedOutputError:
         f"{_where(path)} is damaged: reading it failed ({type(exc).__name__}: {exc}). Its "
         "bytes were changed on disk (a checksum did not match, e.g. after a process was "
         "killed while it wrote, or its structure is broken). "
-        "To fix: restore it from a backup, or run the configuration again (--force)."
+        f"To fix: {salvage_fix(path)}; or restore it from a backup, or run the configuration "
+        "again (--force)."
     )
 
 
@@ -438,6 +521,8 @@ class _Reading:
     ) -> Literal[False]:
         if exc is None or isinstance(exc, LieflowError) or not isinstance(exc, _DAMAGE):
             return False
+        if _no_space(exc):
+            raise _disk_full(self.path) from None
         raise _damaged(self.path, exc) from None
 
 
@@ -535,7 +620,7 @@ def _read_checkpoint(f: h5py.File, path: Path | None = None) -> Checkpoint:
     if slot_id not in (0, 1):
         raise LieflowError(
             f"{where} is damaged: its checkpoint pointer is {slot_id}, not 0 or 1. To fix: "
-            "run the configuration again (--force)."
+            f"{salvage_fix(Path(f.filename))}; or run the configuration again (--force)."
         )
     slot = group[f"slot{slot_id}"]
     step, t = int(slot.attrs["step"]), float(slot.attrs["t"])
@@ -545,8 +630,9 @@ def _read_checkpoint(f: h5py.File, path: Path | None = None) -> Checkpoint:
         raise LieflowError(
             f"{where} is damaged: the checkpoint at step {step} does not match its SHA-256 "
             "checksum (its bytes changed on disk after lieflow wrote them), so continuing "
-            "from it would silently continue a wrong state. To fix: restore the file from a "
-            "backup, or run the configuration again from the start (--force)."
+            "from it would silently continue a wrong state. To fix: "
+            f"{salvage_fix(Path(f.filename))}; or restore the file from a backup, or run the "
+            "configuration again from the start (--force)."
         )
     if "W" not in items:
         raise LieflowError(f"{where} is damaged: its checkpoint has no state W.")
@@ -565,7 +651,8 @@ def _check_lengths(f: h5py.File, k: int, path: Path, layout: _Layout) -> None:
     if min(per_step) < k + 1 or f[at["iterations"]].shape[0] < k + 1 + layout.update_row0:
         raise LieflowError(
             f"{_where(path)} is damaged: its diagnostics end before its checkpoint at step "
-            f"{k}. To fix: start the run again without --resume (use --force)."
+            f"{k}. To fix: {salvage_fix(Path(f.filename))}; or start the run again without "
+            "--resume (use --force)."
         )
 
 
@@ -607,6 +694,90 @@ def _check_coordinates(f: h5py.File, k: int, path: Path, layout: _Layout) -> Non
             f"{_where(path)} is damaged: its step coordinate is not 0..{k}. To fix: restore "
             "it from a backup, or run the configuration again (--force)."
         )
+
+
+def _readable_rows(ds: h5py.Dataset, rows: int | None = None) -> int:
+    """How many of the first ``rows`` rows of ``ds`` (default: all) read back, every chunk's
+    Fletcher-32 checksum verified: read chunk by chunk, so memory holds one chunk."""
+    n = ds.shape[0] if rows is None else min(rows, ds.shape[0])
+    if not ds.shape:
+        try:
+            ds[()]
+        except _DAMAGE:
+            return 0
+        return 1
+    size = (ds.chunks or (max(n, 1),))[0]
+    for start in range(0, n, size):
+        try:
+            ds[start : min(start + size, n)]
+        except _DAMAGE:
+            return start
+    return n
+
+
+def _kept_rows(f: h5py.File, k: int, layout: _Layout) -> dict[str, tuple[h5py.Dataset, int]]:
+    """Every dataset a file that ends at step ``k`` keeps, with the rows it keeps of it."""
+    at = layout.paths
+    rows: dict[str, tuple[h5py.Dataset, int]] = {}
+    for name in (*_PER_STEP, *(("step",) if "step" in at else ())):
+        rows[at[name]] = (f[at[name]], k + 1)
+    for name in _PER_UPDATE:
+        rows[at[name]] = (f[at[name]], k + 1 + layout.update_row0)
+    n_saved = int(np.searchsorted(f[at["saved_step"]][()], k, side="right"))
+    for name in ("saved_step", "time", "W"):
+        rows[at[name]] = (f[at[name]], n_saved)
+    rows[at["W0"]] = (f[at["W0"]], f[at["W0"]].shape[0] if f[at["W0"]].shape else 1)
+    for name in _LABELS:
+        if name in f:
+            rows[name] = (f[name], f[name].shape[0])
+    group = f.get(_EXTRA)
+    if group is not None:
+        n_extra = int(np.searchsorted(group["step"][()], k, side="right"))
+        for ds in group.values():
+            if not _is_scale(ds):
+                rows[ds.name] = (ds, n_extra)
+    return rows
+
+
+def _check_kept(f: h5py.File, k: int, path: Path, layout: _Layout) -> None:
+    """Read back every row a resume keeps (steps ``0..k``), so that a file whose data was
+    damaged on disk is refused before it is continued, not reported ``complete``."""
+    for name, (ds, rows) in _kept_rows(f, k, layout).items():
+        good = _readable_rows(ds, rows)
+        if good < rows:
+            raise DamagedOutputError(
+                f"{_where(path)} is damaged: {name!r} fails its checksum from row {good} on "
+                f"(the file keeps {rows} rows of it up to its checkpoint at step {k}; its bytes "
+                "changed on disk, e.g. after a process was killed while it wrote). To fix: "
+                f"{salvage_fix(path)}; or run the configuration again (--force)."
+            )
+
+
+def _visit_structure(group: h5py.Group) -> None:
+    """Open every object under ``group`` and its attributes (their headers), not reading any
+    dataset's data: what writing over them needs intact (data is overwritten whole)."""
+
+    def visit(_: str, obj: Any) -> None:
+        dict(obj.attrs)
+
+    dict(group.attrs)
+    group.visititems(visit)
+
+
+def _check_spare(f: h5py.File, path: Path) -> None:
+    """The spare checkpoint slot, where the next checkpoint goes, has an intact structure
+    (a damaged one would fail that write half-way; damaged *data* there is harmless, as
+    the next checkpoint overwrites it whole)."""
+    group = f["checkpoint"]
+    name = f"slot{1 - int(group.attrs['current'])}"
+    try:
+        _visit_structure(group[name])
+    except _DAMAGE as exc:
+        raise DamagedOutputError(
+            f"{_where(path)} is damaged: its spare checkpoint slot {name!r}, where the next "
+            f"checkpoint goes, does not read back ({type(exc).__name__}: {exc}). To fix: "
+            f"{salvage_fix(path)}; or run the configuration again (--force)."
+        ) from None
 
 
 @contextmanager
@@ -1077,6 +1248,8 @@ def _verify_for_resume(header: TrajectoryHeader) -> Checkpoint:
         _check_lengths(f, ck.step, path, layout)
         _check_coordinates(f, ck.step, path, layout)
         _check_invariants(f, ck, header.system, path, layout)
+        _check_kept(f, ck.step, path, layout)
+        _check_spare(f, path)
         if ck.step > header.requested_steps:
             raise ConfigError(
                 f"--resume: {_where(path)} already holds {ck.step} steps, more than the "
@@ -1141,6 +1314,7 @@ class TrajectoryWriter:
         self._n_saved = self._traj["saved_step"].shape[0]
         self._saved_to = int(self._traj["saved_step"][self._n_saved - 1])  # last saved step
         self._buffered = 0  # bytes of the saved states in the buffer
+        self._abandoned = False  # closed without writing more (a full disk)
         # per buffered chunk: (step indices kept, states kept, iterations, residuals, its
         # diagnostics); only the kept states, never a whole chunk (memory stays bounded)
         self._buffer: list[tuple[Array, Array, Array, Array, ChunkDiagnostics]] = []
@@ -1167,9 +1341,11 @@ class TrajectoryWriter:
         :class:`TrajectoryHeader`, or a :class:`~lieflow.app.config.RunSetup` for its header).
 
         The file is written under a temporary name in the same directory and then given its
-        name, so a failure leaves no partial file. An existing file is replaced only if
-        ``setup.replace`` (atomically); otherwise the name is taken with an exclusive create,
-        so of two runs started on one new path, one is refused.
+        name, so a failure leaves no partial file. A missing directory is created only with
+        ``make_directory`` (``lieflow run``), else refused (``integrate(out=...)``: it used to
+        create ``/nonexistent`` for ``out="/nonexistent/a.h5"``). An existing file is
+        replaced only if ``setup.replace`` (atomically); otherwise the name is taken with an
+        exclusive create, so of two runs started on one new path, one is refused.
 
         Raises
         ------
@@ -1183,21 +1359,38 @@ class TrajectoryWriter:
         h5py = _h5py()
         setup = _header(run)
         out = setup.output
-        try:
-            out.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise _cannot_create(out, exc) from None
+        if setup.make_directory and not out.parent.exists():
+            try:
+                out.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise _cannot_create(out, exc) from None
+        if not out.parent.is_dir():  # never a directory tree the caller did not ask for
+            what = "is not a directory" if out.parent.exists() else "does not exist"
+            raise LieflowError(
+                f"cannot create {_where(out)}: its directory {str(out.parent)!r} {what} "
+                "(lieflow creates the file, not directories). To fix: create the directory "
+                f"first (mkdir -p {out.parent}), or choose an output in an existing directory."
+            )
         lock = _OutputLock.acquire(out)
         try:
             if not setup.replace and os.path.lexists(out):
                 raise _exists_error(out)
             tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
             try:
-                with h5py.File(tmp, "w", rdcc_nbytes=_CHUNK_CACHE_BYTES) as f:
+                f = h5py.File(tmp, "w", rdcc_nbytes=_CHUNK_CACHE_BYTES)
+                try:
                     _initialise(f, setup)
+                except BaseException:
+                    _close_quietly(f)
+                    raise
+                f.close()
                 _publish(tmp, out, setup.replace)
-            except OSError as exc:
-                raise _cannot_create(out, exc) from None
+            except _WRITE_ERRORS as exc:
+                if _no_space(exc):
+                    raise _disk_full(out) from None
+                if isinstance(exc, OSError):
+                    raise _cannot_create(out, exc) from None
+                raise
             finally:
                 tmp.unlink(missing_ok=True)
             return cls(_open(out, "r+"), setup, lock)
@@ -1231,6 +1424,10 @@ class TrajectoryWriter:
         lock = _OutputLock.acquire(path)
         try:
             ck = _verify_for_resume(setup)
+            try:
+                _ensure_space(path)
+            except OSError:
+                raise _disk_full(path, ck.step) from None
             f = _open(path, "r+", _RESUME_FIX)
             try:
                 with _Reading(path):
@@ -1240,8 +1437,10 @@ class TrajectoryWriter:
                     f.attrs["status"] = "running"
                     f.flush()
                 writer = cls(f, setup, lock)
-            except BaseException:
-                f.close()
+            except BaseException as exc:
+                _close_quietly(f)
+                if isinstance(exc, _WRITE_ERRORS) and _no_space(exc):
+                    raise _disk_full(path, ck.step) from None
                 raise
         except BaseException:
             lock.release()
@@ -1278,7 +1477,8 @@ class TrajectoryWriter:
             self._saved_to = int(chunk.index[keep][-1])
             self._buffered += entry[1].nbytes
             if self._buffered >= _BUFFER_BYTES:  # memory stays bounded between checkpoints
-                with _signals.deferred():
+                with _signals.deferred(), self._room():
+                    _ensure_space(self._path, self._buffered)
                     self._write_rows()
 
     @property
@@ -1294,15 +1494,29 @@ class TrajectoryWriter:
         cannot leave the writer's counters and the file disagreeing.
         """
         with _signals.deferred():
-            if self._last is None:
+            if self._last is None or self._abandoned:
                 return
             stop, h, W_last, state = self._last
             last_unsaved = keep_last and self._saved_to != stop
             if stop == self._step and not self._buffer and not last_unsaved:
                 return  # nothing new since the last checkpoint
-            self._write_rows(keep_last=keep_last)
-            self._checkpoint(stop, stop * h, W_last, state)
-            _sync(self._f)
+            with self._room():
+                _ensure_space(self._path, self._buffered + W_last.nbytes)
+                self._write_rows(keep_last=keep_last)
+                self._checkpoint(stop, stop * h, W_last, state)
+                _sync(self._f)
+
+    @contextlib.contextmanager
+    def _room(self) -> Iterator[None]:
+        """Writes on a full disk: the file is abandoned at its last checkpoint (the one to
+        resume from, untouched) and one :class:`DiskFullError` says so."""
+        try:
+            yield
+        except _WRITE_ERRORS as exc:
+            if not _no_space(exc):
+                raise
+            self.abandon()
+            raise _disk_full(self._path, self._step) from None
 
     def _write_rows(self, *, keep_last: bool = False) -> None:
         """Append the buffered diagnostics, saved states and extra diagnostics (and the last
@@ -1362,11 +1576,25 @@ class TrajectoryWriter:
         self._ck.attrs["current"] = slot_id  # the commit point
         self._slot, self._step = slot_id, index
 
+    def abandon(self) -> None:
+        """Close the file without writing more (after a failed write, e.g. a full disk:
+        the last checkpoint on disk stays the one to resume from) and release its lock;
+        :meth:`checkpoint` and :meth:`close` then do nothing."""
+        if self._abandoned:
+            return
+        self._abandoned = True
+        self._last, self._buffer = None, []
+        try:
+            _close_quietly(self._f)
+        finally:
+            if self._lock is not None:
+                self._lock.release()
+
     def close(
         self, status: Ending, failure: ConvergenceError | str | None, wall_time: float
     ) -> None:
         """Record the final status, the failure's message and the time spent, close the file
-        and release its lock.
+        and release its lock (nothing after :meth:`abandon`).
 
         Raises
         ------
@@ -1374,6 +1602,10 @@ class TrajectoryWriter:
             The output path no longer names the file this writer wrote (another program
             deleted or replaced it during the run): the run must not report success.
         """
+        error = failure if isinstance(failure, ConvergenceError) else None
+        self._ending = (status, error, wall_time)
+        if self._abandoned:
+            return
         f = self._f
         lost = False
         self._last, self._buffer = None, []  # hold no state once closed
@@ -1394,8 +1626,6 @@ class TrajectoryWriter:
             finally:
                 if self._lock is not None:
                     self._lock.release()
-        error = failure if isinstance(failure, ConvergenceError) else None
-        self._ending = (status, error, wall_time)
         if lost:
             raise LieflowError(
                 f"{_where(self._path)} was deleted or replaced by another program while this "
@@ -1559,6 +1789,32 @@ def _prune(slot: h5py.Group, keep: set[str]) -> None:
             if isinstance(obj, h5py.Group) != (i < len(parts)):
                 _drop(slot, sub)
                 break
+
+
+def _renew_spare(f: h5py.File) -> None:
+    """Replace the spare checkpoint slot by an empty one if its structure is damaged (the
+    next checkpoint, written there, would fail half-way). The spare slot is never read
+    otherwise, so nothing is lost."""
+    group = f["checkpoint"]
+    name = f"slot{1 - int(group.attrs['current'])}"
+    try:
+        _visit_structure(group[name])
+        return
+    except _DAMAGE:
+        pass
+    with contextlib.suppress(*_DAMAGE):
+        _drop(group, name)  # detaching the dimensions it can
+    try:
+        if name in group:
+            del group[name]
+        group.create_group(name)
+    except _DAMAGE as exc:  # HDF5 frees a group's members as it unlinks it: it reads them
+        raise DamagedOutputError(
+            f"{_where(Path(f.filename))}: the HDF5 structure of its checkpoint slot {name!r} "
+            f"is damaged ({type(exc).__name__}: {exc}), and HDF5 cannot remove it to write "
+            "the next checkpoint there. To fix: restore the file from a backup, or run the "
+            "configuration again from the start (--force)."
+        ) from None
 
 
 def _drop(group: h5py.Group, name: str) -> None:
@@ -1728,7 +1984,8 @@ def _truncate(f: h5py.File, k: int, layout: _Layout) -> None:
     if min(f[at[n]].shape[0] for n in per_step) != k + 1 or f[at["iterations"]].shape[0] != updates:
         raise LieflowError(
             f"{f.filename!r} is damaged: its diagnostics end before its checkpoint at step "
-            f"{k}. To fix: start the run again without --resume (use --force)."
+            f"{k}. To fix: {salvage_fix(Path(f.filename))}; or start the run again without "
+            "--resume (use --force)."
         )
     n = int(np.searchsorted(f[at["saved_step"]][()], k, side="right"))
     for name in ("saved_step", "time", "W"):
@@ -1844,6 +2101,17 @@ def run_flow(
         How it ended (``"complete"``, ``"interrupted"`` after Ctrl-C, ``"failed"``), and
         the error of a failed step (the file then holds the steps before it).
     """
+    with _signals.Interrupts() as stop:  # Ctrl-C held from here until stepping, raised there
+        return _run_flow(header, flow, resume, monitor, stop)
+
+
+def _run_flow(
+    header: TrajectoryHeader,
+    flow: Any,
+    resume: bool,
+    monitor: Monitor | None,
+    interrupts: _signals.Interrupts,
+) -> tuple[RunSummary, ConvergenceError | None]:
     target = header.requested_steps
     diagnostics = Diagnostics.of(header.system, header.W0, save_every=header.save_every)
     writer = TrajectoryWriter.open(header, resume=resume)
@@ -1869,6 +2137,7 @@ def run_flow(
         state=state,
         monitor=monitor,
         checkpoint=Cadence(seconds=header.checkpoint_seconds),
+        interrupts=interrupts,
     )
     completed = writer.completed_steps
     summary = RunSummary(

@@ -151,6 +151,15 @@ def plot_trajectory(
 
     traj = read_trajectory(path)
     src = Path(path)
+    if traj.completed_steps == 0:
+        failure = str(traj.meta.get("failure", "")).strip()
+        raise LieflowError(
+            f"{str(src)!r} holds no step after the initial state (status {traj.status!r}"
+            + (f": {failure}" if failure else "")
+            + "), so there is nothing to plot. To fix: "
+            + ("fix what made its first step fail, and run it again."
+               if traj.status == "failed" else "continue the run (--resume), then plot it.")
+        )  # fmt: skip
     out = src.parent if out_dir is None else Path(out_dir)
     if out.exists() and not out.is_dir():
         raise LieflowError(

@@ -42,6 +42,7 @@ import re
 import signal
 import socket
 import sys
+import threading
 import time
 import traceback
 import warnings
@@ -565,23 +566,36 @@ def _worker_init() -> None:
     def on_term(signum: int, frame: FrameType | None) -> None:
         global _STOP
         _STOP = True
-        if _BUSY:
-            raise KeyboardInterrupt
+        if _BUSY:  # through the SIGINT handler a run installed (it stops at a safe point)
+            handler = signal.getsignal(signal.SIGINT)
+            if callable(handler):
+                handler(signal.SIGINT, frame)
+            else:
+                raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, on_term)
 
 
 class _ProgressFile:
     """A :class:`~lieflow.driver.Monitor` that writes a run's step count to a small JSON
-    file (atomically, at most once a second) for the coordinator's progress display."""
+    file (atomically, at most once a second) for the coordinator's progress display, and
+    stops the run (:class:`KeyboardInterrupt`, which marks its file "interrupted") once the
+    coordinator's stop file exists — how an interrupted sweep stops runs on Dask workers,
+    which no signal of the coordinator reaches."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path | None, stop: Path | None = None) -> None:
         self.path = path
+        self.stop_file = stop
         self.done = self.total = 0
-        self.last = 0.0
+        self.last = self.checked = 0.0
+
+    def _stop_requested(self) -> bool:
+        return self.stop_file is not None and self.stop_file.exists()
 
     def _write(self) -> None:
         self.last = time.monotonic()
+        if self.path is None:
+            return
         tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -605,8 +619,13 @@ class _ProgressFile:
 
     def advance(self, steps: int, iterations: int, energy_error: float | None) -> None:
         self.done += steps
-        if time.monotonic() - self.last >= 1.0:
+        now = time.monotonic()
+        if now - self.last >= 1.0:
             self._write()
+        if now - self.checked >= 0.1:
+            self.checked = now
+            if self._stop_requested():
+                raise KeyboardInterrupt
 
     def stop(self) -> None:
         self._write()
@@ -628,13 +647,14 @@ def run_task(task: Mapping[str, Any]) -> dict[str, Any]:
     out: dict[str, Any] = {"host": socket.gethostname(), "pid": os.getpid(), "started": started}
     if _POOL_WORKER and os.path.isdir("/proc/self/task"):
         out["threads"] = len(os.listdir("/proc/self/task"))  # 1: one BLAS thread, no pool
-    if _STOP:  # this worker was told to stop (the sweep was interrupted)
-        return {**out, "status": "interrupted", "error": "", "finished": started}
+    stop = Path(task["stop"]) if task.get("stop") else None
+    if _STOP or (stop is not None and stop.exists()):  # interrupted before it started
+        return {**out, "status": "pending", "error": "", "finished": started}
     _BUSY = True
     try:
         config = parse_config(task["text"], source=task["source"], base_dir=task["base_dir"])
         setup = build(config, output=task["output"], replace=False)
-        monitor = _ProgressFile(Path(task["progress"])) if task.get("progress") else None
+        monitor = _ProgressFile(Path(task["progress"]) if task.get("progress") else None, stop)
         try:
             try:
                 summary = io.run(setup, resume=True, monitor=monitor)
@@ -977,6 +997,22 @@ class _LocalPool:
                 proc.terminate()
 
 
+@contextlib.contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """Ignore SIGINT while worker processes are started, so that they inherit "ignored"
+    (Python keeps an ignored SIGINT ignored): Ctrl-C on a terminal signals the whole
+    process group, and the coordinator alone decides how runs stop (their files marked
+    "interrupted"), instead of each worker dying with a traceback mid-write."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def _dask_executor(
     scheduler: str | None, workers: int | None, stack: contextlib.ExitStack
 ) -> cf.Executor:
@@ -990,7 +1026,7 @@ def _dask_executor(
                 "it (`dask scheduler`) and give the address it prints (tcp://HOST:8786)."
             ) from None
     else:
-        with _thread_env():
+        with _thread_env(), _sigint_ignored():  # the workers inherit it: Ctrl-C is ours
             cluster = distributed.LocalCluster(
                 n_workers=workers or os.cpu_count() or 1,
                 threads_per_worker=1,
@@ -1168,6 +1204,8 @@ class _Coordinator:
         self.grid, self.pool, self.local, self.store = grid, pool, local, store
         self.monitor, self.max_attempts, self.busy_timeout = monitor, max_attempts, busy_timeout
         self.progress_dir = grid.directory / ".progress"
+        #: created on Ctrl-C: every run (on any worker) stops at its next chunk of steps
+        self.stop_file = self.progress_dir / "stop"
         self.records: list[dict[str, Any]] = []
         self.last_write = 0.0
         self.dirty = False
@@ -1244,6 +1282,7 @@ class _Coordinator:
             "progress": str(self.progress_dir / f"{spec.id}.json"),
             "id": spec.id,
             "store": str(self.store) if self.store is not None else "",
+            "stop": str(self.stop_file),
         }
 
     def _capacity(self, runs: int) -> int:
@@ -1291,6 +1330,7 @@ class _Coordinator:
         grid = self.grid
         with contextlib.suppress(OSError):
             self.progress_dir.mkdir(exist_ok=True)
+            self.stop_file.unlink(missing_ok=True)  # left by a coordinator that was killed
         try:
             old = json.loads(grid.manifest.read_text(encoding="utf-8"))
             before = {r["id"]: r for r in old["runs"]}
@@ -1487,21 +1527,32 @@ class _Coordinator:
     def _interrupt(
         self, in_flight: dict[cf.Future[Any], int], todo: deque[tuple[float, int]]
     ) -> None:
-        """Ctrl-C: cancel what has not started, stop what runs (files marked interrupted)."""
-        for fut in in_flight:
-            fut.cancel()
+        """Ctrl-C: stop what runs, where it runs (files marked interrupted), and collect it.
+
+        The stop file stops every run at its next chunk of steps, and a task that starts
+        after it returns at once; the default pool's workers also get SIGTERM. Futures are
+        then waited for (not cancelled: a cancelled Dask task is killed mid-write, its run
+        recorded "pending" with 0 steps) so each run's record says where it stopped."""
+        with contextlib.suppress(OSError):
+            self.stop_file.touch()
         if self.local is not None:
+            for fut in in_flight:
+                fut.cancel()
             self.local.stop_workers()
-        deadline = time.monotonic() + 30.0
+        deadline = time.monotonic() + 60.0
         pending = [f for f in in_flight if not f.cancelled()]
         with contextlib.suppress(Exception):
             cf.wait(pending, timeout=max(0.0, deadline - time.monotonic()))
+        with contextlib.suppress(OSError):
+            self.stop_file.unlink(missing_ok=True)
         for fut, i in in_flight.items():
             if fut.done() and not fut.cancelled():
                 with contextlib.suppress(Exception):
                     self._collect(fut, i, deque(), {})
             rec = self.records[i]
-            if rec["status"] in ("running", "pending"):
+            if rec["status"] in ("running", "pending", "interrupted"):
+                # the file's own word: a worker stopped twice (the stop file, then SIGTERM
+                # while it closed the file) reports "interrupted" without its steps
                 state = _file_state(self.grid.runs[i])
                 rec["status"] = "interrupted" if state else "pending"
                 if state:

@@ -1,0 +1,172 @@
+"""Ctrl-C in the first milliseconds of ``lieflow run`` (issue 29 item 3): a real process and a
+real SIGINT, sent by the process to itself at an exact point of its start-up (no timing),
+always ends with the file marked "interrupted" and the resume hint, or with nothing written
+and saying so; the progress bar gives the cursor back; an interrupt Python swallowed is not
+lost."""
+
+from __future__ import annotations
+
+import os
+import pty
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+from lieflow.app import io
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+
+CONFIG = """
+[system]
+name = "rigid_body"
+params = { inertia = [1.0, 2.0, 3.0] }
+[initial]
+random = true
+seed = 2
+[scheme]
+name = "midpoint"
+[run]
+h = 0.1
+steps = 400
+save_every = 10
+output = "traj.h5"
+engine = "numpy"
+"""
+
+#: The child: patch one function so that it sends SIGINT to its own process at that point,
+#: then run ``lieflow`` as the command line does.
+CHILD = r"""
+import os, signal, sys
+from lieflow import progress
+from lieflow.app import config, io
+from lieflow import driver
+
+def interrupt():
+    os.kill(os.getpid(), signal.SIGINT)
+
+point = sys.argv[1]
+if point == "load_config":
+    original_load = config.load_config
+    def load_config(*a, **k):
+        interrupt()
+        return original_load(*a, **k)
+    config.load_config = load_config
+elif point in ("after_create", "after_reopen"):
+    name = point.split("_")[1]
+    original = getattr(io.TrajectoryWriter, name).__func__
+    def opened(cls, *a, **k):
+        result = original(cls, *a, **k)
+        interrupt()
+        return result
+    setattr(io.TrajectoryWriter, name, classmethod(opened))
+elif point == "inside_create":
+    original_publish = io._publish
+    def publish(*a, **k):
+        original_publish(*a, **k)
+        interrupt()
+    io._publish = publish
+elif point == "bar_start":
+    original_start = progress.ProgressBar.start
+    def start(self, done, total):
+        original_start(self, done, total)  # the cursor is hidden now
+        interrupt()
+    progress.ProgressBar.start = start
+elif point == "swallowed":
+    original_advance = driver.advance
+    class Finalizer:
+        def __del__(self):
+            interrupt()  # the KeyboardInterrupt raised here is printed and swallowed
+    def advance(*a, **k):
+        for i, chunk in enumerate(original_advance(*a, **k)):
+            if i == 1:
+                Finalizer()
+            yield chunk
+    driver.advance = advance
+from lieflow.app.cli import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def _child(point: str, *args: str, terminal: bool = False) -> tuple[int, str]:
+    command = [sys.executable, "-c", CHILD, point, "run", *args]
+    if not terminal:
+        done = subprocess.run(command, capture_output=True, text=True, timeout=300)
+        return done.returncode, done.stdout + done.stderr
+    leader, follower = pty.openpty()
+    proc = subprocess.Popen(command, stdin=follower, stdout=follower, stderr=follower)
+    os.close(follower)
+    chunks: list[bytes] = []
+
+    def drain() -> None:
+        while True:
+            try:
+                data = os.read(leader, 1 << 16)
+            except OSError:
+                return
+            if not data:
+                return
+            chunks.append(data)
+
+    reader = threading.Thread(target=drain, daemon=True)
+    reader.start()
+    code = proc.wait(timeout=300)
+    reader.join(timeout=10)
+    os.close(leader)
+    return code, b"".join(chunks).decode(errors="replace")
+
+
+@pytest.fixture
+def config(tmp_path: Path) -> Path:
+    path = tmp_path / "run.toml"
+    path.write_text(CONFIG, encoding="utf-8")
+    return path
+
+
+@pytest.mark.parametrize("point", ["inside_create", "after_create", "swallowed"])
+def test_an_interrupt_once_the_file_exists_marks_it_and_gives_the_hint(
+    config: Path, point: str
+) -> None:
+    """``after_create`` used to leave the file "running" with only "lieflow: interrupted";
+    ``swallowed`` (the KeyboardInterrupt raised in a finalizer, which Python only prints)
+    used to run to completion, exit 0."""
+    out = config.parent / "traj.h5"
+    code, text = _child(point, str(config), "--no-progress")
+    assert code == 130, text
+    assert io.read_trajectory(out).status == "interrupted"
+    assert f"continue with: lieflow run {config} --no-progress --resume" in text, text
+    if point != "swallowed":  # there Python itself prints the swallowed exception
+        assert "Traceback (most recent call last)" not in text
+    code, text = _child("none", str(config), "--no-progress", "--resume")
+    assert code == 0, text
+    assert io.read_trajectory(out).completed_steps == 400
+
+
+def test_an_interrupt_while_resuming_keeps_the_file_resumable(config: Path) -> None:
+    out = config.parent / "traj.h5"
+    assert _child("none", str(config), "--no-progress")[0] == 0
+    config.write_text(CONFIG.replace("steps = 400", "steps = 500"), encoding="utf-8")
+    code, text = _child("after_reopen", str(config), "--no-progress", "--resume")
+    assert code == 130, text
+    traj = io.read_trajectory(out)
+    assert (traj.status, traj.completed_steps) == ("interrupted", 400)
+    assert f"continue with: lieflow run {config} --no-progress --resume" in text
+
+
+def test_an_interrupt_before_the_file_exists_says_nothing_was_written(config: Path) -> None:
+    code, text = _child("load_config", str(config), "--out", "other.h5", "--force")
+    assert code == 130, text
+    assert "lieflow: interrupted before the run started: nothing was written" in text
+    assert not (config.parent / "traj.h5").exists()
+    assert sorted(p.name for p in config.parent.iterdir()) == ["run.toml"]
+
+
+def test_the_progress_bar_gives_the_cursor_back(config: Path) -> None:
+    """Interrupted right after the bar hid the cursor (rich: ESC[?25l)."""
+    code, text = _child("bar_start", str(config), terminal=True)
+    assert code == 130, text
+    assert "\x1b[?25l" in text  # the bar was drawn
+    assert text.rfind("\x1b[?25h") > text.rfind("\x1b[?25l"), text
+    assert io.read_trajectory(config.parent / "traj.h5").status == "interrupted"

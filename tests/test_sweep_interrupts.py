@@ -1,0 +1,100 @@
+"""Ctrl-C on ``lieflow sweep`` (issue 29 item 7), as a terminal sends it: SIGINT to the whole
+process group, once two runs have reported steps (an event, not a delay). For both
+executors: exit 130, no worker tracebacks, every run that had started recorded
+"interrupted" with its steps (Dask used to record them "pending", 0 steps), and the hint
+repeats the command that was run (it used to drop --executor and --out)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from lieflow.app import io
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX process groups")
+
+GRID = """
+[system]
+name = "rigid_body"
+params = { inertia = [1.0, 2.0, 3.0] }
+[initial]
+random = true
+seed = 0
+[scheme]
+name = "gauss2"
+[run]
+h = 0.01
+steps = 10000000
+save_every = 50
+engine = "numpy"
+[sweep]
+"initial.seed" = [1, 2, 3, 4, 5]
+"""
+
+
+def _started(out: Path) -> int:
+    """Runs whose workers have reported steps (their progress files)."""
+    n = 0
+    for path in (out / ".progress").glob("*.json"):
+        try:
+            n += json.loads(path.read_text())["done"] > 0
+        except (OSError, ValueError, KeyError):
+            pass
+    return n
+
+
+@pytest.mark.parametrize("executor", ["local", "dask"])
+def test_ctrl_c_stops_every_run_where_it_is_and_the_hint_is_the_command(
+    tmp_path: Path, executor: str
+) -> None:
+    if executor == "dask":
+        pytest.importorskip("distributed")
+    grid, out = tmp_path / "long.toml", tmp_path / "out"
+    grid.write_text(GRID, encoding="utf-8")
+    args = ["sweep", str(grid), "--executor", executor, "--workers", "2", "--out", str(out)]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "lieflow", *args, "--no-progress"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,  # its own process group, as a shell job has
+    )
+    try:
+        deadline = time.monotonic() + 240
+        while _started(out) < 2:
+            assert proc.poll() is None, proc.communicate()[0]
+            assert time.monotonic() < deadline, "no two runs reported steps in 240 s"
+            time.sleep(0.05)
+        os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C on a terminal does
+        text, _ = proc.communicate(timeout=240)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, text
+    for word in ("Traceback", "KeyboardInterrupt", "CancelledError", "killing"):
+        assert word not in text, text
+    hint = "run the same command again to continue: " + shlex.join(
+        ["lieflow", *args, "--no-progress"]
+    )
+    assert hint in text, text
+    runs = json.loads((out / "manifest.json").read_text())["runs"]
+    assert {r["status"] for r in runs} <= {"interrupted", "pending"}, runs
+    stepped = [r for r in runs if r["status"] == "interrupted" and r["completed_steps"] > 0]
+    assert len(stepped) >= 2, [
+        (r["status"], r.get("completed_steps"), r.get("error")) for r in runs
+    ]
+    for r in runs:
+        path = out / r["output"] if not Path(r["output"]).is_absolute() else Path(r["output"])
+        if r["status"] == "interrupted":
+            traj = io.read_trajectory(path)  # verified, resumable
+            assert traj.status == "interrupted"
+            assert traj.completed_steps == r["completed_steps"]
+    assert not (out / ".progress" / "stop").exists()
