@@ -9,6 +9,7 @@ import numpy as np
 
 from ..algebras import Array
 from ..errors import InputError
+from . import arguments
 from .base import ImplicitProblem, Solver, SolveResult, batch_norm
 from .fixed_point import _EPS, FixedPoint, IterationMonitor, StoppingRule
 
@@ -48,14 +49,18 @@ class Newton:
     are detected as in :class:`StoppingRule`.
     """
 
-    rtol: float = 1e-14
-    atol: float = 0.0
-    max_iter: int = 30
+    rtol: float = attrs.field(default=1e-14, validator=arguments.non_negative)
+    atol: float = attrs.field(default=0.0, validator=arguments.non_negative)
+    max_iter: int = attrs.field(default=30, validator=arguments.integer_at_least(1))
     linear: str = attrs.field(default="auto", kw_only=True)
-    dense_max: int = attrs.field(default=800, kw_only=True)
-    patience: int = attrs.field(default=8, kw_only=True)
-    max_halvings: int = attrs.field(default=8, kw_only=True)
-    roundoff_floor: float = attrs.field(default=256 * _EPS, kw_only=True)
+    dense_max: int = attrs.field(default=800, kw_only=True, validator=arguments.integer_at_least(1))
+    patience: int = attrs.field(default=8, kw_only=True, validator=arguments.integer_at_least(1))
+    max_halvings: int = attrs.field(
+        default=8, kw_only=True, validator=arguments.integer_at_least(0)
+    )
+    roundoff_floor: float = attrs.field(
+        default=256 * _EPS, kw_only=True, validator=arguments.positive
+    )
 
     name = "newton"
 
@@ -166,8 +171,8 @@ class Auto:
     counts the updates of both.
     """
 
-    first: Solver = attrs.field(factory=FixedPoint)
-    fallback: Solver = attrs.field(factory=Newton)
+    first: Solver = attrs.field(factory=FixedPoint, validator=arguments.solver)
+    fallback: Solver = attrs.field(factory=Newton, validator=arguments.solver)
 
     name = "auto"
 
