@@ -262,17 +262,14 @@ class FixedPoint:
         Stagnation and divergence detection (see :class:`StoppingRule`).
     """
 
-    rtol: float = attrs.field(default=1e-14, validator=arguments.non_negative)
-    atol: float = attrs.field(default=0.0, validator=arguments.non_negative)
-    max_iter: int = attrs.field(default=100, validator=arguments.integer_at_least(1))
+    # the stopping rule's arguments are validated by StoppingRule (built in __init__)
+    rtol: float = 1e-14
+    atol: float = 0.0
+    max_iter: int = 100
     anderson: int = attrs.field(default=0, kw_only=True, validator=arguments.integer_at_least(0))
-    patience: int = attrs.field(default=6, kw_only=True, validator=arguments.integer_at_least(1))
-    roundoff_floor: float = attrs.field(
-        default=256 * _EPS, kw_only=True, validator=arguments.positive
-    )
-    divergence_factor: float = attrs.field(
-        default=100.0, kw_only=True, validator=arguments.positive
-    )
+    patience: int = attrs.field(default=6, kw_only=True)
+    roundoff_floor: float = attrs.field(default=256 * _EPS, kw_only=True)
+    divergence_factor: float = attrs.field(default=100.0, kw_only=True)
 
     name = "fixed_point"
 

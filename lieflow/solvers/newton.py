@@ -49,18 +49,17 @@ class Newton:
     are detected as in :class:`StoppingRule`.
     """
 
-    rtol: float = attrs.field(default=1e-14, validator=arguments.non_negative)
-    atol: float = attrs.field(default=0.0, validator=arguments.non_negative)
-    max_iter: int = attrs.field(default=30, validator=arguments.integer_at_least(1))
+    # the stopping rule's arguments are validated by StoppingRule (built in __init__)
+    rtol: float = 1e-14
+    atol: float = 0.0
+    max_iter: int = 30
     linear: str = attrs.field(default="auto", kw_only=True)
     dense_max: int = attrs.field(default=800, kw_only=True, validator=arguments.integer_at_least(1))
-    patience: int = attrs.field(default=8, kw_only=True, validator=arguments.integer_at_least(1))
+    patience: int = attrs.field(default=8, kw_only=True)
     max_halvings: int = attrs.field(
         default=8, kw_only=True, validator=arguments.integer_at_least(0)
     )
-    roundoff_floor: float = attrs.field(
-        default=256 * _EPS, kw_only=True, validator=arguments.positive
-    )
+    roundoff_floor: float = attrs.field(default=256 * _EPS, kw_only=True)
 
     name = "newton"
 
