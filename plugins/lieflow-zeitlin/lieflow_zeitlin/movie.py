@@ -100,10 +100,10 @@ def _vorticity_states(source: Any) -> tuple[Any, Any]:
             )
         src = _relative(source)
         t, W = np.asarray(src.t), np.asarray(src.W)
-    if W.ndim < 3 or W.shape[-1] != W.shape[-2] or len(t) != W.shape[0]:
+    if t.ndim != 1 or W.ndim < 3 or W.shape[-1] != W.shape[-2] or len(t) != W.shape[0]:
         raise lieflow.InputError(
             f"a movie needs states of shape (steps, ..., N, N) with one time each, got "
-            f"{len(t)} times and states of shape {W.shape}"
+            f"times of shape {t.shape} and states of shape {W.shape}"
         )
     algebra = lieflow.SU(W.shape[-1])
     for j in range(W.shape[0]):  # frame by frame: the memory of one frame
