@@ -55,10 +55,12 @@ import numpy as np
 from .solvers import fixed_point
 
 numba: Any
+numba_cache: Any
 try:
     numba = importlib.import_module("numba")
+    numba_cache = importlib.import_module("lieflow.numba_cache")
 except ImportError:  # pragma: no cover - importable without numba (doctest collection, docs)
-    numba = None
+    numba = numba_cache = None
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -103,20 +105,14 @@ def map_signature(dtype: np.dtype) -> Any:
 
 
 def _jit(func: F) -> F:
-    """``numba.njit`` with an on-disk cache where one can be written.
-
-    numba writes its cache next to the module, or, when the package directory is read-only,
-    to a per-user cache directory; if neither is possible, decoration raises
-    ``RuntimeError`` and we compile in memory on every first call instead. Without numba
-    the plain function is returned (so the module imports) and
+    """``numba.njit`` with an on-disk cache in the user's cache directory
+    (:func:`lieflow.numba_cache.cached_njit`), or in memory where none can be written.
+    Without numba the plain function is returned (so the module imports) and
     :func:`lieflow.compiled.kernels` raises ``ImportError``.
     """
     if numba is None:  # pragma: no cover - lieflow.compiled.kernels() refuses this case
         return func
-    try:
-        return cast(F, numba.njit(cache=True, error_model="numpy")(func))
-    except RuntimeError:  # pragma: no cover - no writable cache location
-        return cast(F, numba.njit(error_model="numpy")(func))
+    return cast(F, numba_cache.cached_njit(func, error_model="numpy"))
 
 
 def _inner(func: F, name: str | None = None) -> F:
@@ -1115,10 +1111,7 @@ def _compile_entry(func: F, dtype: np.dtype) -> F:
     cpu = importlib.import_module("numba.core.cpu")
     if hasattr(getattr(cpu, "CPUTargetOptions", None), "_nrt"):
         options["_nrt"] = False
-    try:
-        return cast(F, numba.njit(sig, cache=True, **options)(func))
-    except RuntimeError:  # pragma: no cover - no writable cache location
-        return cast(F, numba.njit(sig, **options)(func))
+    return cast(F, numba_cache.cached_njit(func, signature=sig, **options))
 
 
 _SYDIRK, _REDUCED = _entry_points(RULE_KEY)

@@ -55,8 +55,10 @@ def python_blocks(text: str) -> list[tuple[int, str]]:
 
 
 def run_blocks(blocks: list[tuple[int, str]], page: str) -> dict[str, object]:
-    """Run the blocks in order in one fresh namespace; an exception fails with its location."""
-    namespace: dict[str, object] = {"__name__": "docs_" + re.sub(r"\W", "_", page)}
+    """Run the blocks in order in one fresh namespace, as the script a reader would paste
+    them into (``__name__ == "__main__"``: a guarded block runs); an exception fails with
+    its location."""
+    namespace: dict[str, object] = {"__name__": "__main__", "__file__": page}
     for line, source in blocks:
         label = f"{page}:{line}"
         code = compile(source, label, "exec")
@@ -94,6 +96,35 @@ def test_a_failing_example_fails() -> None:
     with pytest.raises(AssertionError, match=r"page.md:5 raised ZeroDivisionError"):
         run_blocks(blocks, "page.md")
     assert run_blocks(blocks[:1], "page.md")["x"] == 1
+
+
+def test_a_main_guarded_example_runs() -> None:
+    """docs/sweeps.md guards its ``lf.sweep`` call as a script must; the guarded block is
+    run (and can fail) like any other."""
+    blocks = python_blocks('```python\nif __name__ == "__main__":\n    ran = True\n```\n')
+    assert run_blocks(blocks, "page.md")["ran"] is True
+    sweeps = (ROOT / "docs" / "sweeps.md").read_text(encoding="utf-8")
+    block = next(code for _, code in python_blocks(sweeps) if "lf.sweep(" in code)
+    assert 'if __name__ == "__main__":' in block
+    assert block.index('if __name__ == "__main__":') < block.index("lf.sweep(")
+
+
+def test_turbulence_page_plots_the_file_its_run_writes() -> None:
+    """docs/turbulence.md's commands, from the repository root: ``lieflow plot`` opens the
+    file ``lieflow run`` wrote (``[run] output`` is relative to the configuration's folder;
+    ``--out`` to the working directory)."""
+    import shlex
+
+    text = (ROOT / "docs" / "turbulence.md").read_text(encoding="utf-8")
+    run = shlex.split(re.search(r"^lieflow run .*$", text, re.M).group(0))  # type: ignore[union-attr]
+    plot = shlex.split(re.search(r"^lieflow plot .*$", text, re.M).group(0))  # type: ignore[union-attr]
+    config = ROOT / run[2]
+    if "--out" in run:
+        written = ROOT / run[run.index("--out") + 1]
+    else:
+        output = re.search(r'^output = "(.*)"$', config.read_text(encoding="utf-8"), re.M)
+        written = config.parent / output.group(1)  # type: ignore[union-attr]
+    assert (ROOT / plot[2]).resolve() == written.resolve()
 
 
 def test_every_page_is_checked() -> None:

@@ -7,11 +7,11 @@ from __future__ import annotations
 
 import os
 import pty
+import re
 import signal
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -38,12 +38,18 @@ engine = "numpy"
 """
 
 
-def _run_on_a_terminal(
-    args: list[str], out_file: Path | None = None, delay: float = 0.0
-) -> tuple[int, str]:
+STEPS = 1200  # the run's steps in CONFIG
+#: The progress bar's count of steps done, e.g. ``" 254/1200"`` (rich redraws it 10 times a
+#: second whatever the load).
+_COUNT = re.compile(rb"(\d+)/%d" % STEPS)
+
+
+def _run_on_a_terminal(args: list[str], interrupt_after: int | None = None) -> tuple[int, str]:
     """Run ``lieflow`` with stdin/stdout/stderr on a pseudo-terminal (so the progress bar
-    draws). With ``out_file``: once the run has created it (stepping has begun), wait
-    ``delay`` seconds and send SIGINT. Returns the exit code and the terminal's output."""
+    draws). With ``interrupt_after``: send SIGINT as soon as the bar shows at least that many
+    steps done — an event the run itself reports, so the point of the interrupt is a step
+    count, not a time that a busy machine stretches. Returns the exit code and the
+    terminal's output."""
     leader, follower = pty.openpty()
     proc = subprocess.Popen(
         [sys.executable, "-m", "lieflow", *args],
@@ -54,8 +60,10 @@ def _run_on_a_terminal(
     )
     os.close(follower)
     chunks: list[bytes] = []
+    reached = threading.Event()
 
     def drain() -> None:  # keep reading, or a full terminal buffer would block the run
+        tail = b""
         while True:
             try:
                 data = os.read(leader, 1 << 16)
@@ -64,18 +72,19 @@ def _run_on_a_terminal(
             if not data:
                 return
             chunks.append(data)
+            tail = (tail + data)[-256:]
+            if interrupt_after is not None and not reached.is_set():
+                if any(int(m) >= interrupt_after for m in _COUNT.findall(tail)):
+                    proc.send_signal(signal.SIGINT)
+                    reached.set()
 
     reader = threading.Thread(target=drain, daemon=True)
     reader.start()
-    if out_file is not None:
-        deadline = time.monotonic() + 60
-        while not out_file.exists() and proc.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.005)
-        time.sleep(delay)
-        proc.send_signal(signal.SIGINT)
-    code = proc.wait(timeout=120)
+    code = proc.wait(timeout=600)
     reader.join(timeout=10)
     os.close(leader)
+    if interrupt_after is not None:
+        assert reached.is_set(), "the progress bar never showed the step to interrupt at"
     return code, b"".join(chunks).decode(errors="replace")
 
 
@@ -89,9 +98,10 @@ def test_sigint_at_random_points_on_a_terminal(tmp_path: Path) -> None:
 
     rng = np.random.default_rng(20261123)
     interrupted = 0
-    for trial, delay in enumerate(rng.uniform(0.0, 0.5, size=5)):
+    # at random steps of the first half: the run cannot finish before the signal arrives
+    for trial, step in enumerate(rng.integers(0, STEPS // 2, size=5)):
         path = tmp_path / f"t{trial}.h5"
-        code, out = _run_on_a_terminal(["run", str(config), "--out", str(path)], path, delay)
+        code, out = _run_on_a_terminal(["run", str(config), "--out", str(path)], int(step))
         assert code in (0, 130), out  # never the internal-error exit code
         assert "Traceback" not in out and "internal error" not in out, out
         first = io.read_trajectory(path)

@@ -11,6 +11,8 @@ Toda; the stage projection changes a Toda step by <= 7e-17).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from conftest import SCHEMES
@@ -103,6 +105,37 @@ def test_toda_asymmetry_is_invisible_to_the_algebra_but_not_to_the_phase_space()
     W[0, 1] += 1e-8
     assert float(toda.algebra.distance(W)) == 0.0  # gl(n): every matrix is in the algebra
     assert float(toda.phase_space_distance(W)) > 1e-9
+
+
+def test_toda_refuses_a_non_symmetric_initial_condition(tmp_path: Path) -> None:
+    """Issue 29.4: the scheme would integrate the symmetric part, silently (an
+    antisymmetric W0 gave an all-zero trajectory marked complete)."""
+    toda = lf.systems.get("periodic_toda")
+    skew = np.triu(np.ones((4, 4)), 1)
+    skew -= skew.T
+    W = toda.random_state(0)
+    W[0, 1] += 1e-8
+    for bad in (skew, W, np.arange(16.0).reshape(4, 4)):
+        with pytest.raises(lf.InputError, match=r"symmetric W0.*gl_gradient=True"):
+            lf.integrate(toda, lf.schemes.get("midpoint"), bad, 0.1, steps=2)
+    # roundoff asymmetry (a rotated diagonal matrix) and the gradient extension are fine
+    Q, _ = np.linalg.qr(np.random.default_rng(3).standard_normal((4, 4)))
+    rotated = Q @ np.diag([1.0, 2.0, 3.0, 4.0]) @ Q.T
+    assert float(toda.phase_space_distance(rotated)) > 0.0
+    np.testing.assert_array_equal(toda.validate(rotated), rotated)
+    ext = lf.systems.get("periodic_toda", gl_gradient=True)
+    np.testing.assert_array_equal(ext.validate(skew), skew)
+    # and from a configuration file: the same error, before any file is written
+    config = tmp_path / "run.toml"
+    np.save(tmp_path / "w0.npy", skew)
+    config.write_text(
+        '[system]\nname = "periodic_toda"\n[initial]\nfile = "w0.npy"\n'
+        '[scheme]\nname = "midpoint"\n[run]\nh = 0.1\nsteps = 3\n'
+    )
+    from lieflow.app.cli import main
+
+    assert main(["run", str(config), "--out", str(tmp_path / "t.h5"), "--no-progress"]) != 0
+    assert not (tmp_path / "t.h5").exists()
 
 
 @pytest.mark.parametrize("name", SCHEMES)

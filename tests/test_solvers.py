@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+from typing import Any
 
 import attrs
 import numpy as np
@@ -166,6 +167,44 @@ def test_solver_options_are_validated() -> None:
         lf.solvers.FixedPoint(anderson=-1)
     with pytest.raises(lf.InputError):
         lf.solvers.Newton(linear="lu")
+
+
+S = lf.solvers
+
+
+@pytest.mark.parametrize(
+    ("make", "argument"),
+    [
+        (lambda: S.FixedPoint(rtol="1e-3"), "rtol"),  # issue 29.4: numpy's TypeError before
+        (lambda: S.FixedPoint(atol=None), "atol"),
+        (lambda: S.FixedPoint(max_iter=2.5), "max_iter"),
+        (lambda: S.FixedPoint(max_iter="100"), "max_iter"),
+        (lambda: S.FixedPoint(patience=True), "patience"),
+        (lambda: S.FixedPoint(anderson="3"), "anderson"),
+        (lambda: S.FixedPoint(roundoff_floor=0.0), "roundoff_floor"),
+        (lambda: S.FixedPoint(divergence_factor=float("inf")), "divergence_factor"),
+        (lambda: S.FrozenB(rtol=float("nan")), "rtol"),
+        (lambda: S.FrozenB(max_iter=0), "max_iter"),
+        (lambda: S.Newton(rtol="tight"), "rtol"),
+        (lambda: S.Newton(max_iter="30"), "max_iter"),
+        (lambda: S.Newton(dense_max=0), "dense_max"),
+        (lambda: S.Newton(max_halvings=-1), "max_halvings"),
+        (lambda: S.Auto(first=S.FixedPoint), "first"),  # the class, not an instance
+        (lambda: S.Auto(fallback="newton"), "fallback"),
+        (lambda: S.get("fixed_point", rtol="1e-3"), "rtol"),
+    ],
+)
+def test_solver_arguments_of_the_wrong_type_or_range_name_the_argument(
+    make: Any, argument: str
+) -> None:
+    with pytest.raises(lf.InputError, match=rf"^{argument} must be"):
+        make()
+
+
+def test_solver_arguments_of_numpy_types_are_accepted() -> None:
+    solver = S.FixedPoint(rtol=np.float64(1e-10), max_iter=np.int64(50), anderson=np.int32(2))
+    assert solver.rule.max_iter == 50
+    assert S.Auto(first=S.FrozenB(), fallback=S.Newton(rtol=1e-12)).fallback.rtol == 1e-12
 
 
 def test_newton_needs_the_derivative_of_a_nonlinear_B() -> None:

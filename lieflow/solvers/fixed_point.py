@@ -13,19 +13,10 @@ import numpy as np
 from ..algebras import Array
 from ..backends import host_norms, is_numpy, machine_epsilon
 from ..errors import InputError
+from . import arguments
 from .base import ImplicitProblem, SolveResult, batch_norm, squared_norm, sum_of_squares
 
 _EPS = float(np.finfo(float).eps)
-
-
-def _positive(_inst: object, attr: attrs.Attribute, value: float) -> None:
-    if not (np.isfinite(value) and value > 0):
-        raise InputError(f"{attr.name} must be a positive finite number, got {value!r}")
-
-
-def _non_negative(_inst: object, attr: attrs.Attribute, value: float) -> None:
-    if not (np.isfinite(value) and value >= 0):
-        raise InputError(f"{attr.name} must be a non-negative finite number, got {value!r}")
 
 
 @attrs.frozen
@@ -53,20 +44,18 @@ class StoppingRule:
       roundoff is accepted as ``"roundoff"``, not given up on.
     """
 
-    rtol: float = attrs.field(default=1e-14, validator=_non_negative)
-    atol: float = attrs.field(default=0.0, validator=_non_negative)
-    max_iter: int = 100
-    patience: int = 6
-    roundoff_floor: float = attrs.field(default=256 * _EPS, validator=_positive)
-    divergence_factor: float = attrs.field(default=100.0, validator=_positive)
-    project: bool = True
-    window: int = 10
+    rtol: float = attrs.field(default=1e-14, validator=arguments.non_negative)
+    atol: float = attrs.field(default=0.0, validator=arguments.non_negative)
+    max_iter: int = attrs.field(default=100, validator=arguments.integer_at_least(1))
+    patience: int = attrs.field(default=6, validator=arguments.integer_at_least(1))
+    roundoff_floor: float = attrs.field(default=256 * _EPS, validator=arguments.positive)
+    divergence_factor: float = attrs.field(default=100.0, validator=arguments.positive)
+    project: bool = attrs.field(default=True, validator=attrs.validators.instance_of(bool))
+    window: int = attrs.field(default=10, validator=arguments.integer_at_least(2))
 
     def __attrs_post_init__(self) -> None:
         if self.rtol == 0 and self.atol == 0:
             raise InputError("rtol and atol cannot both be zero: the iteration could never stop")
-        if self.max_iter < 1 or self.patience < 1 or self.window < 2:
-            raise InputError("max_iter and patience must be positive integers, window >= 2")
 
     def verdict(self, residuals: list[float], met: bool, growth: float) -> str | None:
         """``None`` to go on, else the reason to stop.
@@ -280,10 +269,11 @@ class FixedPoint:
         Stagnation and divergence detection (see :class:`StoppingRule`).
     """
 
+    # the stopping rule's arguments are validated by StoppingRule (built in __init__)
     rtol: float = 1e-14
     atol: float = 0.0
     max_iter: int = 100
-    anderson: int = attrs.field(default=0, kw_only=True)
+    anderson: int = attrs.field(default=0, kw_only=True, validator=arguments.integer_at_least(0))
     patience: int = attrs.field(default=6, kw_only=True)
     roundoff_floor: float = attrs.field(default=256 * _EPS, kw_only=True)
     divergence_factor: float = attrs.field(default=100.0, kw_only=True)
@@ -302,10 +292,6 @@ class FixedPoint:
             self.roundoff_floor,
             self.divergence_factor,
         )
-
-    def __attrs_post_init__(self) -> None:
-        if self.anderson < 0:
-            raise InputError(f"anderson depth must be >= 0, got {self.anderson}")
 
     def _map(self, problem: ImplicitProblem) -> Callable[[Array], Array]:
         return problem.map

@@ -9,6 +9,7 @@ import numpy as np
 
 from ..algebras import Array
 from ..errors import InputError
+from . import arguments
 from .base import ImplicitProblem, Solver, SolveResult, batch_norm
 from .fixed_point import _EPS, FixedPoint, IterationMonitor, StoppingRule
 
@@ -50,13 +51,16 @@ class Newton:
     are detected as in :class:`StoppingRule`.
     """
 
+    # the stopping rule's arguments are validated by StoppingRule (built in __init__)
     rtol: float = 1e-14
     atol: float = 0.0
     max_iter: int = 30
     linear: str = attrs.field(default="auto", kw_only=True)
-    dense_max: int = attrs.field(default=800, kw_only=True)
+    dense_max: int = attrs.field(default=800, kw_only=True, validator=arguments.integer_at_least(1))
     patience: int = attrs.field(default=8, kw_only=True)
-    max_halvings: int = attrs.field(default=8, kw_only=True)
+    max_halvings: int = attrs.field(
+        default=8, kw_only=True, validator=arguments.integer_at_least(0)
+    )
     roundoff_floor: float = attrs.field(default=256 * _EPS, kw_only=True)
 
     name = "newton"
@@ -174,8 +178,8 @@ class Auto:
     counts the updates of both.
     """
 
-    first: Solver = attrs.field(factory=FixedPoint)
-    fallback: Solver = attrs.field(factory=Newton)
+    first: Solver = attrs.field(factory=FixedPoint, validator=arguments.solver)
+    fallback: Solver = attrs.field(factory=Newton, validator=arguments.solver)
 
     name = "auto"
 

@@ -6,6 +6,7 @@ from typing import Any
 
 import attrs
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..algebras import GL, Array
 from ..errors import InputError
@@ -120,6 +121,34 @@ class PeriodicToda(IsospectralSystem):
     def project_stage(self, W: Array) -> Array:
         """Same as :meth:`project`: the symmetric matrices are a linear space."""
         return self.project(W)
+
+    def validate(self, W0: ArrayLike, tol: float = 1e-12) -> Array:
+        """Check an initial condition and return it as a fresh array.
+
+        Besides membership in gl(n) (:class:`lieflow.AlgebraError` otherwise), ``W0`` must
+        be symmetric — the phase space; the scheme would otherwise integrate its symmetric
+        part, silently — to relative tolerance ``max(tol, 64 eps)`` in the Frobenius
+        norm: ``||W0 - W0^T|| / (2 ||W0||)`` (:meth:`phase_space_distance`). Any ``W0``
+        with ``gl_gradient=True``, whose phase space is all of gl(n).
+
+        Raises
+        ------
+        InputError
+            If ``W0`` is not symmetric.
+        """
+        W = self.algebra.validate(W0, name="W0", tol=tol)
+        if self.gl_gradient:
+            return W
+        limit = max(tol, 64 * float(np.finfo(W.real.dtype).eps))
+        distance = float(np.max(self.phase_space_distance(W), initial=0.0))
+        if distance > limit:
+            raise InputError(
+                f"W0: the periodic Toda lattice needs a symmetric W0 (Flaschka's phase "
+                f"space), but its antisymmetric part has relative size {distance:.2e} "
+                f"(tolerance {limit:.0e}). To fix: pass a symmetric matrix, e.g. "
+                "(W0 + W0.T) / 2, or use gl_gradient=True for the flow on all of gl(n)"
+            )
+        return W
 
     def random_state(self, seed: int | np.random.Generator | None = None) -> Array:
         """A random symmetric matrix of unit norm (the Flaschka phase space)."""

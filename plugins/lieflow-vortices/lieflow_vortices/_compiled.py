@@ -13,13 +13,14 @@ from __future__ import annotations
 import math
 from typing import Any
 
-import numba
 import numpy as np
+
+from lieflow.numba_cache import cached_njit
 
 _INV_4PI = 1.0 / (4.0 * math.pi)
 
 
-@numba.njit(cache=True)
+@cached_njit
 def _momentum(W: Any, i: int, c: int) -> float:
     """Component ``c`` of ``m_i = vee((D - D^T)/2)``, ``D`` the ``i``-th diagonal block."""
     o = 3 * i
@@ -30,7 +31,7 @@ def _momentum(W: Any, i: int, c: int) -> float:
     return 0.5 * (W[o + 1, o + 0] - W[o + 0, o + 1])
 
 
-@numba.njit(cache=True)
+@cached_njit
 def _write_hat(out: Any, i: int, b0: float, b1: float, b2: float) -> None:
     o = 3 * i
     out[o + 0, o + 0] = 0.0
@@ -44,7 +45,7 @@ def _write_hat(out: Any, i: int, b0: float, b1: float, b2: float) -> None:
     out[o + 2, o + 2] = 0.0
 
 
-@numba.njit(cache=True)
+@cached_njit
 def vortex_B(W: Any, strengths: Any, out: Any) -> None:
     r"""``out = B(W) = blockdiag(hat(b_i))``,
     :math:`b_i = \frac{1}{4\pi}\sum_{j\ne i} m_j / (1 - m_i\cdot m_j/(\Gamma_i\Gamma_j))`."""
@@ -67,7 +68,7 @@ def vortex_B(W: Any, strengths: Any, out: Any) -> None:
         _write_hat(out, i, _INV_4PI * b0, _INV_4PI * b1, _INV_4PI * b2)
 
 
-@numba.njit(cache=True)
+@cached_njit
 def vortex_project(W: Any, strengths: Any, out: Any) -> None:
     """``out = project(W)``: each ``m_i`` rescaled to ``|Γ_i|`` (``out`` may be ``W``)."""
     K = strengths.shape[0]

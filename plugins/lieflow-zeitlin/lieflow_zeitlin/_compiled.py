@@ -19,10 +19,10 @@ from __future__ import annotations
 
 from typing import Any
 
-import numba
 import numpy as np
 
 from lieflow.compiled import skew_hermitian_part
+from lieflow.numba_cache import cached_njit
 
 from .laplacian import _sweep_compiled
 
@@ -41,7 +41,7 @@ def params(shift: float, planetary: Any, factors: tuple[Any, ...]) -> Any:
     return np.concatenate(parts + [np.ravel(f) for f in factors]).astype(np.float64)
 
 
-@numba.njit(cache=True)
+@cached_njit
 def _factor(params: Any, k: int, N: int, nb: int, b: int) -> Any:
     """The ``k``-th factor array ``(nb, b, 2(N+1))`` of ``params`` (a view)."""
     size = nb * b * 2 * (N + 1)
@@ -49,7 +49,7 @@ def _factor(params: Any, k: int, N: int, nb: int, b: int) -> Any:
     return params[start : start + size].reshape(nb, b, 2 * (N + 1))
 
 
-@numba.njit(cache=True)
+@cached_njit
 def zeitlin_B(W: Any, params: Any, out: Any) -> None:
     """``out = B(V) - c V`` for the su(N) projection ``V`` of ``W`` (module docs)."""
     N = W.shape[0]

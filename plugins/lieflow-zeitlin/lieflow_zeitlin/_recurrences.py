@@ -65,16 +65,15 @@ except ImportError:  # pragma: no cover - exercised by the numpy fallback tests 
 
 
 def _jit(func: F, fastmath: bool = False) -> F:
-    """``numba.njit`` with an on-disk cache; ``fastmath`` lets the compiler reassociate
+    """``numba.njit`` with an on-disk cache in the user's cache directory
+    (:func:`lieflow.numba_cache.cached_njit`); ``fastmath`` lets the compiler reassociate
     sums (vectorised dot products; the order of additions is then the compiler's)."""
     if numba is None:  # pragma: no cover
         return func
+    from lieflow.numba_cache import cached_njit
+
     flags = {"reassoc", "contract"} if fastmath else False
-    try:
-        compiled: F = numba.njit(cache=True, nogil=True, fastmath=flags)(func)
-    except Exception:  # pragma: no cover - read-only package directory
-        compiled = numba.njit(nogil=True, fastmath=flags)(func)
-    return compiled
+    return cached_njit(func, nogil=True, fastmath=flags)
 
 
 # ------------------------------------------------------------------ matrix harmonics

@@ -68,8 +68,23 @@ def energy_spectrum(coeffs: ArrayLike, lamb: float = 0.0) -> Array:
 
 def spectra(system: Any, W: ArrayLike) -> dict[str, Array]:
     """``{"energy_spectrum": E(l), "enstrophy_spectrum": Z(l)}`` of the relative vorticity of
-    the state(s) ``W`` of ``system`` (an :class:`~lieflow_zeitlin.EulerZeitlin`)."""
-    coeffs = matrix_to_sh(system.relative(np.asarray(W)))
+    the state(s) ``W`` of ``system`` (an :class:`~lieflow_zeitlin.EulerZeitlin`).
+
+    Raises
+    ------
+    lieflow.InputError
+        If ``system`` is not an Euler–Zeitlin system, or ``W`` is not an ``N×N`` matrix (or
+        a stack of them) in su(N) for the system's ``N`` (:class:`lieflow.AlgebraError`).
+    """
+    from .system import EulerZeitlin
+
+    if not isinstance(system, EulerZeitlin):
+        raise lieflow.InputError(
+            f"spectra needs an EulerZeitlin system (the state's N, rotation and Lamb "
+            f"parameter), got a {type(system).__name__}"
+        )
+    W = lieflow.SU(system.N).validate(W, name="W")
+    coeffs = matrix_to_sh(system.relative(W))
     return {
         "energy_spectrum": energy_spectrum(coeffs, system.lamb),
         "enstrophy_spectrum": enstrophy_spectrum(coeffs),

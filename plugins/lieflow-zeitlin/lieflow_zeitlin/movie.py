@@ -62,14 +62,61 @@ def _writer(path: Path, fps: int) -> tuple[Any, Path]:
     return animation.PillowWriter(fps=fps), path
 
 
+def _vorticity_states(source: Any) -> tuple[Any, Any]:
+    """``(t, W)`` of an Euler–Zeitlin run (relative vorticity on a rotating sphere and for
+    the QG model).
+
+    Raises
+    ------
+    lieflow.InputError
+        If ``source`` is a run of another system (its ``system``, or the system named in a
+        trajectory file's configuration identity), or its states are not a stack of
+        matrices in su(N): the movie would draw them as vorticity, silently.
+    """
+    import json
+
+    from .system import EulerZeitlin
+
+    if isinstance(source, tuple):
+        if len(source) != 2:
+            raise lieflow.InputError(
+                f"a movie's source is a trajectory, a solution or (t, W); got a tuple of "
+                f"{len(source)}"
+            )
+        t, W = np.asarray(source[0]), np.asarray(source[1])
+    else:
+        system = getattr(source, "system", None)  # a Solution's
+        if system is not None:
+            name = "euler_zeitlin" if isinstance(system, EulerZeitlin) else str(system)
+        else:  # a trajectory file's configuration identity
+            try:
+                name = json.loads(str(source.meta["identity"]))["system"]["name"]
+            except (AttributeError, KeyError, TypeError, ValueError):
+                name = "euler_zeitlin"  # no record: the states are checked below
+        if name != "euler_zeitlin":
+            raise lieflow.InputError(
+                f"a movie draws the vorticity of an euler_zeitlin run, but this is a run of "
+                f"{name}; plot it with lieflow.app.plotting (lieflow plot FILE)"
+            )
+        src = _relative(source)
+        t, W = np.asarray(src.t), np.asarray(src.W)
+    if t.ndim != 1 or W.ndim < 3 or W.shape[-1] != W.shape[-2] or len(t) != W.shape[0]:
+        raise lieflow.InputError(
+            f"a movie needs states of shape (steps, ..., N, N) with one time each, got "
+            f"times of shape {t.shape} and states of shape {W.shape}"
+        )
+    algebra = lieflow.SU(W.shape[-1])
+    for j in range(W.shape[0]):  # frame by frame: the memory of one frame
+        algebra.validate(W[j], name=f"the movie's state {j}")
+    return t, W
+
+
 class _Frames:
     """The movie's figure (orthographic and equirectangular panels, one colour scale) and
     a way to draw saved state ``j`` into it."""
 
     def __init__(self, source: Any, resolution: int | None, center: tuple[float, float]) -> None:
-        src = _relative(source) if not isinstance(source, tuple) else None
-        t, W = (np.asarray(source[0]), np.asarray(source[1])) if src is None else (
-            np.asarray(src.t), np.asarray(src.W))  # fmt: skip
+        t, W = _vorticity_states(source)
         self.t = t
         self.W = W.reshape(W.shape[0], -1, *W.shape[-2:])[:, 0]  # first member of an ensemble
         self.grid = grid = plot_grid(self.W.shape[-1], resolution)

@@ -78,6 +78,25 @@ def test_spectra_of_a_state_and_the_hamiltonian(rotation: float, lamb: float) ->
     assert abs(E - system.hamiltonian(W) * 4 * math.pi / (system.bracket_scale * N)) < 1e-12
 
 
+def test_spectra_refuse_a_state_of_another_n_or_outside_su_n() -> None:
+    """Issue 29.4: these returned numbers (the spectra of some other field)."""
+    system = lz.EulerZeitlin(8)
+    W = system.algebra.random(seed=1)
+    with pytest.raises(lf.InputError, match=r"su\(8\) needs \(\.\.\., 8, 8\)"):
+        dg.spectra(system, lz.EulerZeitlin(10).algebra.random(seed=1))
+    for off in (W + 1e-6j * np.eye(8), W + 0.1 * np.abs(W), np.ones((8, 8))):
+        with pytest.raises(lf.AlgebraError, match=r"not in su\(8\)"):
+            dg.spectra(system, off)
+    with pytest.raises(lf.AlgebraError):  # one bad state of a stack
+        dg.spectra(system, np.stack([W, np.ones((8, 8))]))
+    with pytest.raises(lf.InputError, match="needs an EulerZeitlin system"):
+        dg.spectra(lf.systems.get("rigid_body", inertia=(1.0, 2.0, 3.0)), W)
+    # a state projected to roundoff (a stored run's) and a stack are fine
+    s = dg.spectra(system, np.stack([W, system.algebra.project(W * (1 + 1e-15))]))
+    assert s["energy_spectrum"].shape == (2, 8)
+    np.testing.assert_allclose(s["energy_spectrum"][0], s["energy_spectrum"][1], rtol=1e-13)
+
+
 def test_casimirs_from_levels_are_traces_of_powers() -> None:
     N = 9
     W = lz.random_vorticity(N, degree=5, seed=4)

@@ -144,6 +144,19 @@ def test_movie_refuses_other_suffixes_and_systems(
     err = capsys.readouterr().err
     assert code == 2 and "no plugin draws movies of 'rigid_body' runs" in err
     assert not (tmp_path / "rb.gif").exists()
+    # from Python (issue 29.4: drawn as vorticity before): the file, a solution, the states
+    rigid = io.read_trajectory(tmp_path / "rb.h5")
+    with pytest.raises(InputError, match="a run of rigid_body"):
+        zmovie.save_movie(rigid, tmp_path / "rb.gif")
+    import lieflow as lf
+
+    body = lf.systems.get("rigid_body", inertia=(1.0, 2.0, 3.0))
+    sol = lf.integrate(body, lf.schemes.get("midpoint"), body.random_state(0), 0.1, steps=2)
+    with pytest.raises(InputError, match="a run of RigidBody"):
+        zmovie.save_still(sol, tmp_path / "rb.png")
+    with pytest.raises(InputError, match="not in su"):
+        zmovie.save_movie((rigid.t, np.ones((3, 4, 4))), tmp_path / "ones.gif")
+    assert not any(tmp_path.glob("rb.*g")) and not (tmp_path / "ones.gif").exists()
 
 
 def test_run_samples_of_a_file_without_extra_diagnostics(tmp_path: Path) -> None:

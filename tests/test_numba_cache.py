@@ -1,0 +1,106 @@
+"""lieflow's compiled code is cached in the user's cache directory, never in the installed
+package (issue 29.1): numba's files left in ``site-packages/lieflow/__pycache__`` by a
+non-editable install survive its uninstall and shadow a later editable install."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("numba")
+
+#: Prints where the cache of each compiled function of lieflow and its plugins lives (no
+#: compilation), then compiles a function of a module in ``sys.argv[1]`` and calls it.
+PROBE = """
+import json, sys
+from lieflow import _kernels
+from lieflow.numba_cache import cache_directory
+import lieflow_vortices._compiled as vortices
+import lieflow_zeitlin._compiled as zeitlin
+from lieflow_zeitlin import _recurrences, laplacian
+
+sys.path.insert(0, sys.argv[1])
+import probe_module
+
+functions = [_kernels.hadamard_B_skew, _kernels.verdict, vortices.vortex_B,
+             vortices.vortex_project, zeitlin.zeitlin_B, _recurrences._harmonic_compiled,
+             _recurrences._legendre_sweep_compiled, laplacian._sweep_compiled]
+print(json.dumps({
+    "directory": str(cache_directory()),
+    "paths": [f.stats.cache_path for f in functions],
+    "value": probe_module.twice(21.0),
+    "probe": probe_module.twice.stats.cache_path,
+}))
+"""
+
+MODULE = """
+from lieflow.numba_cache import cached_njit
+
+@cached_njit
+def twice(x):
+    return 2.0 * x
+"""
+
+
+def _probe(tmp_path: Path, **env: str) -> dict[str, object]:
+    module_dir = tmp_path / "src"
+    module_dir.mkdir(exist_ok=True)
+    (module_dir / "probe_module.py").write_text(MODULE)
+    environ = {
+        k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "XDG_CACHE_HOME")
+    }
+    environ.update(env)
+    proc = subprocess.run(
+        [sys.executable, "-c", PROBE, str(module_dir)],
+        env=environ,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    result: dict[str, object] = json.loads(proc.stdout.strip().splitlines()[-1])
+    return result
+
+
+def _inside(path: object, directory: Path) -> bool:
+    return Path(str(path)).resolve().is_relative_to(directory.resolve())
+
+
+def test_cache_in_the_xdg_cache_directory_not_the_package(tmp_path: Path) -> None:
+    xdg = tmp_path / "xdg"
+    out = _probe(tmp_path, XDG_CACHE_HOME=str(xdg))
+    assert Path(str(out["directory"])) == xdg / "lieflow" / "numba"
+    for path in out["paths"]:  # type: ignore[attr-defined]
+        assert _inside(path, xdg / "lieflow" / "numba"), path
+        assert "site-packages" not in str(path) and not str(path).endswith("__pycache__")
+    assert out["value"] == 42.0
+    # the compiled probe was written there, and nothing next to its source
+    assert _inside(out["probe"], xdg / "lieflow" / "numba")
+    assert list(Path(str(out["probe"])).glob("probe_module.twice-*.nbi"))
+    assert not (tmp_path / "src" / "__pycache__").exists() or not list(
+        (tmp_path / "src" / "__pycache__").glob("*.nb*")
+    )
+
+
+def test_numba_cache_dir_wins(tmp_path: Path) -> None:
+    mine = tmp_path / "mine"
+    out = _probe(tmp_path, NUMBA_CACHE_DIR=str(mine), XDG_CACHE_HOME=str(tmp_path / "xdg"))
+    assert Path(str(out["directory"])) == mine
+    for path in [*out["paths"], out["probe"]]:  # type: ignore[misc]
+        assert _inside(path, mine), path
+
+
+def test_home_cache_by_default_and_in_memory_where_unwritable(tmp_path: Path) -> None:
+    blocked = tmp_path / "file"
+    blocked.write_text("not a directory")  # ~/.cache cannot be created below a file
+    out = _probe(tmp_path, HOME=str(blocked))
+    assert Path(str(out["directory"])) == blocked / ".cache" / "lieflow" / "numba"
+    assert out["value"] == 42.0  # compiled in memory
+    assert not (tmp_path / "src" / "__pycache__").exists() or not list(
+        (tmp_path / "src" / "__pycache__").glob("*.nb*")
+    )
