@@ -58,7 +58,7 @@ def _rows(length: int, row: Array) -> int:
     return max(1, min(length, _CHUNK_BYTES // max(1, row.nbytes)))
 
 
-def saved_states(steps: int, save_every: int) -> int:
+def _saved_states(steps: int, save_every: int) -> int:
     """States a complete run of ``steps`` saves: every ``save_every``-th and the last."""
     return steps // save_every + 1 + (steps % save_every != 0)
 
@@ -128,10 +128,11 @@ class ZarrSink:
         H0 = np.asarray(system.hamiltonian(W0), dtype=np.float64)
         C0 = np.asarray(system.casimirs(W0), dtype=np.float64)
         steps = header.requested_steps + 1
+        saved = _saved_states(header.requested_steps, self._save_every)
         first: dict[str, tuple[Array, int]] = {
-            "saved_step": (np.zeros(1, dtype=np.int64), saved_states(steps - 1, self._save_every)),
-            "time": (np.zeros(1), saved_states(steps - 1, self._save_every)),
-            "W": (W0[None], saved_states(steps - 1, self._save_every)),
+            "saved_step": (np.zeros(1, dtype=np.int64), saved),
+            "time": (np.zeros(1), saved),
+            "W": (W0[None], saved),
             "energy": (H0[None], steps),
             "energy_error": (np.zeros_like(H0)[None], steps),
             "casimirs": (C0[None], steps),
