@@ -4,8 +4,6 @@
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 import os
 import sys
@@ -24,7 +22,7 @@ from .driver import Diagnostics, Monitor
 from .errors import InputError
 from .flows import Flow, SchemeFlow, StepStats, WarmStart
 from .schemes.base import Scheme
-from .sinks import MemorySink, RunInfo, Sink, open_sink
+from .sinks import MemorySink, RunInfo, Sink, open_sink, run_identity
 from .solution import Solution
 from .solvers.base import Solver
 from .solvers.fixed_point import FixedPoint
@@ -296,28 +294,6 @@ def _progress_monitor(progress: bool | Monitor) -> Monitor | None:
     return progress
 
 
-def _describe(obj: Any, depth: int = 0) -> Any:
-    """A JSON-able description of ``obj`` for a trajectory file's identity: attrs classes
-    field by field, arrays by dtype, shape and SHA-256 of their bytes, others by ``repr``."""
-    if depth > 6:
-        return repr(obj)
-    if isinstance(obj, np.ndarray):
-        a = np.ascontiguousarray(obj)
-        digest = hashlib.sha256(a.tobytes()).hexdigest()[:16]
-        return f"array {a.dtype.str} {a.shape} sha256:{digest}"
-    if isinstance(obj, (bool, int, float, str)) or obj is None:
-        return obj
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, (tuple, list)):
-        return [_describe(x, depth + 1) for x in obj]
-    if attrs.has(type(obj)):
-        fields = {f.name: _describe(getattr(obj, f.name), depth + 1)
-                  for f in attrs.fields(type(obj)) if f.init}  # fmt: skip
-        return {"type": type(obj).__qualname__, **fields}
-    return repr(obj)
-
-
 def _system_name(system: IsospectralSystem) -> str:
     """The registry name of ``system``'s class (what ``lieflow plot`` looks up), else the
     class name."""
@@ -333,12 +309,12 @@ def _nonzero(casimir_shift: object) -> bool:
     return isinstance(casimir_shift, str) or casimir_shift != 0
 
 
-def _shift_identity(flow: Flow) -> dict[str, float]:
-    """``{"casimir_shift": c}`` for a scheme stepped with a Casimir shift (part of a file's
-    identity: a resume with another shift is refused), else nothing (files without one
-    keep their identity)."""
+def _casimir_shift(flow: Flow) -> float | None:
+    """The Casimir shift ``c`` a scheme is stepped with (part of a file's identity: a
+    resume with another shift is refused), else None (files without one keep their
+    identity)."""
     stepped = getattr(flow, "system", None)
-    return {"casimir_shift": stepped.c} if isinstance(stepped, CasimirShifted) else {}
+    return stepped.c if isinstance(stepped, CasimirShifted) else None
 
 
 def _file_sink(
@@ -362,19 +338,9 @@ def _file_sink(
         raise InputError(
             f"out must be a file path or a Sink (record, checkpoint, close, result), got {out!r}"
         )
-    identity = json.dumps(
-        {
-            "system": _describe(system),
-            "scheme": _describe(scheme),
-            "solver": _describe(solver),
-            "warm_start": warm_start,
-            "h": h,
-            "save_every": save_every,
-            **_shift_identity(flow),
-        },
-        sort_keys=True,
-        default=str,
-    )
+    identity = run_identity(system=system, scheme=scheme, solver=solver, h=h,
+                            save_every=save_every, warm_start=warm_start,
+                            casimir_shift=_casimir_shift(flow))  # fmt: skip
     info = RunInfo(
         system=system,
         system_name=_system_name(system),

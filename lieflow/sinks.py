@@ -19,6 +19,8 @@ with :func:`to_host`, the one place that conversion happens.
 
 from __future__ import annotations
 
+import hashlib
+import json
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, Protocol, runtime_checkable
@@ -42,7 +44,9 @@ __all__ = [
     "RunInfo",
     "Sink",
     "SinkFactory",
+    "describe",
     "open_sink",
+    "run_identity",
     "to_host",
 ]
 
@@ -121,8 +125,9 @@ class RunInfo:
     requested_steps : int
         Steps asked for.
     identity : str
-        JSON of everything that defines the trajectory except its length and location: a
-        resume is refused unless the stored run's identity is the same.
+        JSON of everything that defines the trajectory except its length and location
+        (:func:`run_identity`): a resume is refused unless the stored run's identity is the
+        same.
     W0 : ndarray
         The initial condition.
     """
@@ -136,6 +141,67 @@ class RunInfo:
     requested_steps: int
     identity: str = attrs.field(repr=False)
     W0: Array = attrs.field(repr=False)
+
+
+def describe(obj: Any, depth: int = 0) -> Any:
+    """A JSON-able description of ``obj`` for a run's identity: attrs classes field by
+    field (``{"type": qualname, field: ...}``), arrays by dtype, shape and the first 16 hex
+    digits of the SHA-256 of their bytes, numbers, strings, ``None`` and sequences as they
+    are, anything else by ``repr`` (and by ``repr`` beyond six levels of nesting)."""
+    if depth > 6:
+        return repr(obj)
+    if isinstance(obj, np.ndarray):
+        a = np.ascontiguousarray(obj)
+        digest = hashlib.sha256(a.tobytes()).hexdigest()[:16]
+        return f"array {a.dtype.str} {a.shape} sha256:{digest}"
+    if isinstance(obj, (bool, int, float, str)) or obj is None:
+        return obj
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, (tuple, list)):
+        return [describe(x, depth + 1) for x in obj]
+    if attrs.has(type(obj)):
+        fields = {f.name: describe(getattr(obj, f.name), depth + 1)
+                  for f in attrs.fields(type(obj)) if f.init}  # fmt: skip
+        return {"type": type(obj).__qualname__, **fields}
+    return repr(obj)
+
+
+def run_identity(
+    *, system: Any, scheme: Any, solver: Any, h: float, save_every: int, **more: Any
+) -> str:
+    """The identity of a run (:attr:`RunInfo.identity`): JSON, keys sorted, of everything
+    that defines its trajectory except its length and location. Two runs with the same
+    identity and initial condition compute the same steps, so one may resume the other's
+    file (with more steps); the one definition for :func:`lieflow.integrate` (``out=``)
+    and ``lieflow run`` / ``lieflow sweep``.
+
+    Parameters
+    ----------
+    system, scheme, solver : object or mapping
+        What steps: the objects (``integrate``: each :func:`describe`-d), or their
+        descriptions as mappings (``lieflow run``: the configuration's ``name`` and
+        ``params``), stored as they are.
+    h : float
+        Step size.
+    save_every : int
+        Save cadence (it decides which states the file holds).
+    **more
+        What else changes the steps (``warm_start``, ``splitting``, ``casimir_shift``),
+        each described the same way; ``None`` leaves the key out, so files written before
+        a key existed keep their identity.
+
+    Returns
+    -------
+    str
+        ``json.dumps`` of ``{"system", "scheme", "solver", "h", "save_every", **more}``
+        with sorted keys (values it cannot encode as their ``str``).
+    """
+    parts = {"system": system, "scheme": scheme, "solver": solver, "h": h,
+             "save_every": save_every}  # fmt: skip
+    parts.update((k, v) for k, v in more.items() if v is not None)
+    described = {k: v if isinstance(v, Mapping) else describe(v) for k, v in parts.items()}
+    return json.dumps(described, sort_keys=True, default=str)
 
 
 #: ``factory(path, run, resume=..., replace=...) -> Sink``: a file format's sink, registered

@@ -177,6 +177,7 @@ def test_sweeps_suite_quick_reports_every_field() -> None:
     hows = [row[1] for row in table.rows]
     assert hows[0].startswith("one after another") and hows[1].startswith("local pool")
     assert any(h.startswith("open_sweep +") for h in hows)
+    assert any('store = "zarr"' in h for h in hows)
     assert len(section.targets) == 3
     pool, dask, opening = section.targets
     assert pool.met is not None and opening.met is not None

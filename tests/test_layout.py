@@ -21,6 +21,7 @@ APP_MODULES = {
     "reproduce",
     "salvage",
     "sweeps",
+    "zarr_sink",
 }
 
 

@@ -210,3 +210,70 @@ def test_rows_written_ahead_of_the_checkpoint_are_dropped_on_resume(tmp_path: Pa
     np.testing.assert_array_equal(a.step, memory.saved_steps)
     np.testing.assert_array_equal(a.W, memory.W)
     np.testing.assert_array_equal(a.energy_error, memory.energy_error)
+
+
+# The identities files were written with before lieflow.sinks.run_identity: a resume compares
+# them as text, so they must not change (or files written before would no longer resume).
+_CONFIG_IDENTITY = (
+    '{"casimir_shift": 0.5, "h": 0.05, "save_every": 2, "scheme": {"name": "gauss2", "params":'
+    ' {}}, "solver": {"name": "fixed_point", "params": {"rtol": 1e-12}}, "splitting": {"flows"'
+    ': [{"name": "drag", "params": {"mu": 0.3}}], "method": "strang"}, "system": {"name": "rig'
+    'id_body", "params": {"inertia": [1.0, 2.0, 3.0]}}}'
+)
+_INTEGRATE_IDENTITY = (
+    '{"casimir_shift": 0.5, "h": 0.05, "save_every": 2, "scheme": {"form": "reduced", "tableau'
+    '": {"A": "array <f8 (2, 2) sha256:1f65b96d0488038d", "b": "array <f8 (2,) sha256:606e5166'
+    '986dd9f1", "c": "array <f8 (2,) sha256:24163de9e7c772cb", "name": "gauss2", "order": 4, "'
+    'type": "ButcherTableau"}, "type": "BlockGauss", "update": "commutator"}, "solver": {"ande'
+    'rson": 0, "atol": 0.0, "divergence_factor": 100.0, "max_iter": 100, "patience": 6, "round'
+    'off_floor": 5.684341886080802e-14, "rtol": 1e-12, "type": "FixedPoint"}, "system": {"iner'
+    'tia": "array <f8 (3,) sha256:a68de4b5e96a60c8", "type": "RigidBody"}, "warm_start": 2}'
+)
+
+
+def test_one_identity_for_lieflow_run_and_integrate_keeps_the_old_files(tmp_path: Path) -> None:
+    import h5py
+
+    from lieflow.app.config import parse_config
+    from lieflow.sinks import run_identity
+
+    text = """
+[system]
+name = "rigid_body"
+params = { inertia = [1.0, 2.0, 3.0] }
+[initial]
+random = true
+seed = 0
+[scheme]
+name = "gauss2"
+[solver]
+name = "fixed_point"
+params = { rtol = 1e-12 }
+[splitting]
+method = "strang"
+flows = [{ name = "drag", params = { mu = 0.3 } }]
+[run]
+h = 0.05
+steps = 4
+save_every = 2
+casimir_shift = 0.5
+"""
+    assert parse_config(text).identity() == _CONFIG_IDENTITY
+    no_shift = parse_config(text.replace("casimir_shift = 0.5\n", "")).identity()
+    assert "casimir_shift" not in no_shift  # left out, not null: older files had no such key
+    system = lf.systems.get("rigid_body", inertia=[1.0, 2.0, 3.0])
+    scheme, W0 = lf.schemes.get("gauss2"), system.algebra.random(0)
+    solver = lf.solvers.get("fixed_point", rtol=1e-12)
+    out = tmp_path / "run.h5"
+    lf.integrate(system, scheme, W0, 0.05, steps=3, save_every=2, solver=solver,
+                 warm_start=2, casimir_shift=0.5, out=out)  # fmt: skip
+    with h5py.File(out, "r") as f:
+        assert f.attrs["identity"] == _INTEGRATE_IDENTITY
+    # the one definition: both are run_identity of their parts
+    described = run_identity(system=system, scheme=scheme, solver=solver, h=0.05, save_every=2,
+                             warm_start=2, casimir_shift=0.5, splitting=None)  # fmt: skip
+    assert described == _INTEGRATE_IDENTITY
+    # and a file written with it resumes
+    sol = lf.integrate(system, scheme, W0, 0.05, steps=6, save_every=2, solver=solver,
+                       warm_start=2, casimir_shift=0.5, out=out, resume=True)  # fmt: skip
+    assert sol.saved_steps.tolist() == [0, 6]

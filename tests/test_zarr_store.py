@@ -144,3 +144,120 @@ def test_complex_ensemble_runs_in_the_store(tmp_path: Path) -> None:
     ds = open_sweep(res.directory)
     assert ds.attrs["runs_from_store"] == 2 and ds.W.dtype == np.complex128
     assert_same(ds.load(), from_files(res.directory))
+
+
+def _old_store(directory: Path, runs: list[dict[str, object]], to: Path) -> Path:
+    """A copy of the sweep ``directory`` whose store is written the old way: each run's
+    finished file copied into it by ``write_zarr_run``."""
+    from lieflow.app.datasets import write_zarr_run
+
+    shutil.copytree(directory, to)
+    shutil.rmtree(to / ZARR_STORE)
+    zarr.open_group(str(to / ZARR_STORE), mode="w")
+    for rec in runs:
+        write_zarr_run(to / str(rec["output"]), to / ZARR_STORE, str(rec["id"]))
+    with pytest.warns(UserWarning, match="Consolidated metadata"):
+        zarr.consolidate_metadata(str(to / ZARR_STORE))
+    return to
+
+
+def test_workers_write_the_store_as_they_step_bit_for_bit_the_old_copy(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import concurrent.futures as cf
+
+    from lieflow.app import datasets
+
+    def no_copy(*args: object, **kwargs: object) -> int:
+        raise AssertionError("a run's file was copied into the store")
+
+    monkeypatch.setattr(datasets, "write_zarr_run", no_copy)
+    table = '"scheme.name" = ["midpoint", "gauss2"]\n"solver.params.max_iter" = [100, 1]'
+    grid = write_grid(tmp_path, table=table)  # two complete, two failed (last state kept)
+    with cf.ThreadPoolExecutor(2) as pool:
+        first = lf.sweep(grid, executor=pool, store="zarr")
+    assert [r["status"] for r in first.runs] == ["complete", "failed", "complete", "failed"]
+    assert not any("store_error" in r for r in first.runs)
+    # longer runs: resumed from their files' checkpoints, their groups continued
+    grid.write_text(grid.read_text().replace("steps = 20", "steps = 35"))
+    with cf.ThreadPoolExecutor(2) as pool:
+        res = lf.sweep(grid, executor=pool, store="zarr")
+    assert [r.get("new_steps") for r in res.runs] == [15, None, 15, None]
+    assert not any("store_error" in r for r in res.runs)
+    monkeypatch.undo()
+    old = _old_store(res.directory, res.runs, tmp_path / "old")
+    new_root = zarr.open_group(str(res.directory / ZARR_STORE), mode="r")
+    old_root = zarr.open_group(str(old / ZARR_STORE), mode="r")
+    for rec in res.runs:
+        new, was = new_root[rec["id"]], old_root[rec["id"]]
+        assert dict(new.attrs) == dict(was.attrs)
+        assert sorted(new.array_keys()) == sorted(was.array_keys())
+        for key in was.array_keys():
+            a, b = new[key][...], was[key][...]
+            assert a.dtype == b.dtype and a.shape == b.shape, key
+            np.testing.assert_array_equal(a, b, strict=True)
+    ds, expected = open_sweep(res.directory).load(), open_sweep(old).load()
+    assert ds.attrs["runs_from_store"] == expected.attrs["runs_from_store"] == 4
+    drop = ("sweep_directory",)
+    xr.testing.assert_identical(
+        ds.drop_vars("output")
+        .drop_attrs()
+        .assign_attrs({k: v for k, v in ds.attrs.items() if k not in drop}),
+        expected.drop_vars("output")
+        .drop_attrs()
+        .assign_attrs({k: v for k, v in expected.attrs.items() if k not in drop}),
+    )
+
+
+class _StopAfter:
+    """A monitor that presses Ctrl-C once ``steps`` steps are recorded."""
+
+    def __init__(self, steps: int) -> None:
+        self.left = steps
+
+    def start(self, done: int, total: int) -> None:
+        pass
+
+    def advance(self, steps: int, iterations: int, energy_error: float | None) -> None:
+        self.left -= steps
+        if self.left <= 0:
+            raise KeyboardInterrupt
+
+    def stop(self) -> None:
+        pass
+
+
+def test_an_interrupted_run_continues_its_group_when_it_resumes(tmp_path: Path) -> None:
+    from lieflow.app.config import build, parse_config
+    from lieflow.app.datasets import write_zarr_run
+    from lieflow.app.zarr_sink import ZarrSink
+
+    text = BASE.replace("steps = 20", "steps = 300").replace("save_every = 10", "save_every = 7")
+    store, out = tmp_path / ZARR_STORE, tmp_path / "run.h5"
+    zarr.open_group(str(store), mode="w")
+    opened: list[ZarrSink] = []
+
+    def also(writer: io.TrajectoryWriter) -> tuple[ZarrSink]:
+        opened.append(ZarrSink.open(store, "run", writer))
+        return (opened[-1],)
+
+    setup = build(parse_config(text + 'checkpoint = "saves"\n'), output=out, replace=False)
+    first = io.run(setup, resume=True, monitor=_StopAfter(100), also=also)  # type: ignore[arg-type]
+    assert first.status == "interrupted" and 0 < first.completed_steps < 300
+    group = zarr.open_group(str(store / "run"), mode="r")
+    assert group.attrs["lieflow_stored_steps"] == first.completed_steps and opened[0].in_sync
+    assert group.attrs["status"] == "interrupted"
+    done = io.run(setup, resume=True, also=also)
+    assert done.status == "complete" and done.new_steps == 300 - first.completed_steps
+    assert opened[1].in_sync and not opened[1].error
+    write_zarr_run(out, tmp_path / "copy.zarr", "run")
+    new, was = zarr.open_group(str(store / "run")), zarr.open_group(str(tmp_path / "copy.zarr/run"))
+    assert dict(new.attrs) == dict(was.attrs) and new.attrs["resumes"] == 1
+    for key in was.array_keys():
+        np.testing.assert_array_equal(new[key][...], was[key][...], strict=True)
+    # a group that is not at the file's checkpoint is not continued: the sink writes nothing
+    new.attrs["lieflow_stored_steps"] = 5
+    longer = build(parse_config(text.replace("300", "310")), output=out, replace=False)
+    io.run(longer, resume=True, also=also)
+    assert not opened[2].in_sync and "holds 5 steps, the file 300" in opened[2].error
+    assert zarr.open_group(str(store / "run")).attrs["lieflow_stored_steps"] == 5

@@ -12,7 +12,10 @@ interleaved rounds (:func:`benchmarks.timing.compare`):
   runs: ``(dask − pool) / runs`` is what Dask adds to every run (scheduling, the task's round
   trips), apart from the one-off start of the cluster, reported on its own;
 * **opening a sweep** — ``lieflow.open_sweep`` on a directory of 100 complete runs, and one
-  reduction over all of them (the largest energy error of every run, which reads each file).
+  reduction over all of them (the largest energy error of every run, which reads each file);
+* **the Zarr store** — the same runs one after another with ``store="zarr"`` (each run's
+  group written as it steps, by a second sink of its loop) against without a store: what
+  the store adds per run.
 
 Every timed sweep writes into a fresh directory, so nothing is skipped as already complete.
 """
@@ -229,6 +232,23 @@ def measure_open(root: Path, size: Sizes) -> dict[str, Timing[Any]]:
                    max(3, size.repeats))  # fmt: skip
 
 
+def measure_store(root: Path, size: Sizes) -> dict[str, Timing[SweepResult]]:
+    """A quarter of the pool's runs one after another here, with and without a Zarr store."""
+    text = grid_text(max(2, size.runs // 4), size.pool_steps)
+
+    def sequential(prefix: str, **options: Any) -> Callable[[], SweepResult]:
+        dirs = _fresh(root, prefix)
+
+        def one() -> SweepResult:
+            with cf.ThreadPoolExecutor(max_workers=1) as thread:
+                return _sweeper(text, dirs, thread, **options)()
+
+        return one
+
+    return compare({"no store": sequential("no-store"),
+                    "store zarr": sequential("store", store="zarr")}, size.repeats)  # fmt: skip
+
+
 def _spin(count: int) -> float:
     """Seconds of a pure-Python loop of ``count`` additions (CPU-bound, no BLAS, no I/O)."""
     start = time.perf_counter()
@@ -273,6 +293,7 @@ def run(ctx: BenchContext) -> Section:
         pool = measure_pool(root, size)
         dask = measure_dask(root, size)
         opening = measure_open(root, size)
+        stored = measure_store(root, size)
     load_after = _load()
 
     seq, loc = pool["one after another"].median, pool["local pool"].median
@@ -370,6 +391,15 @@ def run(ctx: BenchContext) -> Section:
             "diagnostic of every file",
         )
     )
+    store_runs = max(2, size.runs // 4)
+    bare, with_store = stored["no store"].median, stored["store zarr"].median
+    store_rows = (
+        ("one after another, no store", bare),
+        ('one after another, store = "zarr" (written as it steps)', with_store),
+    )
+    for label, t in store_rows:
+        rows.append((f"{store_runs} runs × {size.pool_steps} steps", label, seconds(t),
+                     seconds(t / store_runs), f"{bare / t:.2f}×" if t > 0 else "—"))  # fmt: skip
     table = Table(
         ("case", "how", "median", "per run", "speed-up"),
         tuple(rows),

@@ -59,6 +59,7 @@ from ..flows import Flow, Splitting
 from ..integration import Engine, scheme_flow
 from ..plugins import Kind, Registry, default_registry
 from ..schemes.base import Scheme
+from ..sinks import run_identity
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
 from ..systems.shifted import shifted
@@ -295,24 +296,17 @@ class Config:
     splitting: SplittingSettings | None = None
 
     def identity(self) -> str:
-        """JSON of everything that defines the trajectory except its length and location.
+        """JSON of everything that defines the trajectory except its length and location
+        (:func:`lieflow.sinks.run_identity` of the configuration's tables).
 
         Two configurations with the same identity (and the same ``W0``) compute the same
         steps, so one may resume the other's file, possibly with more steps.
         """
-        return json.dumps(
-            {
-                "system": self.system.as_dict(),
-                "scheme": self.scheme.as_dict(),
-                "solver": self.solver.as_dict(),
-                "h": self.run.h,
-                "save_every": self.run.save_every,
-                **({} if self.splitting is None else {"splitting": self.splitting.as_dict()}),
-                **({"casimir_shift": shift} if (shift := self.run.casimir_shift) else {}),
-            },
-            sort_keys=True,
-            default=str,
-        )
+        splitting = None if self.splitting is None else self.splitting.as_dict()
+        return run_identity(system=self.system.as_dict(), scheme=self.scheme.as_dict(),
+                            solver=self.solver.as_dict(), h=self.run.h,
+                            save_every=self.run.save_every, splitting=splitting,
+                            casimir_shift=self.run.casimir_shift or None)  # fmt: skip
 
 
 @attrs.frozen(eq=False)

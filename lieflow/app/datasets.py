@@ -103,9 +103,11 @@ class _RunInfo:
         self.update_row0 = 0
         if saved is None:
             saved = (arrays["saved_step"][...], arrays["time"][...])
-        self.saved_step = np.asarray(saved[0], dtype=np.int64)
-        self.t = np.asarray(saved[1], dtype=np.float64)
-        self.n_saved = len(self.saved_step)
+        # rows a writer appended after its last commit are not the run's (yet)
+        n = int(np.searchsorted(np.asarray(saved[0]), self.k, side="right"))
+        self.saved_step = np.asarray(saved[0][:n], dtype=np.int64)
+        self.t = np.asarray(saved[1][:n], dtype=np.float64)
+        self.n_saved = n
         self.shapes = {name: tuple(arrays[name].shape[1:]) for name in ("W", *_DIAGNOSTICS)}
         self.dtype = np.dtype(arrays["W"].dtype)
         self.labels = np.asarray(attrs.pop(_LABELS)) if _LABELS in attrs else None

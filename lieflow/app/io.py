@@ -57,7 +57,7 @@ import platform
 import re
 import socket
 import sys
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from types import MappingProxyType
@@ -71,7 +71,7 @@ from ..algebras import Array
 from ..driver import Cadence, Chunk, ChunkDiagnostics, Diagnostics, Monitor
 from ..errors import ConvergenceError, InputError, LieflowError
 from ..flows import WarmStart
-from ..sinks import Ending, RunInfo, to_host
+from ..sinks import Ending, RunInfo, Sink, to_host
 from ..solution import Solution, Status
 from .config import ConfigError, RunSetup, identity_changes
 
@@ -1322,11 +1322,22 @@ class TrajectoryWriter:
         self._slot = int(self._ck.attrs["current"])
         self._step = int(self._slots[self._slot].attrs["step"])  # the checkpoint's step
         self._max_error = float(np.max(self._diag["energy_error"][: self._n_diag]))
+        self._attributes: dict[str, Any] = {}  # the header as closed (:meth:`attributes`)
 
     @property
     def path(self) -> Path:
         """The file being written."""
         return self._path
+
+    @property
+    def header(self) -> TrajectoryHeader:
+        """The run this writer writes."""
+        return self._header
+
+    def attributes(self) -> dict[str, Any]:
+        """The file's header attributes as they stand (after :meth:`close`: as closed;
+        empty after :meth:`abandon`)."""
+        return _meta(self._f) if self._f.id.valid else dict(self._attributes)
 
     @property
     def max_energy_error(self) -> float:
@@ -1615,6 +1626,7 @@ class TrajectoryWriter:
             f.attrs["wall_time"] = float(f.attrs.get("wall_time", 0.0)) + wall_time
             f.attrs["failure"] = "" if failure is None else str(failure)
             f.flush()
+            self._attributes = _meta(f)
         finally:
             try:
                 try:
@@ -2009,6 +2021,10 @@ def _truncate(f: h5py.File, k: int, layout: _Layout) -> None:
     f.attrs["completed_steps"] = k
 
 
+#: ``also(writer) -> sinks``: sinks a run writes besides its trajectory file (:func:`run`).
+AlsoSinks = Callable[["TrajectoryWriter"], Sequence[Sink]]
+
+
 @attrs.frozen
 class RunSummary:
     """How :func:`run` ended.
@@ -2046,6 +2062,7 @@ def run(
     *,
     resume: bool = False,
     monitor: Monitor | None = None,
+    also: AlsoSinks | None = None,
 ) -> RunSummary:
     """Integrate ``setup`` and write the trajectory to ``setup.output`` as it proceeds.
 
@@ -2059,6 +2076,9 @@ def run(
         starts afresh. Without ``resume`` an existing file is replaced.
     monitor : Monitor, optional
         Progress callbacks.
+    also : callable, optional
+        ``also(writer)``: more sinks fed the same steps as the file, opened once the
+        file's :class:`TrajectoryWriter` is (a sweep's Zarr store).
 
     Returns
     -------
@@ -2072,7 +2092,8 @@ def run(
     LieflowError
         A step failed to converge (the file holds the steps before it, status "failed").
     """
-    summary, _ = run_flow(setup.header(), setup.flow(), resume=resume, monitor=monitor)
+    summary, _ = run_flow(setup.header(), setup.flow(), resume=resume, monitor=monitor,
+                          also=also)  # fmt: skip
     if summary.status == "failed":
         raise LieflowError(
             f"{summary.failure} The {summary.completed_steps} steps before the failure are "
@@ -2087,6 +2108,7 @@ def run_flow(
     *,
     resume: bool = False,
     monitor: Monitor | None = None,
+    also: AlsoSinks | None = None,
 ) -> tuple[RunSummary, ConvergenceError | None]:
     """Advance ``flow`` and write the trajectory to ``header.output`` as it proceeds: the
     one consumer loop (:func:`lieflow.driver.run`) into a :class:`TrajectoryWriter`.
@@ -2102,7 +2124,7 @@ def run_flow(
         the error of a failed step (the file then holds the steps before it).
     """
     with _signals.Interrupts() as stop:  # Ctrl-C held from here until stepping, raised there
-        return _run_flow(header, flow, resume, monitor, stop)
+        return _run_flow(header, flow, resume, monitor, stop, also)
 
 
 def _run_flow(
@@ -2111,6 +2133,7 @@ def _run_flow(
     resume: bool,
     monitor: Monitor | None,
     interrupts: _signals.Interrupts,
+    also: AlsoSinks | None = None,
 ) -> tuple[RunSummary, ConvergenceError | None]:
     target = header.requested_steps
     diagnostics = Diagnostics.of(header.system, header.W0, save_every=header.save_every)
@@ -2122,6 +2145,7 @@ def _run_flow(
         else:
             W, done = ck.W, ck.step
             state = ck.state(flow.init(W))
+        sinks = (writer, *(also(writer) if also is not None else ()))
     except BaseException:  # Ctrl-C before stepping: the file says so, and is resumable
         writer.close("interrupted", None, 0.0)
         raise
@@ -2130,7 +2154,7 @@ def _run_flow(
         W,
         header.h,
         target,
-        sinks=(writer,),
+        sinks=sinks,
         diagnostics=diagnostics,
         save_every=header.save_every,
         start=done,

@@ -655,20 +655,23 @@ def run_task(task: Mapping[str, Any]) -> dict[str, Any]:
         config = parse_config(task["text"], source=task["source"], base_dir=task["base_dir"])
         setup = build(config, output=task["output"], replace=False)
         monitor = _ProgressFile(Path(task["progress"]) if task.get("progress") else None, stop)
+        stored: list[Any] = []  # the run's ZarrSink, once its file is open
+        also = _store_sink(task, stored)
         try:
             try:
-                summary = io.run(setup, resume=True, monitor=monitor)
+                summary = io.run(setup, resume=True, monitor=monitor, also=also)
             except io.DamagedOutputError as exc:
                 # a worker killed during a write (the lost attempt of a Dask task) can leave
                 # the file unreadable past its last good checkpoint; the run is deterministic,
                 # so running it again from the start gives the same bits
                 out["restarted"] = str(exc)
                 setup = build(config, output=task["output"], replace=True)
-                summary = io.run(setup, monitor=monitor)
+                stored.clear()
+                summary = io.run(setup, monitor=monitor, also=also)
         except LieflowError:
-            _store_run(task, out)  # a failed run: its steps before the failure
+            _store_run(task, out, stored)  # a failed run: its steps before the failure
             raise
-        _store_run(task, out)
+        _store_run(task, out, stored)
         out.update(
             status=summary.status,
             completed_steps=summary.completed_steps,
@@ -698,11 +701,29 @@ def run_task(task: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _store_run(task: Mapping[str, Any], out: dict[str, Any]) -> None:
-    """Write the run's file into the sweep's Zarr store (``task["store"]``) if it has one;
-    a failure to do so is recorded in ``out["store_error"]``, never the run's failure (the
-    dataset then reads the run from its file)."""
+def _store_sink(task: Mapping[str, Any], opened: list[Any]) -> Any:
+    """The run's sinks besides its file (:func:`lieflow.app.io.run`'s ``also``): with a
+    Zarr store (``task["store"]``), a :class:`~lieflow.app.zarr_sink.ZarrSink` writing the
+    run's group as it steps (appended to ``opened``); else None."""
     if not task.get("store"):
+        return None
+    from .zarr_sink import ZarrSink
+
+    def also(writer: Any) -> tuple[Any, ...]:
+        sink = ZarrSink.open(task["store"], task["id"], writer)
+        opened.append(sink)
+        return (sink,)
+
+    return also
+
+
+def _store_run(task: Mapping[str, Any], out: dict[str, Any], opened: Sequence[Any]) -> None:
+    """Make the run's group of the sweep's Zarr store (``task["store"]``) hold its file's
+    steps: its :class:`~lieflow.app.zarr_sink.ZarrSink` wrote them as it stepped; only where
+    it could not (the group was not at the file's checkpoint on a resume, a write failed)
+    is the group rebuilt from the file. A failure is recorded in ``out["store_error"]``,
+    never the run's failure (the dataset then reads the run from its file)."""
+    if not task.get("store") or (opened and opened[-1].in_sync):
         return
     from .datasets import write_zarr_run
 
@@ -1093,8 +1114,9 @@ def sweep(
     store : {None, "zarr"}
         ``"zarr"``: also write each run's results (states at the saved times, diagnostics,
         header) into one Zarr store, ``DIRECTORY/runs.zarr``, one group per run written by
-        the worker that ran it as the run ends (complete or failed); complete runs the store
-        lacks are written by this process first. :func:`lieflow.open_sweep` reads the store
+        the worker that runs it as it steps (a second sink next to the run's file,
+        :class:`~lieflow.app.zarr_sink.ZarrSink`); complete runs the store lacks are
+        copied from their files by this process first. :func:`lieflow.open_sweep` reads the store
         where it holds a run as the manifest records it (else the run's file). The
         trajectory files stay the record that resumes and skips are decided on.
 
