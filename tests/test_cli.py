@@ -101,7 +101,7 @@ def test_ctrl_c_then_resume_from_the_command_line(
     config = write(cfg, toml(run='h = 0.1\nsteps = 50\nsave_every = 10\noutput = "../out/a.h5"'))
     assert main(["run", str(config), "--no-progress", "--out", str(out / "ref.h5")]) == 0
 
-    real_advance = io.driver.advance
+    real_advance = lf.driver.advance
 
     def interrupted(*args: Any, **kwargs: Any) -> Iterator[lf.driver.Chunk]:
         for chunk in real_advance(*args, **kwargs):
@@ -109,11 +109,11 @@ def test_ctrl_c_then_resume_from_the_command_line(
             if chunk.stop == 23:
                 raise KeyboardInterrupt  # as Ctrl-C would, between two steps
 
-    monkeypatch.setattr(io.driver, "advance", interrupted)
+    monkeypatch.setattr(lf.driver, "advance", interrupted)
     assert main(["run", str(config), "--no-progress"]) == 130
     assert "--resume" in capsys.readouterr().err
     assert io.read_checkpoint(out / "a.h5").step == 23
-    monkeypatch.setattr(io.driver, "advance", real_advance)
+    monkeypatch.setattr(lf.driver, "advance", real_advance)
 
     assert main(["run", str(config), "--no-progress", "--resume"]) == 0
     a, ref = io.read_trajectory(out / "a.h5"), io.read_trajectory(out / "ref.h5")

@@ -408,7 +408,7 @@ def test_compiled_run_interrupted_and_resumed_is_bit_for_bit(
         encoding="utf-8",
     )
     assert main(["run", str(config), "--no-progress", "--out", str(tmp_path / "ref.h5")]) == 0
-    real_advance = io.driver.advance
+    real_advance = driver.advance
 
     def interrupted(*args: Any, **kwargs: Any) -> Iterator[driver.Chunk]:
         for chunk in real_advance(*args, **kwargs):
@@ -416,10 +416,10 @@ def test_compiled_run_interrupted_and_resumed_is_bit_for_bit(
             if chunk.stop == 1024:
                 raise KeyboardInterrupt
 
-    monkeypatch.setattr(io.driver, "advance", interrupted)
+    monkeypatch.setattr(driver, "advance", interrupted)
     assert main(["run", str(config), "--no-progress"]) == 130
     assert io.read_checkpoint(tmp_path / "a.h5").step == 1024
-    monkeypatch.setattr(io.driver, "advance", real_advance)
+    monkeypatch.setattr(driver, "advance", real_advance)
     assert main(["run", str(config), "--no-progress", "--resume"]) == 0
     a, ref = io.read_trajectory(tmp_path / "a.h5"), io.read_trajectory(tmp_path / "ref.h5")
     assert a.completed_steps == ref.completed_steps == 2500

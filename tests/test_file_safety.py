@@ -19,6 +19,7 @@ import lieflow as lf
 from lieflow.app import io
 from lieflow.app.cli import main
 from lieflow.app.config import ConfigError, build, load_config
+from lieflow.app.io import _reader
 
 CONFIG = """
 [system]
@@ -295,7 +296,7 @@ def test_a_checkpoint_that_does_not_reproduce_its_invariants_is_refused(
         slot = ck[f"slot{int(ck.attrs['current'])}"]
         W = slot["W"][()] * 1.001
         slot["W"][...] = W
-        items = io._slot_items(slot)
+        items = _reader._slot_items(slot)
         slot.attrs["sha256"] = io.checkpoint_digest(
             int(slot.attrs["step"]), float(slot.attrs["t"]), items
         )

@@ -13,6 +13,7 @@ import pytest
 
 from lieflow.app import io
 from lieflow.app.cli import main
+from lieflow.app.io import _writer
 
 CONFIG = """
 [system]
@@ -79,7 +80,7 @@ def _one_clear_error(err: str) -> None:
     assert err.count("\n") == 1 and "Traceback" not in err and "HDF5" not in err
 
 
-@pytest.mark.parametrize("margin", [io._SPACE_MARGIN, 0], ids=["stops-before", "hdf5-enospc"])
+@pytest.mark.parametrize("margin", [_writer._SPACE_MARGIN, 0], ids=["stops-before", "hdf5-enospc"])
 def test_a_full_disk_is_one_error_and_the_same_command_continues(
     disk: Path,
     reference: io.Trajectory,
@@ -90,13 +91,13 @@ def test_a_full_disk_is_one_error_and_the_same_command_continues(
     """``hdf5-enospc``: no reserve, so HDF5's own writes fail (errno 28 inside multi-line
     HDF5 dumps, then ``RuntimeError: Can't destroy cache`` at close) — still one line."""
     capsys.readouterr()
-    monkeypatch.setattr(io, "_SPACE_MARGIN", margin)
+    monkeypatch.setattr(_writer, "_SPACE_MARGIN", margin)
     config, out = disk / "run.toml", disk / "traj.h5"
     assert main(["run", str(config), "--no-progress"]) == 2
     _one_clear_error(capsys.readouterr().err)
     kept = io.read_checkpoint(out).step
     assert 0 < kept < 800
-    monkeypatch.setattr(io, "_SPACE_MARGIN", 1 << 20)
+    monkeypatch.setattr(_writer, "_SPACE_MARGIN", 1 << 20)
     before = out.read_bytes()
     assert main(["run", str(config), "--no-progress", "--resume"]) == 2  # still full
     _one_clear_error(capsys.readouterr().err)

@@ -3,6 +3,7 @@ resume reports ``complete``, and salvaged back to their last verified checkpoint
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 from pathlib import Path
@@ -15,6 +16,7 @@ from helpers import damage_last_chunk
 import lieflow as lf
 from lieflow.app import io
 from lieflow.app.cli import main
+from lieflow.app.io import _reader
 from lieflow.app.salvage import salvage
 
 CONFIG = """
@@ -213,7 +215,7 @@ def io_setup(config: Path) -> object:
 def _items(path: Path) -> list[str]:
     with h5py.File(path, "r") as f:
         slot = f[f"checkpoint/slot{int(f['checkpoint'].attrs['current'])}"]
-        return sorted(io._slot_items(slot))
+        return sorted(_reader._slot_items(slot))
 
 
 @pytest.fixture(scope="module")
@@ -244,9 +246,9 @@ def test_a_change_in_any_checkpoint_item_fails_the_sha256(
         if item in ("step", "t"):
             slot.attrs[item] = slot.attrs[item] + 1
         elif item == "warm/trusted":
-            scalars = io.json.loads(slot.attrs["scalars"])
+            scalars = json.loads(slot.attrs["scalars"])
             scalars[item] += 1
-            slot.attrs["scalars"] = io.json.dumps(scalars, sort_keys=True)
+            slot.attrs["scalars"] = json.dumps(scalars, sort_keys=True)
         else:
             value = slot[item][()]
             value.view(np.uint64).reshape(-1)[-1] ^= 1

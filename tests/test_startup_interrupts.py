@@ -42,6 +42,7 @@ CHILD = r"""
 import os, signal, sys
 from lieflow import progress
 from lieflow.app import config, io
+from lieflow.app.io import _writer
 from lieflow import driver
 
 def interrupt():
@@ -63,11 +64,11 @@ elif point in ("after_create", "after_reopen"):
         return result
     setattr(io.TrajectoryWriter, name, classmethod(opened))
 elif point == "inside_create":
-    original_publish = io._publish
+    original_publish = _writer._publish
     def publish(*a, **k):
         original_publish(*a, **k)
         interrupt()
-    io._publish = publish
+    _writer._publish = publish
 elif point == "bar_start":
     original_start = progress.ProgressBar.start
     def start(self, done, total):

@@ -21,6 +21,7 @@ import lieflow as lf
 from lieflow.app import io
 from lieflow.app.cli import main
 from lieflow.app.config import ConfigError, build
+from lieflow.app.io import _lock
 from lieflow.app.sweeps import SweepMonitor, load_sweep, parse_sweep, run_id, sweep
 
 BASE = """
@@ -298,7 +299,7 @@ def test_a_busy_file_is_retried_until_its_writer_lets_go(tmp_path: Path) -> None
     grid = write_grid(tmp_path, '"initial.seed" = [0, 1]')
     g = load_sweep(grid)
     g.runs[0].output.parent.mkdir(parents=True)
-    lock = io._OutputLock.acquire(g.runs[0].output)  # another writer holds run 0's file
+    lock = _lock._OutputLock.acquire(g.runs[0].output)  # another writer holds run 0's file
     threading.Timer(1.5, lock.release).start()
     t0 = time.monotonic()
     res = sweep(g, threads())
@@ -310,7 +311,7 @@ def test_busy_for_too_long_is_a_failure(tmp_path: Path) -> None:
     grid = write_grid(tmp_path, '"initial.seed" = [0]')
     g = load_sweep(grid)
     g.runs[0].output.parent.mkdir(parents=True)
-    lock = io._OutputLock.acquire(g.runs[0].output)
+    lock = _lock._OutputLock.acquire(g.runs[0].output)
     try:
         res = sweep(g, threads(), busy_timeout=0.5)
     finally:
@@ -322,7 +323,7 @@ def test_one_sweep_per_directory(tmp_path: Path) -> None:
     grid = write_grid(tmp_path, '"initial.seed" = [0]')
     g = load_sweep(grid)
     g.directory.mkdir()
-    lock = io._OutputLock.acquire(g.manifest)
+    lock = _lock._OutputLock.acquire(g.manifest)
     try:
         with pytest.raises(io.OutputBusyError, match="in use by another `lieflow sweep`"):
             sweep(g, threads())

@@ -35,31 +35,29 @@ import attrs
 import numpy as np
 
 from ..errors import LieflowError
-from .io import (
+from .io._format import (
     _DAMAGE,
     _EXTRA,
     _LABELS,
     _PER_STEP,
     _PER_UPDATE,
-    DamagedOutputError,
     _as_path,
-    _check_format,
-    _check_kept,
-    _check_signature,
-    _check_spare,
     _h5py,
     _Layout,
-    _opened,
-    _OutputLock,
     _plain,
-    _readable_rows,
-    _renew_spare,
-    _slot_items,
-    _truncate,
     _where,
-    _write_slot,
     checkpoint_digest,
 )
+from .io._lock import DamagedOutputError, _check_signature, _OutputLock
+from .io._reader import (
+    _check_format,
+    _check_kept,
+    _check_spare,
+    _opened,
+    _readable_rows,
+    _slot_items,
+)
+from .io._writer import _renew_spare, _truncate, _write_slot
 
 __all__ = ["SalvageReport", "salvage"]
 
