@@ -220,3 +220,44 @@ def test_splitting_suite_quick_reports_the_target(tmp_path: Path) -> None:
     page = out.read_text(encoding="utf-8")
     assert "forced, dissipative: drag + forcing (compiled)" in page
     assert re.search(r"^- \*\*(met|not met)\*\* — forced, dissipative", page, re.MULTILINE)
+
+
+def _quflow_rows(page: str, label: str) -> dict[int, float]:
+    """Steps -> error at T of one curve of the quflow suite's table."""
+    rows = re.findall(rf"^\| {re.escape(label)} \| (\d+) \| ([0-9.e+-]+) \|", page, re.MULTILINE)
+    return {int(n): float(e) for n, e in rows}
+
+
+@pytest.mark.parametrize("with_quflow", [True, False])
+def test_quflow_suite_quick(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, with_quflow: bool
+) -> None:
+    """The quflow comparison (issue 27.4) runs in quick mode: lieflow's midpoint curve is
+    second order against the gauss4 reference, gauss4 is far more accurate, and without
+    quflow the section says so and gives no verdict."""
+    pytest.importorskip("lieflow_zeitlin")
+    from benchmarks.suites import quflow_accuracy
+
+    if with_quflow:
+        pytest.importorskip("quflow")
+    else:
+        monkeypatch.setattr(quflow_accuracy, "quflow_isomp", lambda: None)
+    out = tmp_path / "benchmarks.md"
+    assert cli.main(["--quick", "--only", "quflow", "--out", str(out)]) == 0
+    page = out.read_text(encoding="utf-8")
+    mid = _quflow_rows(page, "lieflow midpoint commutator rtol 1e-14")
+    assert sorted(mid) == [8, 16, 32]
+    assert 3.5 < mid[8] / mid[16] < 4.5 and 3.5 < mid[16] / mid[32] < 4.5
+    assert max(_quflow_rows(page, "lieflow gauss4 commutator rtol 1e-14").values()) < 1e-10
+    conj = _quflow_rows(page, "lieflow midpoint conjugation rtol 1e-08")
+    assert all(conj[n] == pytest.approx(mid[n], rel=1e-3) for n in mid)
+    if with_quflow:
+        assert re.search(r"^- \*\*(met|not met)\*\* — Euler–Zeitlin N = 16", page, re.MULTILINE)
+        qf = _quflow_rows(page, "quflow isomp (tol auto)")
+        assert all(qf[n] == pytest.approx(mid[n], rel=1e-3) for n in mid)
+        found = re.search(r"at equal steps differ by ≤ ([0-9.e+-]+) relative", page)
+        assert found is not None and float(found.group(1)) < 1e-8
+    else:
+        assert "**quflow skipped**" in page
+        assert "**not measured** — Euler–Zeitlin N = 16" in page
+        assert "quflow isomp (tol auto)" not in page
