@@ -143,9 +143,10 @@ class IterationMonitor:
         # arrays of another library (lieflow.backends): norms on their device, one small
         # copy to the host per update (the stopping rule's only synchronisation)
         self._norm = batch_norm if host else host_norms
-        eps = (
-            machine_epsilon(dtype, x0) if not host else _EPS if dtype.char in "dD" else _eps(dtype)
-        )
+        if host:  # float64 and complex128 first: np.finfo costs microseconds per call
+            eps = _EPS if dtype.char in "dD" else _eps(dtype)
+        else:
+            eps = machine_epsilon(dtype, x0)
         if eps > _EPS:  # single precision: the floor scales with machine epsilon
             rule = attrs.evolve(rule, roundoff_floor=rule.roundoff_floor * (eps / _EPS))
         self.rule = rule
