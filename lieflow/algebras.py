@@ -24,6 +24,8 @@ Array = NDArray[Any]
 def _array(X: ArrayLike) -> Array:
     """``X`` as an array: itself if it belongs to another array library
     (:mod:`lieflow.backends`), else ``np.asarray(X)``."""
+    if type(X) is np.ndarray:  # the common case first (a projection per stage and step)
+        return X
     if is_foreign_array(X):
         return X  # type: ignore[return-value]
     return np.asarray(X)
@@ -61,10 +63,17 @@ def minus_dagger(X: Array) -> Array:
     if not is_numpy(X):
         return X - dagger(X)
     n = X.shape[-1]
-    if n <= _BLOCK:
-        return X - dagger(X)
-    out = np.empty(X.shape, dtype=X.dtype)
     conj = X.dtype.kind == "c"
+    if n <= _BLOCK:
+        # the transpose copied first: a subtraction of two contiguous operands skips the
+        # strided iteration a transposed view needs (3x3 real: 1.1 -> 0.75 µs; complex
+        # n = 16: 1.7 -> 1.35 µs), the same entries subtracted
+        Xt = X.swapaxes(-1, -2).copy()
+        if not conj:
+            return X - Xt
+        np.conjugate(Xt, out=Xt)
+        return np.subtract(X, Xt, out=Xt)
+    out = np.empty(X.shape, dtype=X.dtype)
     for i in range(0, n, _BLOCK):
         for j in range(0, n, _BLOCK):
             t = X[..., j : j + _BLOCK, i : i + _BLOCK].swapaxes(-1, -2)
@@ -83,7 +92,7 @@ def frobenius_norm(X: Array) -> Array:
 
 def _halved(Y: Array) -> Array:
     """``Y / 2``, in place when ``Y`` is a (fresh) floating array."""
-    if not is_numpy(Y) or Y.dtype.kind in "fc":
+    if type(Y) is not np.ndarray or Y.dtype.kind in "fc":
         Y *= 0.5
         return Y
     return 0.5 * Y

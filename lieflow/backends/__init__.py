@@ -36,7 +36,8 @@ __all__ = [
 
 def is_numpy(x: Any) -> bool:
     """Whether ``x`` is a NumPy array or scalar (or a Python number)."""
-    return isinstance(x, (np.ndarray, np.generic, int, float, complex))
+    # an exact ndarray first: a type comparison, a third of an isinstance with a tuple
+    return type(x) is np.ndarray or isinstance(x, (np.ndarray, np.generic, int, float, complex))
 
 
 def is_foreign_array(x: Any) -> bool:

@@ -18,6 +18,12 @@ from ..tableaus import ButcherTableau
 
 P = TypeVar("P", bound=ImplicitProblem)
 
+#: Up to this size ``n`` a single ``n×n`` problem is *small*: per-call overhead outweighs
+#: arithmetic, so its maps use ``ndarray.dot`` (the same BLAS product as ``@`` on 2-D
+#: arrays, the same bits, a third of the time on 3×3) and fresh arrays; larger ones write
+#: products into scratch (:func:`scratch`), as stacks do.
+SMALL = 64
+
 
 @attrs.frozen
 class StepStats:
@@ -150,6 +156,11 @@ class StageProblem:
         self.system = system
         self.W0 = W0
         self.skew = system.algebra.skew
+        # how the maps compute, decided once per problem rather than per call: on NumPy
+        # arrays (else another library, lieflow.backends), and on one small matrix (no
+        # batch axes, at most SMALL x SMALL: products by ndarray.dot, no scratch)
+        self._host = is_numpy(W0)
+        self._small = self._host and W0.ndim == 2 and W0.shape[-1] <= SMALL
         # the system's maps, looked up once per problem rather than per iteration
         self._B = system.B
         self._project_stage = system.project_stage

@@ -154,9 +154,8 @@ class IterationMonitor:
         self.residuals: list[float] = []
         self._single = host and x0.ndim == core_ndim  # one problem: the lean check in floats
         if self._single:
-            # ||x0|| as batch_norm computes it (the same einsum kernel, a square root in
-            # x0's precision), as a float; the lean check's reference size from its first
-            # update on
+            # ||x0|| (a square root in x0's precision) as a float; the lean check's
+            # reference size from its first update on
             norm2 = sum_of_squares(x0)
             self._size0f = math.sqrt(norm2) if eps == _EPS else float(np.sqrt(norm2))
             self._size0: Array | float = self._size0f
