@@ -138,6 +138,10 @@ def _combine(weights: Sequence[int], history: Sequence[Any], stack: Any = None) 
 def _prediction_errors(solved: Any, history: Sequence[Any], stack: Any = None) -> list[float]:
     """``||solved - p_m||^2`` for the extrapolations ``p_m`` from ``m = 1 .. len(history)``
     points. ``stack``: :func:`_stacked` of ``history``, if the caller has it."""
+    if len(history) == 1 and isinstance(solved, np.ndarray):  # one point: the last solution
+        last = history[0]
+        if isinstance(last, np.ndarray) and last.shape == solved.shape:
+            return [squared_norm(solved - last)]
     if stack is None:
         stack = _stacked(history)
     if stack is not None and isinstance(solved, np.ndarray) and solved.shape == history[0].shape:
@@ -255,7 +259,8 @@ class WarmStart:
         history stacked once for both: one step's worth of :meth:`guess` and
         :meth:`advance`, with the same results)."""
         history = self.history()
-        stack = _stacked(history) if history else None
+        # one solution: nothing to stack (its prediction is a copy, its error one norm)
+        stack = _stacked(history) if len(history) > 1 else None
         m = min(int(self.trusted), len(history))
         guess = _combine(_weights(m), history, stack) if m > 0 else None
         return Prediction(self, guess, history, stack)

@@ -150,6 +150,6 @@ def machine_epsilon(dtype: Any, like: Any) -> float:
 def all_finite(x: Any) -> bool:
     """Whether every entry of ``x`` is finite (one scalar to the host)."""
     if is_numpy(x):
-        return bool(np.all(np.isfinite(x)))
+        return bool(np.isfinite(x).all())  # the method: np.all's Python layers cost 1 µs
     xp = namespace(x)
     return bool(xp.all(xp.isfinite(x)))

@@ -175,26 +175,34 @@ class StageProblem:
         P = self._project_stage
         return self.system.B_derivative(P(stages), P(dstages))
 
-    def commutator_update(self, stages: Array, hb: Array) -> Array:
+    def commutator_update(self, stages: Array, hb: Array | float) -> Array:
         """``W1 = W0 + sum_i (h b_i) [B(W_i), W_i]`` with ``W_i = P(stages[..., i, :, :])``.
 
         One batched call of ``B``; for skew algebras ``W_i B_i = (B_i W_i)^†`` saves a
         product. The weights are cast to ``W0``'s real precision (single stays single).
+        ``stages`` of ``W0``'s shape is one stage and ``hb`` its weight (a float): the
+        midpoint rule's ``W0 + h [B(M), M]``, without a stage axis (the same values: a sum
+        of one term ``h C`` is ``h C``).
         """
         # Few temporaries (a streamed run of a large system keeps ~20 states at most):
         # each is dropped as soon as it is used; W0 + (...) is evaluated as (...) += W0,
         # the same bits.
+        W0 = self.W0
+        one = stages.ndim == W0.ndim
         W = self._project_stage(stages)
         B = self._B(W)
         if self.skew:
-            C = B @ W
+            C = B.dot(W) if one and self._small else B @ W
             del W, B
             C = minus_dagger(C)
         else:
             C = B @ W - W @ B
             del W, B
-        W0 = self.W0
-        if not is_numpy(W0):  # another array library: the weighted sum stage by stage
+        if one:
+            C *= real_scalar(float(hb), W0)
+            C += W0
+            return C
+        if not self._host:  # another array library: the weighted sum stage by stage
             terms = [float(w) * C[..., i, :, :] for i, w in enumerate(np.asarray(hb).tolist())]
             del C
             return sum(terms[1:], terms[0]) + W0

@@ -105,7 +105,7 @@ class MidpointProblem(StageProblem):
 
     def update(self, M: Array) -> Array:
         """``W1 = W0 + h [B(M), M]``."""
-        return self.commutator_update(M[..., None, :, :], np.array([2 * self.half]))
+        return self.commutator_update(M, 2 * self.half)
 
     def conjugation_update(self, M: Array) -> Array:
         """``W1 = C W0 C^{-1}``, ``C`` the Cayley transform of ``(h/2) B(M)``: isospectral

@@ -111,26 +111,26 @@ einsum: Callable[..., Any] = _c_einsum()
 #: Up to this many numbers a sum of squares is a dot product (BLAS ``dot``: 0.45 µs on a
 #: 3×3 matrix against 1.4 µs for ``einsum``; single-threaded at this size, so its result
 #: does not depend on the number of threads); above it, ``einsum``'s plain loop.
-_DOT_SIZE = 4096
+DOT_SIZE = 4096
 
 
 def sum_of_squares(x: Array) -> Any:
     """``||x||_F^2`` of a whole array as a NumPy scalar of ``x``'s real precision: a dot
     product of the raveled array (real and imaginary parts as two reals) for up to
-    :data:`_DOT_SIZE` numbers, else a plain sum of squares (``einsum``, no BLAS call,
+    :data:`DOT_SIZE` numbers, else a plain sum of squares (``einsum``, no BLAS call,
     whose threading overhead dominates for small arrays). The two may differ in the last
     bits (they add the squares in different orders)."""
     flat = x.ravel() if isinstance(x, np.ndarray) else np.ascontiguousarray(x).reshape(-1)
     if flat.dtype.kind == "c":
         flat = flat.view(flat.real.dtype)
-    if flat.size <= _DOT_SIZE:
+    if flat.size <= DOT_SIZE:
         return flat.dot(flat)
     return einsum("i,i->", flat, flat)
 
 
 def squared_norm(x: Array) -> float:
     """:func:`sum_of_squares` as a Python float."""
-    if type(x) is np.ndarray and x.dtype.kind == "f" and x.size <= _DOT_SIZE:
+    if type(x) is np.ndarray and x.dtype.kind == "f" and x.size <= DOT_SIZE:
         flat = x.ravel()  # the common case inline: one problem's update, a few µs a call
         return float(flat.dot(flat))
     return float(sum_of_squares(x))

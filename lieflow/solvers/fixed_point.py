@@ -14,7 +14,14 @@ from ..algebras import Array
 from ..backends import host_norms, is_numpy, machine_epsilon
 from ..errors import InputError
 from . import arguments
-from .base import ImplicitProblem, SolveResult, batch_norm, squared_norm, sum_of_squares
+from .base import (
+    DOT_SIZE,
+    ImplicitProblem,
+    SolveResult,
+    batch_norm,
+    squared_norm,
+    sum_of_squares,
+)
 
 _EPS = float(np.finfo(float).eps)
 
@@ -154,6 +161,9 @@ class IterationMonitor:
         self.residuals: list[float] = []
         self._single = host and x0.ndim == core_ndim  # one problem: the lean check in floats
         if self._single:
+            # a small real array: its norms are dot products taken inline
+            # (sum_of_squares' own case, without two calls per norm)
+            self._dot = dtype.kind == "f" and x0.size <= DOT_SIZE
             # ||x0|| (a square root in x0's precision) as a float; the lean check's
             # reference size from its first update on
             norm2 = sum_of_squares(x0)
@@ -164,6 +174,8 @@ class IterationMonitor:
                 rule.rtol, rule.roundoff_floor, rule.divergence_factor, rule.max_iter,
                 rule.patience, rule.window, rule.project,
             )  # fmt: skip
+            self._atol, self._rtol = rule.atol, rule.rtol
+            self._divergence = rule.divergence_factor
             # up to this many updates an unmet, finite, bounded update goes on for sure
             self._quiet = min(rule.patience, rule.window, rule.max_iter - 1)
         else:
@@ -196,8 +208,17 @@ class IterationMonitor:
         # ||new|| first: when it is finite, ``new - old`` raises no floating-point warning
         # (``old`` is the last finite iterate or the guess; inf or nan there propagate
         # quietly), so no ``np.errstate`` (a context switch per update) is needed.
-        size2 = squared_norm(new)
-        step = math.sqrt(squared_norm(new - old)) if size2 < _INF else _NAN
+        if self._dot:
+            flat = new.ravel()
+            size2 = float(flat.dot(flat))
+            if size2 < _INF:
+                flat = (new - old).ravel()
+                step = math.sqrt(float(flat.dot(flat)))
+            else:
+                step = _NAN
+        else:
+            size2 = squared_norm(new)
+            step = math.sqrt(squared_norm(new - old)) if size2 < _INF else _NAN
         size = math.sqrt(size2)
         if not (step < _INF and size < _INF):
             self.residuals.append(_NAN)
@@ -207,8 +228,7 @@ class IterationMonitor:
             self._size0f = max(self._size0f, size, _TINY)
         r = step / max(size, _TINY)
         residuals.append(r)
-        rule = self.rule
-        met = step <= rule.atol + rule.rtol * size
+        met = step <= self._atol + self._rtol * size
         growth = size / self._size0f
         # Two shortcuts, each what stopping_verdict returns in its case (it checks finiteness
         # first, then the tolerance, then divergence, and judges stagnation only after
@@ -217,7 +237,7 @@ class IterationMonitor:
         if r < _INF and growth < _INF:
             if met:
                 return "converged"
-            if len(residuals) <= self._quiet and growth <= rule.divergence_factor:
+            if len(residuals) <= self._quiet and growth <= self._divergence:
                 return None
         return REASONS[stopping_verdict(residuals, len(residuals), met, growth, *self._args)]
 
