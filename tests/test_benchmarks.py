@@ -17,6 +17,7 @@ from benchmarks.contenders import AsPublished, LieflowRun, PlainReduced
 from benchmarks.paper_baseline import PaperScheme, dense_block_step, plain_reduced_step
 from benchmarks.report import Table, TargetCheck, ratio
 from benchmarks.suites import rigid_body_scaling
+from benchmarks.suites.iteration_cost import plain_midpoint
 from benchmarks.suites.scipy_work_precision import Point, levels, time_to_reach
 from benchmarks.timing import Timing
 from lieflow.app.reproduce import Case
@@ -121,6 +122,22 @@ def _table_rows(page: str) -> list[list[str]]:
         if line.startswith("|") and not line.startswith("|---"):
             rows.append([cell.strip() for cell in line.strip().strip("|").split("|")])
     return rows
+
+
+@pytest.mark.parametrize(
+    ("name", "n", "h"), [("rigid_body", 3, 0.1), ("generalized_rigid_body", 10, 0.05)]
+)
+def test_plain_midpoint_loop_is_the_numpy_engines_algorithm(name: str, n: int, h: float) -> None:
+    """The baseline of the small-n benchmark (issue 27) runs lieflow's algorithm: the same
+    updates per step as the numpy engine with ``warm_start=1`` and the same states to
+    roundoff (it skips the stage and state projections, which change only roundoff)."""
+    system, W0 = Case(name, "", n, h, 60, 1e-14).build(0)
+    solver = lf.solvers.FixedPoint(rtol=1e-14)
+    sol = lf.integrate(system, lf.schemes.get("midpoint"), W0, h, steps=60, solver=solver,
+                       engine="numpy", diagnostics=False, warm_start=1)  # fmt: skip
+    W, updates = plain_midpoint(np.asarray(system.hadamard_factor), W0, h, 60)
+    assert updates == int(sol.iterations.sum()) > 2 * 60
+    assert np.max(np.abs(W - sol.W[-1])) <= 1e-13 * np.max(np.abs(W0))
 
 
 def test_quick_run_writes_every_table(tmp_path: Path) -> None:
