@@ -161,9 +161,11 @@ class StageProblem:
         # batch axes, at most SMALL x SMALL: products by ndarray.dot, no scratch)
         self._host = is_numpy(W0)
         self._small = self._host and W0.ndim == 2 and W0.shape[-1] <= SMALL
-        # the system's maps, looked up once per problem rather than per iteration
+        # the system's maps, looked up once per problem rather than per iteration (the
+        # default stage projection is the algebra's: called directly, one frame less)
         self._B = system.B
-        self._project_stage = system.project_stage
+        default = type(system).project_stage is IsospectralSystem.project_stage
+        self._project_stage = system.algebra.project if default else system.project_stage
 
     def B(self, stages: Array) -> Array:
         """``B(P(W_i))`` for stage values ``W_i`` (any leading axes)."""

@@ -324,6 +324,7 @@ class FixedPoint:
         check = monitor._check_single if monitor._single else monitor.check
         xs: list[np.ndarray] = []
         gs: list[np.ndarray] = []
+        anderson = self.anderson
         while True:
             g = F(x)
             reason = check(g, x)
@@ -331,7 +332,7 @@ class FixedPoint:
                 ok = reason in ("converged", "roundoff")
                 res = monitor.residuals
                 return SolveResult(g if ok else x, ok, len(res), tuple(res), reason, self.name)
-            if self.anderson:
+            if anderson:
                 xs.append(x.ravel())
                 gs.append(g.ravel())
                 del xs[: -self.anderson - 1], gs[: -self.anderson - 1]

@@ -30,6 +30,8 @@ def _like(table: np.ndarray, W: Array) -> np.ndarray:
     """``table`` (float64) in the real precision of ``W`` (a float32 state stays float32);
     ``table`` itself for a double-precision ``W`` (no dtype promotion per call); for ``W``
     of another array library (:mod:`lieflow.backends`) a copy on its device (small)."""
+    if type(W) is np.ndarray and W.dtype.char == "d":  # the common case first (per update)
+        return table
     if not is_numpy(W):
         xp = namespace(W)
         single = W.dtype in (xp.float32, xp.complex64)
