@@ -52,6 +52,16 @@ CHUNK_STEPS = 1024
 CHUNK_ENTRIES = 1 << 20
 
 
+def _mask(kept: bool) -> Array:
+    mask = np.array([kept])
+    mask.setflags(write=False)
+    return mask
+
+
+#: The keep masks of a one-step chunk (read-only): ``_ONE_STEP[kept]``.
+_ONE_STEP = (_mask(False), _mask(True))
+
+
 def chunk_steps(W0: Array) -> int:
     """Steps per chunk for states like ``W0``: :data:`CHUNK_STEPS`, fewer for large states
     so that a chunk holds at most :data:`CHUNK_ENTRIES` numbers."""
@@ -448,14 +458,20 @@ def run(
         for chunk in advance(flow, W0, h, steps, start=start, state=state):
             if not is_numpy(chunk.W):  # another array library: to the host, once per chunk
                 chunk = attrs.evolve(chunk, W=to_numpy(chunk.W))
-            index = chunk.index
-            keep = (index % save_every == 0) | (index == steps)
+            if chunk.W.shape[0] == 1:  # one step (a numpy-engine chunk): its mask in Python
+                k = chunk.start + 1
+                kept = k % save_every == 0 or k == steps
+                keep = _ONE_STEP[kept]
+            else:
+                index = chunk.index
+                keep = (index % save_every == 0) | (index == steps)
+                kept = bool(keep.any())
             diag = diagnostics.of_chunk(chunk) if diagnostics is not None else None
             for sink in sinks:
                 sink.record(chunk, keep, diag)
             done = chunk.stop
             if at_saves:
-                due = bool(keep.any())
+                due = kept
             else:
                 now = time.perf_counter()
                 due = (every is not None and done - last_step >= every) or (
