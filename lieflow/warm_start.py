@@ -124,7 +124,8 @@ def _combine(weights: Sequence[int], history: Sequence[Any], stack: Any = None) 
         dtype = stack.real.dtype
         if w.dtype != dtype:
             w = w.astype(dtype)
-        return (w @ stack[:m]).reshape(history[0].shape)
+        # ndarray.dot: the BLAS product of @ (the same bits) without the ufunc layers
+        return w.dot(stack[:m]).reshape(history[0].shape)
 
     def leaf(*xs: Any) -> Any:
         acc = weights[0] * xs[0] if weights[0] != 1 else copy(xs[0])
@@ -148,7 +149,7 @@ def _prediction_errors(solved: Any, history: Sequence[Any], stack: Any = None) -
         C = extrapolation_matrix(len(history))
         if stack.real.dtype != C.dtype:
             C = C.astype(stack.real.dtype)
-        E = solved.reshape(1, -1) - C @ stack
+        E = solved.reshape(1, -1) - C.dot(stack)
         if E.dtype.kind == "c":
             E = E.view(E.real.dtype)
         errors: list[float] = einsum("ij,ij->i", E, E).tolist()
