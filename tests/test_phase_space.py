@@ -64,6 +64,27 @@ def test_project_stage_is_linear_and_orthogonal(system: lf.IsospectralSystem) ->
     np.testing.assert_allclose(system.project_stage(W), W, rtol=0, atol=4 * EPS)
 
 
+def test_stage_B_is_B_of_the_stage_projection_bit_for_bit(system: lf.IsospectralSystem) -> None:
+    """``stage_B`` (what the fixed-point maps evaluate; the rigid bodies fuse the stage
+    projection into ``B``) is exactly ``B(project_stage(W))``, single precision and stacks
+    included."""
+    for dtype in (None, np.float32 if system.algebra.dtype.kind == "f" else np.complex64):
+        X = _ambient(system, 5, dtype)
+        for W in (X, np.stack([X, 2 * X])):
+            got, want = system.stage_B(W), system.B(system.project_stage(W))
+            assert got.dtype == want.dtype and np.array_equal(got, want)
+
+
+def test_a_subclass_that_overrides_B_keeps_it_at_stage_values() -> None:
+    class Faster(lf.systems.RigidBody):
+        def B(self, W: np.ndarray) -> np.ndarray:
+            return 2 * super().B(W)
+
+    body, plain = Faster(), lf.systems.RigidBody()
+    X = _ambient(body, 6)
+    assert np.array_equal(body.stage_B(X), 2 * plain.stage_B(X))
+
+
 def test_distance_is_batched(system: lf.IsospectralSystem) -> None:
     X = np.stack([[_ambient(system, s + 3 * k) for s in range(3)] for k in range(2)])
     d = system.phase_space_distance(X)

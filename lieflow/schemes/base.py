@@ -166,10 +166,12 @@ class StageProblem:
         self._B = system.B
         default = type(system).project_stage is IsospectralSystem.project_stage
         self._project_stage = system.algebra.project if default else system.project_stage
+        self._stage_B = system.stage_B
 
     def B(self, stages: Array) -> Array:
-        """``B(P(W_i))`` for stage values ``W_i`` (any leading axes)."""
-        return self._B(self._project_stage(stages))
+        """``B(P(W_i))`` for stage values ``W_i`` (any leading axes): the system's
+        :meth:`~lieflow.IsospectralSystem.stage_B`."""
+        return self._stage_B(stages)
 
     def B_derivative(self, stages: Array, dstages: Array) -> Array:
         """The derivative of :meth:`B` at ``stages`` in the direction ``dstages``

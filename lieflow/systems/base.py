@@ -166,6 +166,15 @@ class IsospectralSystem(ABC):
         """
         return self.algebra.project(W)
 
+    def stage_B(self, W: Array) -> Array:
+        """``B(project_stage(W))``: ``B`` at stage values, what the schemes' fixed-point maps
+        evaluate on every update (:class:`~lieflow.schemes.base.StageProblem`).
+
+        The default composes the two maps; a system may compute it in fewer passes over
+        ``W`` (the rigid bodies: one product less), bit for bit the composition.
+        """
+        return self.B(self.project_stage(W))
+
     def phase_space_distance(self, W: Array) -> Array:
         """``||W - project(W)||_F / ||W||_F``: relative distance from the phase space.
 
