@@ -1,11 +1,13 @@
 """Euler–Zeitlin on a GPU: ms/step, updates/step and agreement with the CPU engine.
 
-One command, at most about 5 minutes on one H100/H200 with 16 CPU cores (most of it the CPU
-reference at N = 2048, computed once per size and scheme; ``--reference-max 1024`` skips it)::
+One command, a few minutes on one H100/H200 with 16 CPU cores (most of it the CPU reference,
+computed once per size and scheme after all device rows, up to ``--reference-max``, 1024 by
+default)::
 
     python -m benchmarks.device                 # CuPy or PyTorch (CUDA), whichever imports
     python -m benchmarks.device --library torch --sizes 256 1024
     python -m benchmarks.device --dry-run       # array_api_strict on the CPU, small N (a test)
+    python -m benchmarks.device --out table.md --check-every 1 2 4
 
 For each N, scheme (midpoint, gauss2) and precision (complex128; complex64 with the solver's
 stagnation-aware stop — the roundoff floor scales with machine epsilon, so an rtol below
@@ -14,7 +16,9 @@ the device's arrays (``lieflow.backends``: schemes, maps, FixedPoint, and the Ho
 as one batched parallel cyclic reduction), from a smooth random vorticity field of rms 1,
 ``h = 1/128`` of fluid time, ``FixedPoint(rtol=1e-13)``, warm starts from the previous step.
 One untimed step first (it places the Laplacian's multipliers on the device), then
-``--steps`` timed steps (device synchronised before reading the clock). The CPU reference
+``--steps`` timed steps (device synchronised before reading the clock), once per
+``FixedPoint(check_every=k)`` of ``--check-every`` (the host reads the stopping test once per
+``k`` updates). The CPU reference
 runs the same steps on NumPy arrays (the numpy engine: sequential sweeps for ``B``) and the
 table gives ``max |W_gpu - W_cpu| / max |W_cpu|`` after them.
 
@@ -96,11 +100,17 @@ def select(library: str) -> tuple[Callable[[np.ndarray], Any], Callable[[], None
 
 
 def run_steps(
-    system: Any, scheme: Any, W: Any, steps: int, sync: Callable[[], None], warm: Any = None
+    system: Any,
+    scheme: Any,
+    W: Any,
+    steps: int,
+    sync: Callable[[], None],
+    warm: Any = None,
+    check_every: int = 1,
 ) -> tuple[Any, list[int], float, Any]:
     """``steps`` warm-started steps from ``W`` (and the previous step's unknowns ``warm``):
     ``(W_end, updates per step, seconds, warm_end)``."""
-    solver = lf.solvers.FixedPoint(rtol=RTOL, max_iter=200)
+    solver = lf.solvers.FixedPoint(rtol=RTOL, max_iter=200, check_every=check_every)
     updates = []
     sync()
     start = time.perf_counter()
@@ -128,46 +138,50 @@ def measure(
     steps: int,
     put: Callable[[np.ndarray], Any],
     sync: Callable[[], None],
-    references: dict[tuple[int, str], np.ndarray] | None,
-) -> dict[str, Any]:
-    """One row of the table; ``references`` caches the CPU engine's end states by ``(N,
-    scheme)`` (one complex128 reference serves both precisions), ``None``: no comparison."""
+    check_every: int,
+) -> tuple[dict[str, Any], np.ndarray]:
+    """One row of the table (agreement still to be filled in) and the end state on the
+    host."""
     import lieflow_zeitlin as lz
 
     N = W0c.shape[-1]
     system = lz.EulerZeitlin(N, time="fluid")
     scheme = lf.schemes.get(scheme_name)
     W0 = W0c.astype(dtype)
-    # one untimed step (it places the constants on the device), then the timed ones: the
-    # same steps + 1 warm-started steps as the CPU reference
-    W1, _, _, warm = run_steps(system, scheme, put(W0), 1, sync)
-    W, updates, seconds, _ = run_steps(system, scheme, W1, steps, sync, warm)
+    # one untimed step (it places the constants on the device and compiles the library's
+    # kernels), then the timed ones: the same steps + 1 warm-started steps as the reference
+    W1, _, _, warm = run_steps(system, scheme, put(W0), 1, sync, None, check_every)
+    W, updates, seconds, _ = run_steps(system, scheme, W1, steps, sync, warm, check_every)
     row: dict[str, Any] = {
         "N": N,
         "scheme": scheme_name,
         "dtype": np.dtype(dtype).name,
+        "check_every": check_every,
         "ms/step": 1e3 * seconds / steps,
         "updates/step": float(np.mean(updates)),
         "agreement": float("nan"),
     }
-    if references is not None:
-        key = (N, scheme_name)
-        if key not in references:
-            references[key] = run_steps(system, scheme, W0c, steps + 1, lambda: None)[0]
-        Wc = references[key]
-        Wd = to_numpy(W).astype(np.complex128)
-        row["agreement"] = float(np.max(np.abs(Wd - Wc)) / np.max(np.abs(Wc)))
-    return row
+    return row, to_numpy(W).astype(np.complex128)
+
+
+def reference(W0c: np.ndarray, scheme_name: str, steps: int) -> tuple[np.ndarray, float]:
+    """The NumPy engine's end state after ``steps`` warm-started steps from ``W0c`` (on the
+    host, all BLAS threads) and its seconds per step."""
+    import lieflow_zeitlin as lz
+
+    system = lz.EulerZeitlin(W0c.shape[-1], time="fluid")
+    W, _, seconds, _ = run_steps(system, lf.schemes.get(scheme_name), W0c, steps, lambda: None)
+    return W, seconds / steps
 
 
 def table(rows: Sequence[dict[str, Any]]) -> str:
     """The rows as a Markdown table."""
-    head = "| N | scheme | dtype | ms/step | updates/step | rel. diff. vs CPU |"
-    lines = [head, "|---|---|---|---|---|---|"]
+    head = "| N | scheme | dtype | check every | ms/step | updates/step | rel. diff. vs CPU |"
+    lines = [head, "|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(
-            f"| {r['N']} | {r['scheme']} | {r['dtype']} | {r['ms/step']:.2f} | "
-            f"{r['updates/step']:.1f} | {r['agreement']:.1e} |"
+            f"| {r['N']} | {r['scheme']} | {r['dtype']} | {r['check_every']} | "
+            f"{r['ms/step']:.2f} | {r['updates/step']:.1f} | {r['agreement']:.1e} |"
         )
     return "\n".join(lines)
 
@@ -180,12 +194,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024, 2048])
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument(
+        "--check-every",
+        type=int,
+        nargs="+",
+        default=[1, 2, 4],
+        help="FixedPoint(check_every=k) values, one row each (host reads per k updates)",
+    )
+    parser.add_argument(
         "--reference-max",
         type=int,
-        default=2048,
+        default=1024,
         help="compare with the CPU engine up to this N (the CPU reference dominates the time)",
     )
     parser.add_argument("--no-single", action="store_true", help="skip complex64")
+    parser.add_argument("--out", help="also write the table (Markdown) to this file")
     parser.add_argument(
         "--dry-run",
         action="store_true",
@@ -204,22 +226,40 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         return 2
     put, sync, description = chosen
-    print(f"# Euler–Zeitlin on {description}; h = 1/128 fluid time, rtol {RTOL:g}")
+    title = f"# Euler–Zeitlin on {description}; h = 1/128 fluid time, rtol {RTOL:g}"
+    print(title, flush=True)
     dtypes: list[Any] = [np.complex128] + ([] if args.no_single else [np.complex64])
-    rows = []
-    references: dict[tuple[int, str], np.ndarray] = {}
+    rows: list[dict[str, Any]] = []
+    ends: list[np.ndarray] = []
+    states = {N: initial_state(N) for N in args.sizes}
+
+    def write() -> None:
+        if args.out:
+            with open(args.out, "w", encoding="utf-8") as f:
+                f.write(f"{title}\n\n{table(rows)}\n")
+
+    # the device rows first (seconds), then the CPU references (minutes at N = 1024)
     for N in args.sizes:
-        W0 = initial_state(N)
         for dtype in dtypes:
             for name in SCHEMES:
-                compare = references if N <= args.reference_max else None
-                row = measure(W0, name, dtype, args.steps, put, sync, compare)
-                rows.append(row)
-                print(
-                    f"  N={N} {name} {row['dtype']}: {row['ms/step']:.2f} ms/step, "
-                    f"{row['updates/step']:.1f} updates/step, diff {row['agreement']:.1e}",
-                    flush=True,
-                )
+                for k in args.check_every:
+                    row, end = measure(states[N], name, dtype, args.steps, put, sync, k)
+                    rows.append(row)
+                    ends.append(end)
+                    print(
+                        f"  N={N} {name} {row['dtype']} check_every={k}: "
+                        f"{row['ms/step']:.2f} ms/step, {row['updates/step']:.1f} updates/step",
+                        flush=True,
+                    )
+                    write()
+    for N in (n for n in args.sizes if n <= args.reference_max):
+        for name in SCHEMES:
+            Wc, per_step = reference(states[N], name, args.steps + 1)
+            print(f"  CPU reference N={N} {name}: {1e3 * per_step:.1f} ms/step", flush=True)
+            for row, end in zip(rows, ends, strict=True):
+                if row["N"] == N and row["scheme"] == name:
+                    row["agreement"] = float(np.max(np.abs(end - Wc)) / np.max(np.abs(Wc)))
+            write()
     print(table(rows))
     return 0
 
