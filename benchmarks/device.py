@@ -247,6 +247,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     dtypes: list[Any] = [np.complex128] + ([] if args.no_single else [np.complex64])
     rows: list[dict[str, Any]] = []
     ends: list[np.ndarray] = []
+    failures: list[str] = []
     import lieflow_zeitlin as lz
 
     states = {N: initial_state(N) for N in args.sizes}
@@ -262,7 +263,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         for dtype in dtypes:
             for name in SCHEMES:
                 for k in args.check_every:
-                    row, end = measure(systems[N], states[N], name, dtype, args.steps, put, sync, k)
+                    try:
+                        row, end = measure(
+                            systems[N], states[N], name, dtype, args.steps, put, sync, k
+                        )
+                    except lf.errors.ConvergenceError as exc:  # a row, not the whole table
+                        failures.append(f"N={N} {name} {np.dtype(dtype).name} k={k}: {exc}")
+                        print(f"  {failures[-1]}", flush=True)
+                        continue
                     rows.append(row)
                     ends.append(end)
                     print(
@@ -273,13 +281,19 @@ def main(argv: Sequence[str] | None = None) -> int:
                     write()
     for N in (n for n in args.sizes if n <= args.reference_max):
         for name in SCHEMES:
-            Wc, per_step = reference(systems[N], states[N], name, args.steps + 1)
+            try:
+                Wc, per_step = reference(systems[N], states[N], name, args.steps + 1)
+            except lf.errors.ConvergenceError as exc:
+                failures.append(f"CPU reference N={N} {name}: {exc}")
+                continue
             print(f"  CPU reference N={N} {name}: {1e3 * per_step:.1f} ms/step", flush=True)
             for row, end in zip(rows, ends, strict=True):
                 if row["N"] == N and row["scheme"] == name:
                     row["agreement"] = float(np.max(np.abs(end - Wc)) / np.max(np.abs(Wc)))
             write()
     print(table(rows))
+    for failure in failures:
+        print(f"failed: {failure}")
     return 0
 
 
