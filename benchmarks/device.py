@@ -1,11 +1,13 @@
 """Euler–Zeitlin on a GPU: ms/step, updates/step and agreement with the CPU engine.
 
-One command, at most about 5 minutes on one H100/H200 with 16 CPU cores (most of it the CPU
-reference at N = 2048, computed once per size and scheme; ``--reference-max 1024`` skips it)::
+One command, a few minutes on one H100/H200 with 16 CPU cores (most of it the CPU reference,
+computed once per size and scheme after all device rows, up to ``--reference-max``, 1024 by
+default)::
 
     python -m benchmarks.device                 # CuPy or PyTorch (CUDA), whichever imports
     python -m benchmarks.device --library torch --sizes 256 1024
     python -m benchmarks.device --dry-run       # array_api_strict on the CPU, small N (a test)
+    python -m benchmarks.device --out table.md --check-every 1 2 4
 
 For each N, scheme (midpoint, gauss2) and precision (complex128; complex64 with the solver's
 stagnation-aware stop — the roundoff floor scales with machine epsilon, so an rtol below
@@ -14,7 +16,9 @@ the device's arrays (``lieflow.backends``: schemes, maps, FixedPoint, and the Ho
 as one batched parallel cyclic reduction), from a smooth random vorticity field of rms 1,
 ``h = 1/128`` of fluid time, ``FixedPoint(rtol=1e-13)``, warm starts from the previous step.
 One untimed step first (it places the Laplacian's multipliers on the device), then
-``--steps`` timed steps (device synchronised before reading the clock). The CPU reference
+``--steps`` timed steps (device synchronised before reading the clock), once per
+``FixedPoint(check_every=k)`` of ``--check-every`` (the host reads the stopping test once per
+``k`` updates). The CPU reference
 runs the same steps on NumPy arrays (the numpy engine: sequential sweeps for ``B``) and the
 table gives ``max |W_gpu - W_cpu| / max |W_cpu|`` after them.
 
@@ -96,11 +100,17 @@ def select(library: str) -> tuple[Callable[[np.ndarray], Any], Callable[[], None
 
 
 def run_steps(
-    system: Any, scheme: Any, W: Any, steps: int, sync: Callable[[], None], warm: Any = None
+    system: Any,
+    scheme: Any,
+    W: Any,
+    steps: int,
+    sync: Callable[[], None],
+    warm: Any = None,
+    check_every: int = 1,
 ) -> tuple[Any, list[int], float, Any]:
     """``steps`` warm-started steps from ``W`` (and the previous step's unknowns ``warm``):
     ``(W_end, updates per step, seconds, warm_end)``."""
-    solver = lf.solvers.FixedPoint(rtol=RTOL, max_iter=200)
+    solver = lf.solvers.FixedPoint(rtol=RTOL, max_iter=200, check_every=check_every)
     updates = []
     sync()
     start = time.perf_counter()
@@ -112,62 +122,82 @@ def run_steps(
     return W, updates, time.perf_counter() - start, warm
 
 
+#: Above this size ``random_vorticity`` takes its O(N⁴) reference path (minutes at 2048).
+RECURRENCE_MAX = 1400
+
+
 def initial_state(N: int) -> np.ndarray:
-    """The smooth random vorticity field of rms 1 that every row at size ``N`` starts from
-    (built once per size: at N = 2048 it takes tens of seconds on the host)."""
+    """The smooth random vorticity field of rms 1 (``‖W‖_F² = N``) that every row at size
+    ``N`` starts from: ``lieflow_zeitlin.random_vorticity`` (degrees 1..8) up to
+    :data:`RECURRENCE_MAX`; above it a random quadratic polynomial in the spin matrices
+    ``S_a`` — the quantized coordinate functions, so a field of degrees 1..2 — made
+    traceless and skew-Hermitian, built in seconds."""
     import lieflow_zeitlin as lz
 
-    W: np.ndarray = lz.random_vorticity(N, degree=8, seed=N)
-    return W
+    if N <= RECURRENCE_MAX:
+        W: np.ndarray = lz.random_vorticity(N, degree=8, seed=N)
+        return W
+    rng = np.random.default_rng(N)
+    S = [a / ((N - 1) / 2) for a in lz.spin_matrices(N)]
+    H = sum(rng.standard_normal() * a for a in S)
+    for i in range(3):
+        for j in range(i, 3):
+            H = H + rng.standard_normal() * (S[i] @ S[j] + S[j] @ S[i]) / 2
+    H = (H + H.conj().T) / 2
+    H -= (np.trace(H) / N) * np.eye(N)
+    W = 1j * H
+    return np.asarray(W * (np.sqrt(N) / np.linalg.norm(W)))
 
 
 def measure(
+    system: Any,
     W0c: np.ndarray,
     scheme_name: str,
     dtype: Any,
     steps: int,
     put: Callable[[np.ndarray], Any],
     sync: Callable[[], None],
-    references: dict[tuple[int, str], np.ndarray] | None,
-) -> dict[str, Any]:
-    """One row of the table; ``references`` caches the CPU engine's end states by ``(N,
-    scheme)`` (one complex128 reference serves both precisions), ``None``: no comparison."""
-    import lieflow_zeitlin as lz
-
+    check_every: int,
+) -> tuple[dict[str, Any], np.ndarray]:
+    """One row of the table (agreement still to be filled in) and the end state on the
+    host. ``system`` is built once per size: its Laplacian multipliers (extended precision,
+    seconds at N = 2048) are computed once and placed on the device once per precision."""
     N = W0c.shape[-1]
-    system = lz.EulerZeitlin(N, time="fluid")
     scheme = lf.schemes.get(scheme_name)
     W0 = W0c.astype(dtype)
-    # one untimed step (it places the constants on the device), then the timed ones: the
-    # same steps + 1 warm-started steps as the CPU reference
-    W1, _, _, warm = run_steps(system, scheme, put(W0), 1, sync)
-    W, updates, seconds, _ = run_steps(system, scheme, W1, steps, sync, warm)
+    # one untimed step (it places the constants on the device and compiles the library's
+    # kernels), then the timed ones: the same steps + 1 warm-started steps as the reference
+    W1, _, _, warm = run_steps(system, scheme, put(W0), 1, sync, None, check_every)
+    W, updates, seconds, _ = run_steps(system, scheme, W1, steps, sync, warm, check_every)
     row: dict[str, Any] = {
         "N": N,
         "scheme": scheme_name,
         "dtype": np.dtype(dtype).name,
+        "check_every": check_every,
         "ms/step": 1e3 * seconds / steps,
         "updates/step": float(np.mean(updates)),
         "agreement": float("nan"),
     }
-    if references is not None:
-        key = (N, scheme_name)
-        if key not in references:
-            references[key] = run_steps(system, scheme, W0c, steps + 1, lambda: None)[0]
-        Wc = references[key]
-        Wd = to_numpy(W).astype(np.complex128)
-        row["agreement"] = float(np.max(np.abs(Wd - Wc)) / np.max(np.abs(Wc)))
-    return row
+    return row, to_numpy(W).astype(np.complex128)
+
+
+def reference(
+    system: Any, W0c: np.ndarray, scheme_name: str, steps: int
+) -> tuple[np.ndarray, float]:
+    """The NumPy engine's end state after ``steps`` warm-started steps from ``W0c`` (on the
+    host, all BLAS threads) and its seconds per step."""
+    W, _, seconds, _ = run_steps(system, lf.schemes.get(scheme_name), W0c, steps, lambda: None)
+    return W, seconds / steps
 
 
 def table(rows: Sequence[dict[str, Any]]) -> str:
     """The rows as a Markdown table."""
-    head = "| N | scheme | dtype | ms/step | updates/step | rel. diff. vs CPU |"
-    lines = [head, "|---|---|---|---|---|---|"]
+    head = "| N | scheme | dtype | check every | ms/step | updates/step | rel. diff. vs CPU |"
+    lines = [head, "|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(
-            f"| {r['N']} | {r['scheme']} | {r['dtype']} | {r['ms/step']:.2f} | "
-            f"{r['updates/step']:.1f} | {r['agreement']:.1e} |"
+            f"| {r['N']} | {r['scheme']} | {r['dtype']} | {r['check_every']} | "
+            f"{r['ms/step']:.2f} | {r['updates/step']:.1f} | {r['agreement']:.1e} |"
         )
     return "\n".join(lines)
 
@@ -180,12 +210,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024, 2048])
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument(
+        "--check-every",
+        type=int,
+        nargs="+",
+        default=[1, 2, 4],
+        help="FixedPoint(check_every=k) values, one row each (host reads per k updates)",
+    )
+    parser.add_argument(
         "--reference-max",
         type=int,
-        default=2048,
+        default=1024,
         help="compare with the CPU engine up to this N (the CPU reference dominates the time)",
     )
     parser.add_argument("--no-single", action="store_true", help="skip complex64")
+    parser.add_argument("--out", help="also write the table (Markdown) to this file")
     parser.add_argument(
         "--dry-run",
         action="store_true",
@@ -204,23 +242,58 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         return 2
     put, sync, description = chosen
-    print(f"# Euler–Zeitlin on {description}; h = 1/128 fluid time, rtol {RTOL:g}")
+    title = f"# Euler–Zeitlin on {description}; h = 1/128 fluid time, rtol {RTOL:g}"
+    print(title, flush=True)
     dtypes: list[Any] = [np.complex128] + ([] if args.no_single else [np.complex64])
-    rows = []
-    references: dict[tuple[int, str], np.ndarray] = {}
+    rows: list[dict[str, Any]] = []
+    ends: list[np.ndarray] = []
+    failures: list[str] = []
+    import lieflow_zeitlin as lz
+
+    states = {N: initial_state(N) for N in args.sizes}
+    systems = {N: lz.EulerZeitlin(N, time="fluid") for N in args.sizes}
+
+    def write() -> None:
+        if args.out:
+            with open(args.out, "w", encoding="utf-8") as f:
+                f.write(f"{title}\n\n{table(rows)}\n")
+
+    # the device rows first (seconds), then the CPU references (minutes at N = 1024)
     for N in args.sizes:
-        W0 = initial_state(N)
         for dtype in dtypes:
             for name in SCHEMES:
-                compare = references if N <= args.reference_max else None
-                row = measure(W0, name, dtype, args.steps, put, sync, compare)
-                rows.append(row)
-                print(
-                    f"  N={N} {name} {row['dtype']}: {row['ms/step']:.2f} ms/step, "
-                    f"{row['updates/step']:.1f} updates/step, diff {row['agreement']:.1e}",
-                    flush=True,
-                )
+                for k in args.check_every:
+                    try:
+                        row, end = measure(
+                            systems[N], states[N], name, dtype, args.steps, put, sync, k
+                        )
+                    except lf.errors.ConvergenceError as exc:  # a row, not the whole table
+                        failures.append(f"N={N} {name} {np.dtype(dtype).name} k={k}: {exc}")
+                        print(f"  {failures[-1]}", flush=True)
+                        continue
+                    rows.append(row)
+                    ends.append(end)
+                    print(
+                        f"  N={N} {name} {row['dtype']} check_every={k}: "
+                        f"{row['ms/step']:.2f} ms/step, {row['updates/step']:.1f} updates/step",
+                        flush=True,
+                    )
+                    write()
+    for N in (n for n in args.sizes if n <= args.reference_max):
+        for name in SCHEMES:
+            try:
+                Wc, per_step = reference(systems[N], states[N], name, args.steps + 1)
+            except lf.errors.ConvergenceError as exc:
+                failures.append(f"CPU reference N={N} {name}: {exc}")
+                continue
+            print(f"  CPU reference N={N} {name}: {1e3 * per_step:.1f} ms/step", flush=True)
+            for row, end in zip(rows, ends, strict=True):
+                if row["N"] == N and row["scheme"] == name:
+                    row["agreement"] = float(np.max(np.abs(end - Wc)) / np.max(np.abs(Wc)))
+            write()
     print(table(rows))
+    for failure in failures:
+        print(f"failed: {failure}")
     return 0
 
 

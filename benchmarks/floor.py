@@ -4,12 +4,15 @@ time of the products and Laplacian solves the step cannot avoid, measured in one
     python -m benchmarks.floor                  # N = 256, the threads BLAS has
     python -m benchmarks.floor --sizes 256 512 --cpu-time
     OPENBLAS_NUM_THREADS=1 python -m benchmarks.floor    # the one-thread check (target 1.25x)
+    python -m benchmarks.floor --sizes 512 --threads 1 2 4 8 16   # a thread-scaling table
 
 Floor of a step with ``u`` fixed-point updates (``lf.integrate`` with diagnostics, rtol
 1e-14, ``h = 1/N`` of fluid time, smooth random vorticity of rms 1, warm starts):
 ``u (2 GEMM + B)`` for the midpoint maps, ``GEMM + B`` for the update, ``GEMM`` for the
 Casimirs ``tr W^k``, ``k <= 4`` and ``B`` for the energy — each term the best time of that
-operation alone on the same state. ``--cpu-time`` reads process CPU time instead of the wall
+operation alone on the same state. The fluids plugin's extra diagnostics (spectra, vorticity
+levels) are off (``diagnostics_every=0``): they are not part of a step. ``--cpu-time`` reads
+process CPU time instead of the wall
 clock: on a shared machine the wall clock of a 40 ms step includes other processes' time
 slices, which best-of-k timings of a 3 ms product mostly avoid (one BLAS thread only).
 """
@@ -17,6 +20,9 @@ slices, which best-of-k timings of a 3 ms product mostly avoid (one BLAS thread 
 from __future__ import annotations
 
 import argparse
+import os
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Sequence
 
@@ -40,7 +46,7 @@ def measure(N: int, steps: int, repeats: int, clock: Callable[[], float]) -> dic
     """Seconds per step, its floor and their parts at size ``N``."""
     import lieflow_zeitlin as lz
 
-    system = lf.systems.get("euler_zeitlin", N=N, time="fluid")
+    system = lf.systems.get("euler_zeitlin", N=N, time="fluid", diagnostics_every=0)
     W0 = lz.random_vorticity(N, degree=8, seed=0)
     scheme = lf.schemes.get("midpoint")
     solver = lf.solvers.FixedPoint(rtol=1e-14)
@@ -60,13 +66,42 @@ def measure(N: int, steps: int, repeats: int, clock: Callable[[], float]) -> dic
     return {"N": N, "updates": updates, "step": step, "gemm": gemm, "B": B, "floor": floor}
 
 
+#: Environment variables that set the thread count of the BLAS libraries NumPy may use.
+THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def scaling(args: argparse.Namespace) -> int:
+    """One subprocess per thread count (BLAS reads its thread count at start-up), each
+    printing its rows; a ``threads`` column in front."""
+    print("| threads | N | updates/step | ms/step | GEMM ms | B ms | floor ms | step / floor |")
+    print("|---|---|---|---|---|---|---|---|")
+    for t in args.threads:
+        env = dict(os.environ, **{v: str(t) for v in THREAD_VARIABLES})
+        command = [sys.executable, "-m", "benchmarks.floor", "--sizes", *map(str, args.sizes)]
+        command += ["--steps", str(args.steps), "--repeats", str(args.repeats)]
+        command += ["--cpu-time"] if args.cpu_time else []
+        out = subprocess.run(command, env=env, capture_output=True, text=True, check=True)
+        for line in out.stdout.splitlines():
+            if line.startswith("| ") and line[2].isdigit():
+                print(f"| {t} {line}", flush=True)
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.floor", description=__doc__)
     parser.add_argument("--sizes", type=int, nargs="+", default=[256])
     parser.add_argument("--steps", type=int, default=8)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--cpu-time", action="store_true", help="process CPU time, not wall")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        nargs="+",
+        help="a scaling table: one run per BLAS thread count (e.g. 1 2 4 8 16)",
+    )
     args = parser.parse_args(argv)
+    if args.threads:
+        return scaling(args)
     clock = time.process_time if args.cpu_time else time.perf_counter
     print("| N | updates/step | ms/step | GEMM ms | B ms | floor ms | step / floor |")
     print("|---|---|---|---|---|---|---|")
@@ -74,7 +109,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         r = measure(N, args.steps, args.repeats, clock)
         print(
             f"| {N} | {r['updates']:.2f} | {1e3 * r['step']:.1f} | {1e3 * r['gemm']:.2f} | "
-            f"{1e3 * r['B']:.2f} | {1e3 * r['floor']:.1f} | {r['step'] / r['floor']:.2f} |"
+            f"{1e3 * r['B']:.2f} | {1e3 * r['floor']:.1f} | {r['step'] / r['floor']:.2f} |",
+            flush=True,
         )
     return 0
 

@@ -65,7 +65,7 @@ _ONE_STEP = (_mask(False), _mask(True))
 def chunk_steps(W0: Array) -> int:
     """Steps per chunk for states like ``W0``: :data:`CHUNK_STEPS`, fewer for large states
     so that a chunk holds at most :data:`CHUNK_ENTRIES` numbers."""
-    return max(1, min(CHUNK_STEPS, CHUNK_ENTRIES // max(1, W0.size)))
+    return max(1, min(CHUNK_STEPS, CHUNK_ENTRIES // max(1, math.prod(W0.shape))))
 
 
 @attrs.frozen(eq=False)

@@ -147,7 +147,9 @@ def describe(obj: Any, depth: int = 0) -> Any:
     """A JSON-able description of ``obj`` for a run's identity: attrs classes field by
     field (``{"type": qualname, field: ...}``), arrays by dtype, shape and the first 16 hex
     digits of the SHA-256 of their bytes, numbers, strings, ``None`` and sequences as they
-    are, anything else by ``repr`` (and by ``repr`` beyond six levels of nesting)."""
+    are, anything else by ``repr`` (and by ``repr`` beyond six levels of nesting). A field
+    whose metadata says ``identity=False`` (how a result is computed, not which: e.g.
+    :attr:`FixedPoint.check_every <lieflow.solvers.FixedPoint>`) is left out."""
     if depth > 6:
         return repr(obj)
     if isinstance(obj, np.ndarray):
@@ -162,7 +164,8 @@ def describe(obj: Any, depth: int = 0) -> Any:
         return [describe(x, depth + 1) for x in obj]
     if attrs.has(type(obj)):
         fields = {f.name: describe(getattr(obj, f.name), depth + 1)
-                  for f in attrs.fields(type(obj)) if f.init}  # fmt: skip
+                  for f in attrs.fields(type(obj))
+                  if f.init and f.metadata.get("identity", True)}  # fmt: skip
         return {"type": type(obj).__qualname__, **fields}
     return repr(obj)
 

@@ -4,6 +4,9 @@ must match to roundoff with the same iteration counts. GPU libraries only where 
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any, cast
+
 import numpy as np
 import pytest
 
@@ -71,21 +74,48 @@ def test_a_batch_of_states_on_array_api_strict() -> None:
     np.testing.assert_allclose(backends.to_numpy(ra.W), r.W, rtol=0, atol=1e-15)
 
 
-def test_cupy_step_matches_numpy_on_a_gpu() -> None:
-    cp = pytest.importorskip("cupy")
-    try:
-        if cp.cuda.runtime.getDeviceCount() < 1:
+def _on_gpu(library: str) -> Callable[[np.ndarray], Any]:
+    """``W -> W`` on the first CUDA device of ``library``; skips where there is none."""
+    if library == "cupy":
+        cp = pytest.importorskip("cupy")
+        try:
+            if cp.cuda.runtime.getDeviceCount() < 1:
+                pytest.skip("no CUDA device")
+        except Exception:
+            pytest.skip("no CUDA runtime")
+        return cast(Callable[[np.ndarray], Any], cp.asarray)
+    if library == "torch":
+        torch = pytest.importorskip("torch")
+        if not torch.cuda.is_available():
             pytest.skip("no CUDA device")
-    except Exception:
-        pytest.skip("no CUDA runtime")
+        return lambda W: torch.from_numpy(np.ascontiguousarray(W)).to("cuda")
+    jax = pytest.importorskip("jax")
+    if not any(d.platform == "gpu" for d in jax.devices()):
+        pytest.skip("no GPU for JAX")
+    jax.config.update("jax_enable_x64", True)
+    return lambda W: jax.device_put(W, jax.devices("gpu")[0])
+
+
+@pytest.mark.parametrize("library", ["cupy", "torch", "jax"])
+@pytest.mark.parametrize("scheme_name", ["midpoint", "gauss2"])
+def test_gpu_runs_match_numpy(library: str, scheme_name: str) -> None:
+    """A step and a whole ``integrate`` run on a GPU library's arrays against the NumPy
+    engine (skipped without a CUDA device)."""
+    put = _on_gpu(library)
     lz = pytest.importorskip("lieflow_zeitlin")
     system = lz.EulerZeitlin(32)
     W = system.random_state(2)
     solver = lf.solvers.FixedPoint(rtol=1e-14)
-    scheme = lf.schemes.get("midpoint")
+    scheme = lf.schemes.get(scheme_name)
     r = scheme.step(W, 0.01, system, solver)
-    rc = scheme.step(cp.asarray(W), 0.01, system, solver)
-    assert np.max(np.abs(backends.to_numpy(rc.W) - r.W)) <= 1e-13 * np.max(np.abs(r.W))
+    rg = scheme.step(put(W), 0.01, system, solver)
+    assert np.max(np.abs(backends.to_numpy(rg.W) - r.W)) <= 1e-13 * np.max(np.abs(r.W))
+    kwargs = {"h": 0.01, "steps": 20, "save_every": 5, "solver": solver}
+    ref = lf.integrate(system, scheme, W, engine="numpy", **kwargs)
+    sol = lf.integrate(system, scheme, put(W), **kwargs)
+    assert sol.status == lf.Status.SUCCESS
+    assert np.max(np.abs(sol.W - ref.W)) <= 1e-12 * np.max(np.abs(ref.W))
+    assert float(np.max(sol.casimir_drift)) <= 1e-13
 
 
 @pytest.mark.parametrize("scheme_name", ["midpoint", "gauss2"])
@@ -119,3 +149,50 @@ def test_the_compiled_engine_refuses_other_arrays_clearly() -> None:
             steps=3,
             engine="compiled",
         )
+
+
+@pytest.mark.parametrize("every", [2, 3, 5])
+def test_check_every_reads_the_host_once_per_group(
+    every: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``FixedPoint(check_every=k)`` on a device library: one host copy per ``k`` updates
+    (counted at the solver's only copy), the first update the rule accepts is the same as
+    with ``k = 1`` (the count is that one rounded up to the group), and the result agrees
+    with NumPy's to roundoff."""
+    from lieflow.solvers import fixed_point
+
+    lz = pytest.importorskip("lieflow_zeitlin")
+    system = lz.EulerZeitlin(16)
+    W = system.random_state(2)
+    scheme = lf.schemes.get("midpoint")
+    reference = scheme.step(W, 0.05, system, lf.solvers.FixedPoint(rtol=1e-13))
+    n = reference.stats.iterations
+    copies = []
+    real_to_numpy = fixed_point.to_numpy
+
+    def counting(x: object) -> np.ndarray:
+        copies.append(1)
+        return real_to_numpy(x)
+
+    monkeypatch.setattr(fixed_point, "to_numpy", counting)
+    solver = lf.solvers.FixedPoint(rtol=1e-13, check_every=every)
+    r = scheme.step(xps.asarray(W), 0.05, system, solver)
+    groups = -(-n // every)
+    assert r.stats.iterations == groups * every
+    assert len(copies) == 1 + groups  # ||x0|| once, then one copy per group
+    rel = np.max(np.abs(backends.to_numpy(r.W) - reference.W)) / np.max(np.abs(reference.W))
+    assert rel <= 1e-14
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")
+def test_check_every_stops_at_max_iter_and_reports_divergence() -> None:
+    """A group never runs past ``max_iter``, and a failure inside a group is reported (the
+    step is refused, not returned)."""
+    system = lf.systems.get("rigid_body", inertia=(1.0, 2.0, 3.0))
+    W = xps.asarray(system.random_state(0))
+    problem = lf.schemes.MidpointProblem(system, W, 0.1)
+    res = lf.solvers.FixedPoint(rtol=1e-300, atol=0.0, max_iter=7, check_every=3).solve(problem)
+    assert res.iterations <= 7 and res.reason in ("roundoff", "max_iterations", "stalled")
+    huge = lf.schemes.MidpointProblem(system, W, 1e6)
+    bad = lf.solvers.FixedPoint(rtol=1e-13, check_every=4).solve(huge)
+    assert not bad.converged and bad.reason in ("diverged", "non_finite", "stalled")

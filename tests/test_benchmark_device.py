@@ -20,10 +20,14 @@ def test_dry_run_prints_the_table_and_agrees_with_the_cpu_engine(
         for line in out.splitlines()
         if line.startswith("| 16 ") or line.startswith("| 32 ")
     ]
-    assert len(rows) == 2 * 2 * 2  # N x scheme x dtype
-    for N, scheme, dtype, ms, updates, diff in ([c.strip() for c in r] for r in rows):
+    assert len(rows) == 2 * 2 * 2 * 3  # N x scheme x dtype x check_every
+    updates_at: dict[tuple[str, str, str], dict[int, float]] = {}
+    for N, scheme, dtype, k, ms, updates, diff in ([c.strip() for c in r] for r in rows):
         assert scheme in ("midpoint", "gauss2") and float(ms) > 0 and 1 <= float(updates) < 50
         assert float(diff) <= (1e-13 if dtype == "complex128" else 1e-5), (N, scheme, dtype)
+        updates_at.setdefault((N, scheme, dtype), {})[int(k)] = float(updates)
+    for counts in updates_at.values():  # a group of k updates is read at once: no fewer
+        assert counts[1] <= counts[2] <= counts[1] + 1 and counts[1] <= counts[4] < counts[1] + 4
 
 
 def test_without_a_gpu_library_it_says_so(capsys: pytest.CaptureFixture[str]) -> None:

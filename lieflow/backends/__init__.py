@@ -23,6 +23,7 @@ from ..errors import InputError
 __all__ = [
     "all_finite",
     "copy",
+    "device_norms",
     "device_of",
     "from_host",
     "host_norms",
@@ -130,14 +131,19 @@ def copy(x: Any) -> Any:
     return namespace(x).asarray(x, copy=True)
 
 
-def host_norms(x: Any, core_ndim: int) -> np.ndarray:
-    """Frobenius norms of ``x`` over its trailing ``core_ndim`` axes, as a float64 NumPy
-    array of the batch shape: computed on ``x``'s device, one small device-to-host copy
-    (the only synchronisation of a solver's stopping test)."""
+def device_norms(x: Any, core_ndim: int) -> Any:
+    """Frobenius norms of ``x`` over its trailing ``core_ndim`` axes, an array of the batch
+    shape on ``x``'s device (no synchronisation: a library that queues work returns at once)."""
     xp = namespace(x)
     axes = tuple(range(-core_ndim, 0))
     squares = xp.real(x * xp.conj(x)) if xp.isdtype(x.dtype, "complex floating") else x * x
-    return np.asarray(to_numpy(xp.sqrt(xp.sum(squares, axis=axes))), dtype=np.float64)
+    return xp.sqrt(xp.sum(squares, axis=axes))
+
+
+def host_norms(x: Any, core_ndim: int) -> np.ndarray:
+    """:func:`device_norms` as a float64 NumPy array: one small device-to-host copy (a
+    synchronisation)."""
+    return np.asarray(to_numpy(device_norms(x, core_ndim)), dtype=np.float64)
 
 
 def machine_epsilon(dtype: Any, like: Any) -> float:

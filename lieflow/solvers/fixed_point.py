@@ -11,7 +11,7 @@ import attrs
 import numpy as np
 
 from ..algebras import Array
-from ..backends import host_norms, is_numpy, machine_epsilon
+from ..backends import device_norms, is_numpy, machine_epsilon, namespace, to_numpy
 from ..errors import InputError
 from . import arguments
 from .base import (
@@ -144,12 +144,15 @@ class IterationMonitor:
     """The bookkeeping of one solve for a :class:`StoppingRule`: the history of relative
     updates and the growth of the iterate. Local to a ``solve`` call (never shared)."""
 
-    def __init__(self, rule: StoppingRule, core_ndim: int, x0: Array) -> None:
+    def __init__(self, rule: StoppingRule, core_ndim: int, x0: Array, check_every: int = 1) -> None:
         dtype = x0.dtype
         host = is_numpy(x0)
         # arrays of another library (lieflow.backends): norms on their device, one small
-        # copy to the host per update (the stopping rule's only synchronisation)
-        self._norm = batch_norm if host else host_norms
+        # copy to the host per ``check_every`` updates (the stopping rule's only
+        # synchronisation); NumPy arrays are judged after every update
+        self._host = host
+        self._every = 1 if host else check_every
+        self._pending: list[Any] = []
         if host:  # float64 and complex128 first: np.finfo costs microseconds per call
             eps = _EPS if dtype.char in "dD" else _eps(dtype)
         else:
@@ -179,19 +182,46 @@ class IterationMonitor:
             # up to this many updates an unmet, finite, bounded update goes on for sure
             self._quiet = min(rule.patience, rule.window, rule.max_iter - 1)
         else:
-            self._size0 = self._norm(x0, core_ndim)
+            self._size0 = (
+                batch_norm(x0, core_ndim)
+                if host
+                else np.asarray(to_numpy(device_norms(x0, core_ndim)), dtype=np.float64)
+            )
 
     def check(self, new: Array, old: Array) -> str | None:
         """Record the update ``old -> new``; ``None`` to go on, else the reason to stop.
 
         Growth is measured against ``max(||x0||, ||F(x0)||)`` so a zero initial guess works.
+        Arrays of another library: the norms stay on the device until ``check_every``
+        updates (or ``max_iter`` in all) are pending, then come to the host in one copy and
+        are judged in order; the first reason found is returned (the later updates of the
+        group are recorded too: the iterate returned is the latest).
         """
         if self._single:
             return self._check_single(new, old)
+        if self._host:
+            with np.errstate(invalid="ignore", over="ignore"):
+                step = batch_norm(new - old, self.core)
+                size = batch_norm(new, self.core)
+            return self._judge(step, size)
+        xp = namespace(new)
+        pending = self._pending
+        pending.append(xp.stack((device_norms(new - old, self.core), device_norms(new, self.core))))
+        if len(pending) < self._every and len(self.residuals) + len(pending) < self.rule.max_iter:
+            return None
+        norms = np.asarray(to_numpy(xp.stack(pending)), dtype=np.float64)
+        pending.clear()
+        reason = None
+        for step, size in norms:
+            verdict = self._judge(step, size)
+            reason = reason or verdict
+        return reason
+
+    def _judge(self, step: Array, size: Array) -> str | None:
+        """The verdict on one update of norms ``step = ||new - old||``, ``size = ||new||``
+        (host arrays of the batch shape)."""
         rule = self.rule
         with np.errstate(invalid="ignore", over="ignore"):
-            step = self._norm(new - old, self.core)
-            size = self._norm(new, self.core)
             if not (np.all(np.isfinite(step)) and np.all(np.isfinite(size))):
                 self.residuals.append(float("nan"))
                 return "non_finite"
@@ -287,6 +317,15 @@ class FixedPoint:
         problem; iterations still count map evaluations.
     patience, roundoff_floor, divergence_factor
         Stagnation and divergence detection (see :class:`StoppingRule`).
+    check_every : int
+        Arrays of another library (a GPU's): read the stopping test on the host once every
+        ``check_every`` updates (default 1). The norms of each update are computed on the
+        device either way and judged in order; the copy to the host, which waits for the
+        device, happens once per group, so the host can queue the next updates while the
+        device works. The solve ends at the end of the group in which the rule fires and
+        returns the latest iterate (up to ``check_every - 1`` updates more than needed,
+        counted in ``iterations``; they only bring a converging iterate closer). NumPy
+        arrays are judged after every update (there is nothing to wait for).
     """
 
     # the stopping rule's arguments are validated by StoppingRule (built in __init__)
@@ -297,6 +336,12 @@ class FixedPoint:
     patience: int = attrs.field(default=6, kw_only=True)
     roundoff_floor: float = attrs.field(default=256 * _EPS, kw_only=True)
     divergence_factor: float = attrs.field(default=100.0, kw_only=True)
+    check_every: int = attrs.field(
+        default=1,
+        kw_only=True,
+        validator=arguments.integer_at_least(1),
+        metadata={"identity": False},  # when the host looks, not what is computed
+    )
 
     name = "fixed_point"
 
@@ -320,7 +365,7 @@ class FixedPoint:
         """Iterate the scheme's map from ``problem.x0`` until the stopping rule fires."""
         F = self._map(problem)
         x = problem.x0
-        monitor = IterationMonitor(self.rule, problem.core_ndim, x)
+        monitor = IterationMonitor(self.rule, problem.core_ndim, x, self.check_every)
         check = monitor._check_single if monitor._single else monitor.check
         xs: list[np.ndarray] = []
         gs: list[np.ndarray] = []
