@@ -264,6 +264,8 @@ def real_scalar(value: float, like: Array) -> Any:
     arrays like ``like``: the result NumPy gives for the Python float (which it rounds to
     that precision), in about half the time for small arrays. The float itself for
     non-floating ``like``."""
+    if type(like) is np.ndarray and like.dtype.char == "d":  # float64 first (3 a step)
+        return np.array(value)
     if not is_numpy(like):
         return value
     dtype = like.dtype
