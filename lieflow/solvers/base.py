@@ -119,7 +119,8 @@ def sum_of_squares(x: Array) -> Any:
     product of the raveled array (real and imaginary parts as two reals) for up to
     :data:`DOT_SIZE` numbers, else a plain sum of squares (``einsum``, no BLAS call,
     whose threading overhead dominates for small arrays). The two may differ in the last
-    bits (they add the squares in different orders)."""
+    bits (they add the squares in different orders), and the dot product warns (NumPy's
+    ``RuntimeWarning``) where squares of finite entries overflow, ``einsum`` never."""
     flat = x.ravel() if isinstance(x, np.ndarray) else np.ascontiguousarray(x).reshape(-1)
     if flat.dtype.kind == "c":
         flat = flat.view(flat.real.dtype)

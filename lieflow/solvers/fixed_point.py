@@ -19,6 +19,7 @@ from .base import (
     ImplicitProblem,
     SolveResult,
     batch_norm,
+    einsum,
     squared_norm,
     sum_of_squares,
 )
@@ -239,8 +240,12 @@ class IterationMonitor:
         # (``old`` is the last finite iterate or the guess; inf or nan there propagate
         # quietly), so no ``np.errstate`` (a context switch per update) is needed.
         if self._dot:
+            # ||new||^2 by einsum, which never warns (a dot product warns when squares of
+            # finite entries overflow, the blow-up this check reports); ||new - old||^2 by
+            # a dot product, which could overflow only with entries of both iterates
+            # beyond 6e153
             flat = new.ravel()
-            size2 = float(flat.dot(flat))
+            size2 = float(einsum("i,i->", flat, flat))
             if size2 < _INF:
                 flat = (new - old).ravel()
                 step = math.sqrt(float(flat.dot(flat)))
