@@ -165,9 +165,12 @@ class IterationMonitor:
         self.residuals: list[float] = []
         self._single = host and x0.ndim == core_ndim  # one problem: the lean check in floats
         if self._single:
-            # a small real array: its norms are dot products taken inline
-            # (sum_of_squares' own case, without two calls per norm)
+            # a small real array: its norms taken inline (sum_of_squares' own case,
+            # without two calls per norm); a tiny one (so(3), so(4)...): by math.hypot of
+            # its entries as Python floats, no NumPy reduction at all (9 entries: 0.2 µs
+            # against 1.1 µs for einsum), never overflowing
             self._dot = dtype.kind == "f" and x0.size <= DOT_SIZE
+            self._hypot = dtype.kind == "f" and x0.size <= _HYPOT_SIZE
             # ||x0|| (a square root in x0's precision) as a float; the lean check's
             # reference size from its first update on
             norm2 = sum_of_squares(x0)
@@ -239,7 +242,14 @@ class IterationMonitor:
         # ||new|| first: when it is finite, ``new - old`` raises no floating-point warning
         # (``old`` is the last finite iterate or the guess; inf or nan there propagate
         # quietly), so no ``np.errstate`` (a context switch per update) is needed.
-        if self._dot:
+        if self._hypot:
+            # (a norm whose square overflows counts as infinite, as the sums below)
+            size = math.hypot(*new.ravel().tolist())
+            size2 = size * size
+            step = math.hypot(*(new - old).ravel().tolist()) if size2 < _INF else _NAN
+            if step * step == _INF:
+                step = _INF
+        elif self._dot:
             # ||new||^2 by einsum, which never warns (a dot product warns when squares of
             # finite entries overflow, the blow-up this check reports); ||new - old||^2 by
             # a dot product, which could overflow only with entries of both iterates
@@ -254,8 +264,9 @@ class IterationMonitor:
         else:
             size2 = squared_norm(new)
             step = math.sqrt(squared_norm(new - old)) if size2 < _INF else _NAN
-        size = math.sqrt(size2)
-        if not (step < _INF and size < _INF):
+        if not self._hypot:
+            size = math.sqrt(size2)
+        if not (step < _INF and size2 < _INF):
             self.residuals.append(_NAN)
             return "non_finite"
         residuals = self.residuals
@@ -276,6 +287,9 @@ class IterationMonitor:
                 return None
         return REASONS[stopping_verdict(residuals, len(residuals), met, growth, *self._args)]
 
+
+#: Up to this many entries the lean check's norms are ``math.hypot`` of the entries.
+_HYPOT_SIZE = 64
 
 _TINY = float(np.finfo(float).tiny)
 _INF = math.inf
