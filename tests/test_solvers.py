@@ -287,3 +287,19 @@ def test_lean_check_reports_non_finite_without_warnings(bad: float) -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert monitor.check(x0, np.full((3, 3), np.inf)) == "non_finite"
+
+
+@pytest.mark.parametrize("n", [3, 10, 70])
+def test_lean_single_check_agrees_with_the_batched_one(n: int) -> None:
+    """One problem is judged by the lean check (norms by ``math.hypot`` up to 64 entries, a
+    dot product up to 4096, ``einsum`` beyond); as a batch of one, by ``batch_norm``. The
+    two take the same updates, with relative updates equal to roundoff."""
+    body = lf.systems.GeneralizedRigidBody.random_inertia(n, seed=1)
+    W = body.random_state(2)
+    solver = lf.solvers.FixedPoint(rtol=1e-13)
+    one = solver.solve(MidpointProblem(body, W, 0.05))
+    batch = solver.solve(MidpointProblem(body, W[None], 0.05))
+    assert one.reason == batch.reason == "converged"
+    assert one.iterations == batch.iterations >= 4
+    np.testing.assert_allclose(one.residuals, batch.residuals, rtol=1e-12, atol=0)
+    assert np.array_equal(one.x, batch.x[0])
