@@ -42,7 +42,7 @@ def _like(table: np.ndarray, W: Array) -> np.ndarray:
     return table.astype(np.result_type(np.asarray(W).real.dtype, np.float32), copy=False)
 
 
-def _hadamard_stage_B(system: IsospectralSystem, cls: type, W: Array) -> Array:
+def _hadamard_stage_B(system: IsospectralSystem, cls: type[IsospectralSystem], W: Array) -> Array:
     r"""``B(P(W))`` of a body whose ``B(W) = F \odot W`` (``F``: ``system._factor``) at a
     stage value ``W``, ``P(W) = (W - W^T)/2`` the so(n) stage projection:
     :math:`(W - W^T) \odot (F/2)`, one pass over ``W`` less than ``B(P(W))`` and the
