@@ -92,7 +92,7 @@ def frobenius_norm(X: Array) -> Array:
 
 def _halved(Y: Array) -> Array:
     """``Y / 2``, in place when ``Y`` is a (fresh) floating array."""
-    if type(Y) is not np.ndarray or Y.dtype.kind in "fc":
+    if not (type(Y) is np.ndarray or is_numpy(Y)) or Y.dtype.kind in "fc":
         Y *= 0.5
         return Y
     return 0.5 * Y
