@@ -31,10 +31,10 @@ stem) -> list of PNG paths`` (see :class:`Plotter`).
 Plugins are loaded when a name is first looked up, and no more of them than the name needs:
 lieflow's own entry points (the built-ins, the application's file sink) first, every other
 plugin only when the name is not one of lieflow's own, or when a whole table is listed
-(``lieflow list``, :func:`lieflow.systems.names`): ``lieflow run`` on a rigid body imports no
-third-party plugin (see :func:`load_registry`, ``lazy``). A name that lieflow registers is
-lieflow's; the other plugins are all loaded together, so that a name two of them register is
-reported whichever is asked for, whatever their order.
+(``lieflow list``, :func:`lieflow.systems.available`): ``lieflow run`` on a rigid body
+imports no third-party plugin (see :func:`load_registry`, ``lazy``). A name that lieflow
+registers is lieflow's; the other plugins are all loaded together, so that a name two of
+them register is reported whichever is asked for, whatever their order.
 
 Each entry point is loaded and called inside a guard: a plugin that fails to import, whose
 hook raises, or that registers something invalid (a duplicate name, a class of the wrong
@@ -607,5 +607,5 @@ def load_registry(
 def default_registry() -> Registry:
     """The registry of the installed plugins, loaded on demand (:func:`load_registry` with
     ``lazy=True``): looking up a built-in imports no third-party plugin; listing a table
-    (``lieflow list``, :func:`lieflow.systems.names`) loads them all."""
+    (``lieflow list``, :func:`lieflow.systems.available`) loads them all."""
     return load_registry(lazy=True)
