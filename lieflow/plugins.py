@@ -420,11 +420,12 @@ class _TieredLoader:
         self._loading = False
         self._lock = threading.RLock()
 
-    def get(self, table: str, key: object) -> Any:
-        """``table[key]``, loading further tiers only while ``key`` is missing."""
+    def get(self, table: str, key: str) -> Any:
+        """``table[key]`` (``None`` if missing), loading further tiers only while ``key`` is
+        missing."""
         with self._lock:
             while True:
-                found = self._builder._table(table).get(key)  # type: ignore[call-overload]
+                found = self._builder._table(table).get(key)
                 if found is not None or not self.load_next():
                     return found
 
@@ -485,10 +486,8 @@ class _TieredLoader:
                     warnings.warn(message, PluginWarning, stacklevel=2)
                     continue
                 builder._restore(before)
-                failure = PluginError(message)
-                failure.__cause__ = exc
-                self._failure = failure
-                raise failure from exc
+                self._failure = PluginError(message)
+                raise self._failure from exc
 
 
 class _Table(Mapping[str, Any]):
@@ -589,8 +588,8 @@ def load_registry(
         the others only when a name is not among lieflow's own, or when a table is listed
         (its ``len``, ``sorted(registry.systems)``, a lookup that misses). A broken
         third-party plugin then raises (or warns) there, not here, and never affects a
-        lookup of a built-in name. Default ``False``: everything is loaded, and every
-        broken plugin reported, before this returns.
+        lookup of a built-in name. Default ``False``: everything is loaded, and a broken
+        plugin reported, before this returns.
     """
     if autoload is None:
         autoload = not os.environ.get(DISABLE_AUTOLOAD_ENV)
