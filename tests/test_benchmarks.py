@@ -261,3 +261,14 @@ def test_quflow_suite_quick(
         assert "**quflow skipped**" in page
         assert "**not measured** — Euler–Zeitlin N = 16" in page
         assert "quflow isomp (tol auto)" not in page
+
+
+def test_startup_suite_quick_reports_what_each_case_imported() -> None:
+    from benchmarks.suites import startup
+
+    pytest.importorskip("lieflow_zeitlin")
+    section = startup.run(BenchContext(quick()))
+    rows = {row[0]: row for row in section.tables[0].rows}
+    assert rows["lieflow run"][3] == "none"
+    assert "lieflow_zeitlin" in rows["lieflow run, all plugins loaded first"][3]
+    assert section.targets[0].met is True

@@ -40,16 +40,17 @@ run as row-wise numpy otherwise (same arithmetic, more Python overhead).
 
 from __future__ import annotations
 
+import functools
 import importlib
 import math
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any
 
+import attrs
 import numpy as np
 from numpy.typing import NDArray
 
 Array = NDArray[Any]
-F = TypeVar("F", bound=Callable[..., Any])
 
 #: Largest N for which the harmonic recurrence keeps every value finite (the dynamic range
 #: of a row is about ``2^N``; starting values are floored at ``1e-300``).
@@ -57,19 +58,40 @@ MAX_N = 1400
 
 _FLOOR = 1e-300
 
-numba: Any
-try:
-    numba = importlib.import_module("numba")
-except ImportError:  # pragma: no cover - exercised by the numpy fallback tests via a flag
-    numba = None
+
+@functools.cache
+def have_numba() -> bool:
+    """Whether numba can be imported (``lieflow-zeitlin[fast]``). The first call imports it:
+    the first use of a compiled kernel, not the import of the plugin (numba takes 0.15 s to
+    import, which every command that loads the plugins paid before)."""
+    try:
+        importlib.import_module("numba")
+    except ImportError:
+        return False
+    return True
 
 
-def _jit(func: F, fastmath: bool = False) -> F:
-    """``numba.njit`` with an on-disk cache in the user's cache directory
-    (:func:`lieflow.numba_cache.cached_njit`); ``fastmath`` lets the compiler reassociate
-    sums (vectorised dot products; the order of additions is then the compiler's)."""
-    if numba is None:  # pragma: no cover
-        return func
+@attrs.frozen
+class _Kernel:
+    """``func`` compiled with numba at its first call, with an on-disk cache in the user's
+    cache directory (:func:`lieflow.numba_cache.cached_njit`); ``fastmath`` lets the compiler
+    reassociate sums (vectorised dot products; the order of additions is then the
+    compiler's). Call it only where :func:`have_numba`."""
+
+    func: Callable[..., Any]
+    fastmath: bool = False
+
+    def __call__(self, *args: Any) -> Any:
+        return self.dispatcher()(*args)
+
+    def dispatcher(self) -> Any:
+        """numba's compiled function (compiled on the first call, then the same object): what
+        another compiled function calls."""
+        return _compile(self.func, self.fastmath)
+
+
+@functools.cache
+def _compile(func: Callable[..., Any], fastmath: bool) -> Any:
     from lieflow.numba_cache import cached_njit
 
     flags = {"reassoc", "contract"} if fastmath else False
@@ -199,7 +221,7 @@ def _harmonic_rows(
     sb[:] = sf * r
 
 
-_harmonic_compiled = _jit(_harmonic_kernel) if numba is not None else None
+_harmonic_compiled = _Kernel(_harmonic_kernel)
 
 
 def _harmonic_sweeps(
@@ -284,7 +306,7 @@ def _harmonic_sweeps(
             coef[q, k] = t
 
 
-_sweeps_compiled = _jit(_harmonic_sweeps, fastmath=True) if numba is not None else None
+_sweeps_compiled = _Kernel(_harmonic_sweeps, fastmath=True)
 
 
 def _scales(stats: Array, k1: int, n: int) -> tuple[Array, Array]:
@@ -301,7 +323,6 @@ def _scales(stats: Array, k1: int, n: int) -> tuple[Array, Array]:
 def harmonic_synthesis(N: int, m: int, C: Array) -> Array:
     """``C @ V_m.T`` for real ``C`` of shape ``(Q, n)`` (columns by degree ``m + k``), fused
     with the recurrence (numba required): ``O(n)`` memory besides the result."""
-    assert _sweeps_compiled is not None
     n = N - m
     a = harmonic_coefficients(N, m)
     f0, b0 = harmonic_start(N, m)
@@ -333,7 +354,6 @@ def harmonic_synthesis(N: int, m: int, C: Array) -> Array:
 def harmonic_analysis(N: int, m: int, X: Array) -> Array:
     """``X @ V_m`` for real ``X`` of shape ``(P, n)`` (entries along the diagonal): one sweep
     for the scales, one for the products (numba required)."""
-    assert _sweeps_compiled is not None
     n = N - m
     a = harmonic_coefficients(N, m)
     f0, b0 = harmonic_start(N, m)
@@ -360,8 +380,8 @@ def harmonic_diagonal(
     Vt = np.empty((n + 1, n))
     sf = np.empty(n)
     sb = np.empty(n)
-    use = (numba is not None) if compiled is None else compiled
-    kernel = _harmonic_compiled if use and _harmonic_compiled is not None else _harmonic_rows
+    use = have_numba() if compiled is None else compiled
+    kernel = _harmonic_compiled if use and have_numba() else _harmonic_rows
     kernel(N, m, a, f0, b0, k1, Vt, sf, sb)
     return Vt, k1, sf, sb
 
@@ -426,7 +446,7 @@ def _legendre_rows(x: Array, p0: Array, alpha: Array, beta: Array, P: Array) -> 
         P[k] = alpha[k] * (x * P[k - 1] - beta[k] * P[k - 2])
 
 
-_legendre_compiled = _jit(_legendre_kernel) if numba is not None else None
+_legendre_compiled = _Kernel(_legendre_kernel)
 
 
 def _legendre_sweep(
@@ -463,12 +483,11 @@ def _legendre_sweep(
             coef[q, k] = t
 
 
-_legendre_sweep_compiled = _jit(_legendre_sweep, fastmath=True) if numba is not None else None
+_legendre_sweep_compiled = _Kernel(_legendre_sweep, fastmath=True)
 
 
 def legendre_synthesis(N: int, m: int, theta: Array, C: Array) -> Array:
     """``C @ P`` with ``P = legendre_order(N, m, θ)``, fused (numba required)."""
-    assert _legendre_sweep_compiled is not None
     alpha, beta = legendre_coefficients(N, m)
     acc = np.zeros((C.shape[0], theta.size))
     empty = np.zeros((0, theta.size))
@@ -487,7 +506,6 @@ def legendre_synthesis(N: int, m: int, theta: Array, C: Array) -> Array:
 
 def legendre_analysis(N: int, m: int, theta: Array, X: Array) -> Array:
     """``X @ P.T`` with ``P = legendre_order(N, m, θ)``, fused (numba required)."""
-    assert _legendre_sweep_compiled is not None
     alpha, beta = legendre_coefficients(N, m)
     coef = np.zeros((X.shape[0], N - m))
     _legendre_sweep_compiled(
@@ -507,7 +525,7 @@ def legendre_order(N: int, m: int, theta: Array, *, compiled: bool | None = None
     """``P[k, j] = Y_{m+k, m}(θ_j, 0)`` for ``k = 0..N-m-1``: shape ``(N - m, len(θ))``."""
     alpha, beta = legendre_coefficients(N, m)
     P = np.empty((N - m, theta.size))
-    use = (numba is not None) if compiled is None else compiled
-    kernel = _legendre_compiled if use and _legendre_compiled is not None else _legendre_rows
+    use = have_numba() if compiled is None else compiled
+    kernel = _legendre_compiled if use and have_numba() else _legendre_rows
     kernel(np.cos(theta), legendre_start(m, theta), alpha, beta, P)
     return P

@@ -84,7 +84,7 @@ from numpy.typing import ArrayLike, NDArray
 import lieflow
 from lieflow.backends import device_of, is_foreign_array, is_numpy, namespace
 
-from ._recurrences import _jit, numba
+from ._recurrences import _Kernel, have_numba
 from .cyclic_reduction import CyclicReduction
 
 Array = NDArray[Any]
@@ -293,7 +293,7 @@ def _sweep_loops(Y: Array, L: Array, U: Array, F: Array, G: Array, dinv: Array) 
                     Y[k, j, r, c] = Y[k, j, r, c] + G[j, r, c] * Y[k, j + 1, 0, c]
 
 
-_sweep_compiled = _jit(_sweep_loops) if numba is not None else None
+_sweep_compiled = _Kernel(_sweep_loops)
 
 
 def _default_block(N: int) -> int:
@@ -423,7 +423,7 @@ class HoppeYauLaplacian:
         diag = buf[:, : N * N : C]
         diag -= diag.mean(axis=-1, keepdims=True)
         Y = buf.view(real).reshape(K, nb, b, 2 * C)
-        sweep = _sweep if _sweep_compiled is None else _sweep_compiled
+        sweep = _sweep_compiled.dispatcher() if have_numba() else _sweep
         sweep(Y, factor.lower, factor.upper, factor.carry_fwd, factor.carry_bwd, factor.dinv)
         diag -= diag.mean(axis=-1, keepdims=True)
         return buf[:, : N * N].reshape(*batch, N, N)
