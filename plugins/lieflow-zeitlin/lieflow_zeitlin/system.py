@@ -56,6 +56,7 @@ Users think in relative vorticity ``ζ = Δψ``: :meth:`EulerZeitlin.from_relati
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, Literal
 
@@ -66,6 +67,7 @@ from numpy.typing import ArrayLike, DTypeLike, NDArray
 import lieflow
 from lieflow.backends import from_host, is_numpy, namespace
 
+from . import _recurrences as _rec
 from .laplacian import HoppeYauLaplacian, matrix_size
 from .quantization import hbar, random_vorticity
 
@@ -271,6 +273,16 @@ class EulerZeitlin(lieflow.IsospectralSystem):
             return R
         return self.from_relative(R)
 
+    @functools.cached_property
+    def diagonal_tables(self) -> _rec.DiagonalTables | None:
+        """The recurrence tables of the spectra by degree
+        (:func:`~lieflow_zeitlin.diagnostics.matrix_squares_by_degree`), built on first use
+        (O(N³/3) flops, ``5N²/2`` numbers) and kept; ``None`` without numba or for
+        ``N > 1400``."""
+        if _rec.numba is None or self.N > _rec.MAX_N:
+            return None
+        return _rec.DiagonalTables.of(self.N)
+
     def B(self, W: Array) -> Array:
         r"""``σ (Δ_N - F)^{-1}(W - F_f)`` (``σ`` times the stream matrix), broadcasting."""
         return self.laplacian.solve(self._anomaly(W))
@@ -344,10 +356,24 @@ class EulerZeitlin(lieflow.IsospectralSystem):
         """The turbulence diagnostics of one state that ``lieflow run`` stores under
         ``/diagnostics/extra`` (:func:`lieflow_zeitlin.diagnostics.snapshot`): energy and
         enstrophy spectra of the relative vorticity, their sums, the vorticity levels
-        (eigenvalues of ``-iW``) and the Casimirs ``tr((iW)^k)``, k = 2, 3, 4, 5, 6, 8."""
-        from .diagnostics import snapshot
+        (eigenvalues of ``-iW``) and the Casimirs ``tr((iW)^k)``, k = 2, 3, 4, 5, 6, 8.
 
-        return snapshot(self, W)
+        ``W`` is a state of a run of this system (the driver's), so only its shape is
+        checked; :func:`~lieflow_zeitlin.diagnostics.snapshot` also checks that a state from
+        elsewhere is in su(N). Cost per sample (``benchmarks/suites/euler_zeitlin.py``): one
+        Hermitian eigenvalue problem of size N (the levels and all Casimirs) and one pass of
+        the harmonic recurrences (the spectra), together 0.2–0.3 midpoint steps at
+        N = 64–256 (h = 1/N, rtol 1e-14), most of it the eigenvalue problem; sample less
+        often with ``diagnostics_every``.
+        """
+        from .diagnostics import _snapshot
+
+        W = np.asarray(W)
+        if W.ndim < 2 or W.shape[-2:] != (self.N, self.N):
+            raise lieflow.InputError(
+                f"W has shape {W.shape}, but su({self.N}) needs (..., {self.N}, {self.N})"
+            )
+        return _snapshot(self, W)
 
     def enstrophy(self, W: ArrayLike) -> Array:
         """``||W||_F² = tr((iW)²)`` (the ``k = 2`` Casimir)."""
