@@ -184,14 +184,18 @@ def casimirs_from_levels(
     return out
 
 
-def _snapshot(system: Any, W: Array, powers: Sequence[int] = CASIMIR_POWERS) -> dict[str, Array]:
-    """:func:`snapshot` of states ``W`` already known to be in su(N)."""
+def _snapshot(
+    system: Any, W: Array, powers: Sequence[int] = CASIMIR_POWERS, *, levels: bool = True
+) -> dict[str, Array]:
+    """:func:`snapshot` of states ``W`` already known to be in su(N) (without the levels and
+    Casimirs unless ``levels``)."""
     out = _spectra(system, W)
     out["energy"] = out["energy_spectrum"].sum(axis=-1)
     out["enstrophy"] = out["enstrophy_spectrum"].sum(axis=-1)
-    levels = vorticity_levels(W)
-    out["vorticity_levels"] = levels
-    out["casimirs"] = casimirs_from_levels(levels, powers, square_norm=system.enstrophy(W))
+    if levels:
+        lam = vorticity_levels(W)
+        out["vorticity_levels"] = lam
+        out["casimirs"] = casimirs_from_levels(lam, powers, square_norm=system.enstrophy(W))
     return out
 
 

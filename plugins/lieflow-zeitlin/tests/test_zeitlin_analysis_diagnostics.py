@@ -175,6 +175,12 @@ def test_extra_diagnostics_check_the_shape_and_match_the_snapshot() -> None:
         np.testing.assert_array_equal(extra[name], snap[name])
     with pytest.raises(lf.InputError, match=r"su\(10\) needs \(\.\.\., 10, 10\)"):
         system.extra_diagnostics(np.zeros((8, 8), complex))
+    # without the levels: the spectra and their sums, the same numbers
+    lean = lz.EulerZeitlin(10, rotation=0.5, lamb=2.0, diagnostics_levels=False)
+    spectra_only = lean.extra_diagnostics(W)
+    assert sorted(spectra_only) == ["energy", "energy_spectrum", "enstrophy", "enstrophy_spectrum"]
+    for name in spectra_only:
+        np.testing.assert_array_equal(spectra_only[name], snap[name])
 
 
 def test_running_and_time_means() -> None:
@@ -256,6 +262,8 @@ def test_diagnostics_every_zero_writes_none_and_is_validated(tmp_path: Path) -> 
     assert io.read_extra(path) == {}
     with pytest.raises(lf.InputError, match="diagnostics_every"):
         lz.EulerZeitlin(8, diagnostics_every=-1)
+    with pytest.raises(lf.InputError, match="diagnostics_levels must be true or false"):
+        lz.EulerZeitlin(8, diagnostics_levels="no")  # type: ignore[arg-type]
 
 
 def test_docs_page_shows_the_example_configuration() -> None:
