@@ -257,7 +257,9 @@ def run(ctx: BenchContext) -> Section:
         "Extra diagnostics: ‘levels’ is the one Hermitian eigenvalue problem of size N that "
         "gives the vorticity levels and every Casimir (C_2 = ||W||_F²); LAPACK's reduction "
         "to tridiagonal form costs about two complex N×N products, so it stays near 0.2 "
-        "steps at every N. Sample less often with `EulerZeitlin(diagnostics_every=k)`.",
+        "steps at every N. Sample less often with `EulerZeitlin(diagnostics_every=k)`, or "
+        "without the levels with `EulerZeitlin(diagnostics_levels=False)` (the spectra "
+        "column's cost).",
     ]
     return Section(
         title=title,
