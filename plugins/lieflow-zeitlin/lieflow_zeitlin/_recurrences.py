@@ -431,52 +431,36 @@ def _degree_squares(
                 re[i] = z.real
                 im[i] = z.imag
                 c[i] = 2.0 * i + m - (N - 1)
-            for i in range(n):  # forward: v_k = (c v_{k-1} - a_{k-1} v_{k-2}) / a_k
-                x[i] = re[i] * sf[o + i]
-                y[i] = im[i] * sf[o + i]
-                u[i] = 0.0
-                v[i] = f0[o + i]
-            for k in range(k1):
-                t0 = 0.0
-                t1 = 0.0
-                if k == 0:
-                    for i in range(n):
-                        t0 += x[i] * v[i]
-                        t1 += y[i] * v[i]
-                else:
-                    inv = 1.0 / a[o + k]
-                    ak = a[o + k - 1]
-                    for i in range(n):
-                        wi = (c[i] * v[i] - ak * u[i]) * inv
-                        u[i] = v[i]
-                        v[i] = wi
-                        t0 += x[i] * wi
-                        t1 += y[i] * wi
-                out[q, m + k] += weight * (t0 * t0 + t1 * t1)
-            if k1 == n:
-                continue
-            for i in range(n):  # backward: v_k = (c v_{k+1} - a_{k+2} v_{k+2}) / a_{k+1}
-                x[i] = re[i] * sb[o + i]
-                y[i] = im[i] * sb[o + i]
-                u[i] = 0.0
-                v[i] = b0[o + i]
-            for k in range(n - 1, k1 - 1, -1):
-                t0 = 0.0
-                t1 = 0.0
-                if k == n - 1:
-                    for i in range(n):
-                        t0 += x[i] * v[i]
-                        t1 += y[i] * v[i]
-                else:
-                    inv = 1.0 / a[o + k + 1]
-                    ak = a[o + k + 2]
-                    for i in range(n):
-                        wi = (c[i] * v[i] - ak * u[i]) * inv
-                        u[i] = v[i]
-                        v[i] = wi
-                        t0 += x[i] * wi
-                        t1 += y[i] * wi
-                out[q, m + k] += weight * (t0 * t0 + t1 * t1)
+            # forward (rows 0..k1-1): v_k = (c v_{k-1} - a_{k-1} v_{k-2}) / a_k;
+            # backward (rows n-1..k1): v_k = (c v_{k+1} - a_{k+2} v_{k+2}) / a_{k+1}
+            for back in range(2 if k1 < n else 1):
+                scale = sb if back else sf
+                first = b0 if back else f0
+                step = -1 if back else 1
+                k = n - 1 if back else 0
+                for i in range(n):
+                    x[i] = re[i] * scale[o + i]
+                    y[i] = im[i] * scale[o + i]
+                    u[i] = 0.0
+                    v[i] = first[o + i]
+                for j in range(n - k1 if back else k1):
+                    t0 = 0.0
+                    t1 = 0.0
+                    if j == 0:
+                        for i in range(n):
+                            t0 += x[i] * v[i]
+                            t1 += y[i] * v[i]
+                    else:
+                        inv = 1.0 / a[o + k + back]
+                        ak = a[o + k + back - step]
+                        for i in range(n):
+                            wi = (c[i] * v[i] - ak * u[i]) * inv
+                            u[i] = v[i]
+                            v[i] = wi
+                            t0 += x[i] * wi
+                            t1 += y[i] * wi
+                    out[q, m + k] += weight * (t0 * t0 + t1 * t1)
+                    k += step
 
 
 _degree_squares_compiled = (
