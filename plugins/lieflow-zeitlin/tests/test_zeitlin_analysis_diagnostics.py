@@ -263,7 +263,7 @@ def test_diagnostics_every_zero_writes_none_and_is_validated(tmp_path: Path) -> 
     with pytest.raises(lf.InputError, match="diagnostics_every"):
         lz.EulerZeitlin(8, diagnostics_every=-1)
     with pytest.raises(lf.InputError, match="diagnostics_levels must be true or false"):
-        lz.EulerZeitlin(8, diagnostics_levels="no")  # type: ignore[arg-type]
+        lz.EulerZeitlin(8, diagnostics_levels="no")
 
 
 def test_docs_page_shows_the_example_configuration() -> None:
