@@ -88,9 +88,9 @@ def setups(quick: bool) -> tuple[Setup, ...]:
     # N = 128 over T = 1/4: fixed point diverges for gauss4 at h = 1/4 there, and quflow
     # needs > 1024 steps for 1e-6 over T = 1/2. Fixed point stalls for gauss2 at h = 1/4
     # (with the Casimir shift it converges there).
-    return (Setup(64, 0.5, midpoint, (2, 4, 8, 16), (4, 8, 16), 64, 3, (2, 3, 4, 6, 8, 12),
+    return (Setup(64, 0.5, midpoint, (2, 4, 8, 16), (4, 8, 16), 64, 5, (2, 3, 4, 6, 8, 12),
                   (1, 2, 3, 4)),
-            Setup(128, 0.25, midpoint, (2, 4, 8, 16), (4, 8, 16), 32, 2, (2, 3, 4, 6, 8),
+            Setup(128, 0.25, midpoint, (2, 4, 8, 16), (4, 8, 16), 32, 3, (2, 3, 4, 6, 8, 12),
                   (1, 2, 3)))  # fmt: skip
 
 
