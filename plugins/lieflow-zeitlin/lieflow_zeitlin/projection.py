@@ -47,7 +47,7 @@ def _skew_part_loops(X: Array, out: Array) -> None:
 _skew_part_compiled = _jit(_skew_part_loops) if numba is not None else None
 
 
-def su_project(X: Array, fallback: Any) -> Array:
+def su_project(X: Any, fallback: Any) -> Array:
     r"""``P(X) = (X - X^†)/2 - (tr/N) I`` over the last two axes, a new array.
 
     NumPy ``complex128`` / ``complex64`` arrays take the compiled loop
