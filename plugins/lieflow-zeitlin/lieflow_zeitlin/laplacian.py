@@ -296,6 +296,15 @@ def _sweep_loops(Y: Array, L: Array, U: Array, F: Array, G: Array, dinv: Array) 
 _sweep_compiled = _Kernel(_sweep_loops)
 
 
+def _remove_mean(rows: Array) -> None:
+    """``rows -= rows.mean(axis=-1, keepdims=True)`` with ``mean``'s arithmetic (the sum,
+    then a division by the count as an ``intp``, cast back: the same bits, also in single
+    precision) without its Python layers (~3 µs a call)."""
+    mean = np.add.reduce(rows, axis=-1, keepdims=True)
+    np.true_divide(mean, np.intp(rows.shape[-1]), out=mean, casting="unsafe")
+    rows -= mean
+
+
 def _default_block(N: int) -> int:
     return max(2, round(math.sqrt(N)))
 
@@ -421,11 +430,11 @@ class HoppeYauLaplacian:
         buf[:, : N * N] = W.reshape(K, N * N)
         buf[:, N * N :] = 0
         diag = buf[:, : N * N : C]
-        diag -= diag.mean(axis=-1, keepdims=True)
+        _remove_mean(diag)
         Y = buf.view(real).reshape(K, nb, b, 2 * C)
         sweep = _sweep_compiled.dispatcher() if have_numba() else _sweep
         sweep(Y, factor.lower, factor.upper, factor.carry_fwd, factor.carry_bwd, factor.dinv)
-        diag -= diag.mean(axis=-1, keepdims=True)
+        _remove_mean(diag)
         return buf[:, : N * N].reshape(*batch, N, N)
 
     def cyclic_reduction(self) -> CyclicReduction:

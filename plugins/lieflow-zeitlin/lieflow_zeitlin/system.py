@@ -69,6 +69,7 @@ from lieflow.backends import from_host, is_numpy, namespace
 
 from . import _recurrences as _rec
 from .laplacian import HoppeYauLaplacian, matrix_size
+from .projection import su_project
 from .quantization import hbar, random_vorticity
 
 Array = NDArray[Any]
@@ -111,6 +112,11 @@ class VorticityAlgebra(lieflow.SU):
     def random(self, seed: int | np.random.Generator | None = None, scale: float = 1.0) -> Array:
         """A seeded random smooth vorticity matrix with root-mean-square vorticity ``scale``."""
         return random_vorticity(self.n, self.degree, seed, rms=scale, dtype=self.precision)
+
+    def project(self, X: ArrayLike) -> Array:
+        """:meth:`lieflow.SU.project`, its skew-Hermitian part in one compiled pass where
+        numba is installed (:func:`~lieflow_zeitlin.projection.su_project`: the same bits)."""
+        return su_project(X, super().project)
 
 
 def _rotation(value: float) -> float:
@@ -218,6 +224,8 @@ class EulerZeitlin(lieflow.IsospectralSystem):
     diagnostics_levels: bool = attrs.field(default=True, converter=_flag, kw_only=True)
     laplacian: HoppeYauLaplacian = attrs.field(init=False, repr=False)
     planetary: Array = attrs.field(init=False, repr=False)
+    # built once: every projection of a stage value goes through it
+    _algebra: VorticityAlgebra = attrs.field(init=False, repr=False)
 
     casimir_powers = (2, 3, 4)
 
@@ -234,6 +242,10 @@ class EulerZeitlin(lieflow.IsospectralSystem):
     @laplacian.default
     def _laplacian(self) -> HoppeYauLaplacian:
         return HoppeYauLaplacian(self.N, scale=self.bracket_scale, shift=self.lamb)
+
+    @_algebra.default
+    def _algebra_default(self) -> VorticityAlgebra:
+        return VorticityAlgebra(self.N, degree=self.random_degree, precision=self.dtype)
 
     @planetary.default
     def _planetary(self) -> Array:
@@ -261,7 +273,7 @@ class EulerZeitlin(lieflow.IsospectralSystem):
     @property
     def algebra(self) -> VorticityAlgebra:
         """su(N) (random elements are smooth vorticity fields)."""
-        return VorticityAlgebra(self.N, degree=self.random_degree, precision=self.dtype)
+        return self._algebra
 
     def _anomaly(self, W: Array) -> Array:
         if not is_numpy(W):  # an array of another library (lieflow.backends)
