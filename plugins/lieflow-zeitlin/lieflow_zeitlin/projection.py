@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from lieflow.backends import is_numpy
 
-from ._recurrences import _jit, numba
+from ._recurrences import _Kernel, have_numba
 
 Array = NDArray[Any]
 
@@ -44,7 +44,7 @@ def _skew_part_loops(X: Array, out: Array) -> None:
                 out[k, i, 2 * j + 1] = (X[k, i, 2 * j + 1] + X[k, j, 2 * i + 1]) * 0.5
 
 
-_skew_part_compiled = _jit(_skew_part_loops) if numba is not None else None
+_skew_part_compiled = _Kernel(_skew_part_loops)
 
 
 def su_project(X: Any, fallback: Any) -> Array:
@@ -56,11 +56,11 @@ def su_project(X: Any, fallback: Any) -> Array:
     reproduces).
     """
     if (
-        _skew_part_compiled is None
-        or not is_numpy(X)
+        not is_numpy(X)
         or X.dtype not in _COMPLEX
         or X.ndim < 2
         or X.shape[-1] != X.shape[-2]
+        or not have_numba()
     ):
         return fallback(X)
     N = X.shape[-1]
