@@ -30,6 +30,7 @@ from .suites import (
     scipy_work_precision,
     so3_throughput,
     splitting,
+    startup,
     streaming_memory,
     sweeps,
     work_precision,
@@ -48,6 +49,7 @@ SUITES: tuple[tuple[str, Callable[[BenchContext], Section]], ...] = (
     ("splitting", splitting.run),
     ("memory", streaming_memory.run),
     ("file_output", file_output.run),
+    ("startup", startup.run),
     ("sweeps", sweeps.run),
 )
 

@@ -28,6 +28,14 @@ A plugin may also register extra ``lieflow plot`` figures for trajectory files o
 ``registry.add_plotter("euler_zeitlin", plot_run)`` with ``plot_run(trajectory, out_dir,
 stem) -> list of PNG paths`` (see :class:`Plotter`).
 
+Plugins are loaded when a name is first looked up, and no more of them than the name needs:
+lieflow's own entry points (the built-ins, the application's file sink) first, every other
+plugin only when the name is not one of lieflow's own, or when a whole table is listed
+(``lieflow list``, :func:`lieflow.systems.available`): ``lieflow run`` on a rigid body
+imports no third-party plugin (see :func:`load_registry`, ``lazy``). A name that lieflow
+registers is lieflow's; the other plugins are all loaded together, so that a name two of
+them register is reported whichever is asked for, whatever their order.
+
 Each entry point is loaded and called inside a guard: a plugin that fails to import, whose
 hook raises, or that registers something invalid (a duplicate name, a class of the wrong
 kind, a scheme on a non-symplectic tableau) yields a :class:`~lieflow.errors.PluginError`
@@ -46,8 +54,9 @@ import importlib.metadata as md
 import inspect
 import os
 import re
+import threading
 import warnings
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Literal
@@ -320,18 +329,36 @@ class RegistryBuilder:
         self._pending_plotters = []
         self._pending_sinks = []
 
-    def freeze(self) -> Registry:
-        """The immutable registry."""
-        tables = {f"{k}s": MappingProxyType(dict(v)) for k, v in self._entries.items()}
-        return Registry(**tables, plotters=MappingProxyType(dict(self._plotters)),
-                        sinks=MappingProxyType(dict(self._sinks)))  # fmt: skip
+    def _table(self, name: str) -> dict[str, Any]:
+        """The committed table ``name`` (``"systems"`` ... ``"flows"``, ``"plotters"``,
+        ``"sinks"``): the registry's tables are views of these."""
+        if name == "plotters":
+            return self._plotters
+        if name == "sinks":
+            return self._sinks
+        return self._entries[name[:-1]]  # type: ignore[index]
+
+    def _snapshot(self) -> list[dict[str, Any]]:
+        return [dict(self._table(name)) for name in _TABLES]
+
+    def _restore(self, snapshot: list[dict[str, Any]]) -> None:
+        for name, saved in zip(_TABLES, snapshot, strict=True):
+            table = self._table(name)
+            table.clear()
+            table.update(saved)
 
 
 @attrs.frozen
 class Registry:
     """Immutable name -> :class:`Entry` tables for systems, schemes, solvers and flows, the
     system name -> :class:`Plotter` table of extra ``lieflow plot`` figures, and the
-    suffix -> :class:`SinkFormat` table of file formats."""
+    suffix -> :class:`SinkFormat` table of file formats.
+
+    The tables of a registry from :func:`load_registry` are read-only views that may load
+    plugins when used (``lazy=True``, as :func:`default_registry`): what a name resolves to
+    never depends on what was loaded before (a name is lieflow's own, or one plugin's, or
+    its lookup raises the :class:`PluginError` of a broken plugin).
+    """
 
     systems: Mapping[str, Entry]
     schemes: Mapping[str, Entry]
@@ -363,6 +390,145 @@ class Registry:
         return self.entry(kind, name).create(**params)
 
 
+#: The tables of a :class:`Registry`, by attribute name.
+_TABLES = ("systems", "schemes", "solvers", "flows", "plotters", "sinks")
+
+#: ``(label, load)`` pairs: a plugin's description in messages and how to get its object.
+Candidates = Sequence[tuple[str, Callable[[], object]]]
+
+
+class _TieredLoader:
+    """Loads plugins a *tier* at a time, on demand, into one :class:`RegistryBuilder`.
+
+    The tiers are lieflow's own entry points, then every other plugin (see
+    :func:`load_registry`). A tier is loaded whole or not at all: when a plugin of it is
+    broken (and broken plugins raise), the tier's registrations are rolled back and every
+    later request for that tier raises the same :class:`PluginError`.
+    """
+
+    def __init__(
+        self, tiers: Callable[[], Sequence[Candidates]], errors: Literal["raise", "warn"]
+    ) -> None:
+        self._make_tiers = tiers
+        self._tiers: Sequence[Candidates] | None = None
+        self._errors = errors
+        self._builder = RegistryBuilder()
+        self._pm = pluggy.PluginManager(PROJECT)
+        self._pm.add_hookspecs(HookSpecs)
+        self._loaded = 0
+        self._failure: PluginError | None = None
+        self._loading = False
+        self._lock = threading.RLock()
+
+    def get(self, table: str, key: str) -> Any:
+        """``table[key]`` (``None`` if missing), loading further tiers only while ``key`` is
+        missing."""
+        with self._lock:
+            while True:
+                found = self._builder._table(table).get(key)
+                if found is not None or not self.load_next():
+                    return found
+
+    def names(self, table: str, start: int) -> list[str]:
+        """The names of ``table`` loaded so far, from the ``start``-th on (a copy)."""
+        with self._lock:
+            return list(self._builder._table(table))[start:]
+
+    def load_all(self) -> None:
+        """Load every tier."""
+        while self.load_next():
+            pass
+
+    def load_next(self) -> bool:
+        """Load the next tier; ``False`` if none is left (or this thread is loading one: a
+        plugin that looks a name up while it registers sees the tiers before its own)."""
+        with self._lock:
+            if self._failure is not None:
+                raise PluginError(str(self._failure)) from self._failure.__cause__
+            if self._tiers is None:
+                self._tiers = self._make_tiers()
+            if self._loading or self._loaded == len(self._tiers):
+                return False
+            self._loading = True
+            try:
+                self._load(self._tiers[self._loaded])
+            finally:
+                self._loading = False
+            self._loaded += 1
+            return True
+
+    def _load(self, tier: Candidates) -> None:
+        builder, pm = self._builder, self._pm
+        before = builder._snapshot()
+        for label, load in tier:
+            builder._source = label
+            plugin: object | None = None
+            try:
+                plugin = load()
+                pm.register(plugin, name=label)
+                others = [p for p in pm.get_plugins() if p is not plugin]
+                if not any(i.plugin is plugin for i in pm.hook.lieflow_register.get_hookimpls()):
+                    raise PluginError("it has no lieflow_register hook implementation")
+                pm.subset_hook_caller("lieflow_register", remove_plugins=others)(registry=builder)
+                builder._commit()
+            except Exception as exc:
+                builder._discard()
+                if plugin is not None and pm.is_registered(plugin):
+                    pm.unregister(plugin)
+                reason = (
+                    str(exc) if isinstance(exc, PluginError) else f"{type(exc).__name__}: {exc}"
+                )
+                message = (
+                    f"lieflow {label} is broken: {reason}. Fix or uninstall that distribution, "
+                    f"or set {DISABLE_AUTOLOAD_ENV}=1 to skip third-party plugins"
+                )
+                if self._errors == "warn":
+                    warnings.warn(message, PluginWarning, stacklevel=2)
+                    continue
+                builder._restore(before)
+                self._failure = PluginError(message)
+                raise self._failure from exc
+
+
+class _Table(Mapping[str, Any]):
+    """One table of a :class:`Registry`, a read-only view that loads plugins on demand.
+
+    Looking a name up loads the next tier of plugins only while the name is missing (a
+    built-in is found without importing any other plugin); iteration yields the names tier
+    by tier, loading the next tier only when iterated past the names loaded so far, so a
+    search that stops at a built-in loads nothing more; ``len``, ``sorted(table)`` and the
+    like load every plugin.
+    """
+
+    __slots__ = ("_loader", "_name")
+
+    def __init__(self, loader: _TieredLoader, name: str) -> None:
+        self._loader = loader
+        self._name = name
+
+    def __getitem__(self, key: str) -> Any:
+        found = self._loader.get(self._name, key)
+        if found is None:
+            raise KeyError(key)
+        return found
+
+    def __iter__(self) -> Iterator[str]:
+        seen = 0
+        while True:
+            names = self._loader.names(self._name, seen)
+            yield from names
+            seen += len(names)
+            if not self._loader.load_next():
+                return
+
+    def __len__(self) -> int:
+        self._loader.load_all()
+        return len(self._loader.names(self._name, 0))
+
+    def __repr__(self) -> str:
+        return f"<registry {self._name}: {', '.join(self._loader.names(self._name, 0))}, ...>"
+
+
 def _plugin_entry_points(autoload: bool) -> list[md.EntryPoint]:
     eps = list(md.entry_points(group=ENTRY_POINT_GROUP))
     if not autoload:
@@ -381,66 +547,64 @@ def _dist_name(ep: md.EntryPoint) -> str:
     return str(dist.metadata["Name"]) if dist is not None else "unknown distribution"
 
 
+def _tiers(autoload: bool, plugins: Candidates) -> list[Candidates]:
+    """lieflow's own entry points, then the other entry points and ``plugins``."""
+    own: list[tuple[str, Callable[[], object]]] = []
+    others: list[tuple[str, Callable[[], object]]] = []
+    for ep in _plugin_entry_points(autoload):
+        dist = _dist_name(ep)
+        label = f"entry point {ep.name!r} of distribution {dist!r}"
+        (own if dist == PROJECT else others).append((label, ep.load))
+    return [own, [*others, *plugins]]
+
+
 def load_registry(
     *,
     autoload: bool | None = None,
     plugins: Iterable[tuple[str, object]] = (),
     errors: Literal["raise", "warn"] | None = None,
+    lazy: bool = False,
 ) -> Registry:
-    """Load every plugin and return the frozen :class:`Registry`.
+    """Load the plugins and return the :class:`Registry` of what they register.
+
+    The plugins load in two tiers: lieflow's own entry points (the built-ins and the
+    application's file sink), then every other entry point and ``plugins``. A name
+    registered by lieflow's own plugins is lieflow's: another plugin that registers it too
+    is broken. Within the second tier, every plugin is loaded before any of its names is
+    used, so a name that two plugins register is always reported, whatever their order.
 
     Parameters
     ----------
     autoload : bool, optional
         Load third-party entry points too (default: unless ``LIEFLOW_DISABLE_PLUGIN_AUTOLOAD``
-        is set). lieflow's own entry point is always loaded.
+        is set). lieflow's own entry points are always loaded.
     plugins : iterable of (name, object)
         Extra plugin objects (modules or instances with a ``lieflow_register`` hookimpl), e.g.
         for tests; they are guarded like entry points.
     errors : {"raise", "warn"}, optional
         What to do with a broken plugin (default: ``LIEFLOW_PLUGIN_ERRORS`` or ``"raise"``).
+    lazy : bool
+        Load nothing now: the registry loads lieflow's own plugins at its first lookup and
+        the others only when a name is not among lieflow's own, or when a table is listed
+        (its ``len``, ``sorted(registry.systems)``, a lookup that misses). A broken
+        third-party plugin then raises (or warns) there, not here, and never affects a
+        lookup of a built-in name. Default ``False``: everything is loaded, and a broken
+        plugin reported, before this returns.
     """
     if autoload is None:
         autoload = not os.environ.get(DISABLE_AUTOLOAD_ENV)
     if errors is None:
         errors = "warn" if os.environ.get(ERRORS_ENV, "").lower() == "warn" else "raise"
-    pm = pluggy.PluginManager(PROJECT)
-    pm.add_hookspecs(HookSpecs)
-    builder = RegistryBuilder()
-
-    candidates: list[tuple[str, Callable[[], object]]] = [
-        (f"entry point {ep.name!r} of distribution {_dist_name(ep)!r}", ep.load)
-        for ep in _plugin_entry_points(autoload)
-    ]
-    candidates += [(f"plugin {name!r}", _constant(obj)) for name, obj in plugins]
-    for label, load in candidates:
-        builder._source = label
-        plugin: object | None = None
-        try:
-            plugin = load()
-            pm.register(plugin, name=label)
-            others = [p for p in pm.get_plugins() if p is not plugin]
-            if not any(i.plugin is plugin for i in pm.hook.lieflow_register.get_hookimpls()):
-                raise PluginError("it has no lieflow_register hook implementation")
-            pm.subset_hook_caller("lieflow_register", remove_plugins=others)(registry=builder)
-            builder._commit()
-        except Exception as exc:
-            builder._discard()
-            if plugin is not None and pm.is_registered(plugin):
-                pm.unregister(plugin)
-            reason = str(exc) if isinstance(exc, PluginError) else f"{type(exc).__name__}: {exc}"
-            message = (
-                f"lieflow {label} is broken: {reason}. Fix or uninstall that distribution, "
-                f"or set {DISABLE_AUTOLOAD_ENV}=1 to skip third-party plugins"
-            )
-            if errors == "warn":
-                warnings.warn(message, PluginWarning, stacklevel=2)
-            else:
-                raise PluginError(message) from exc
-    return builder.freeze()
+    extra = [(f"plugin {name!r}", _constant(obj)) for name, obj in plugins]
+    loader = _TieredLoader(functools.partial(_tiers, autoload, extra), errors)
+    if not lazy:
+        loader.load_all()
+    return Registry(**{name: _Table(loader, name) for name in _TABLES})
 
 
 @functools.cache
 def default_registry() -> Registry:
-    """The registry of the installed plugins, loaded once (it is immutable)."""
-    return load_registry()
+    """The registry of the installed plugins, loaded on demand (:func:`load_registry` with
+    ``lazy=True``): looking up a built-in imports no third-party plugin; listing a table
+    (``lieflow list``, :func:`lieflow.systems.available`) loads them all."""
+    return load_registry(lazy=True)

@@ -268,13 +268,28 @@ def test_quflow_suite_quick(
     assert max(_quflow_rows(page, "lieflow gauss4 commutator rtol 1e-14").values()) < 1e-10
     conj = _quflow_rows(page, "lieflow midpoint conjugation rtol 1e-08")
     assert all(conj[n] == pytest.approx(mid[n], rel=1e-3) for n in mid)
+    # the recommended configuration (gauss2, conjugation, Casimir shift): fourth order
+    rec = _quflow_rows(page, quflow_accuracy.RECOMMENDED)
+    assert sorted(rec) == [1, 2] and 10 < rec[1] / rec[2] < 25
     if with_quflow:
         assert re.search(r"^- \*\*(met|not met)\*\* — Euler–Zeitlin N = 16", page, re.MULTILINE)
         qf = _quflow_rows(page, "quflow isomp (tol auto)")
         assert all(qf[n] == pytest.approx(mid[n], rel=1e-3) for n in mid)
         found = re.search(r"at equal steps differ by ≤ ([0-9.e+-]+) relative", page)
         assert found is not None and float(found.group(1)) < 1e-8
+        assert "| quflow / recommended |" in page
     else:
         assert "**quflow skipped**" in page
         assert "**not measured** — Euler–Zeitlin N = 16" in page
         assert "quflow isomp (tol auto)" not in page
+
+
+def test_startup_suite_quick_reports_what_each_case_imported() -> None:
+    from benchmarks.suites import startup
+
+    pytest.importorskip("lieflow_zeitlin")
+    section = startup.run(BenchContext(quick()))
+    rows = {row[0]: row for row in section.tables[0].rows}
+    assert rows["lieflow run"][3] == "none"
+    assert "lieflow_zeitlin" in rows["lieflow run, all plugins loaded first"][3]
+    assert section.targets[0].met is True

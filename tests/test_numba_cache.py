@@ -28,8 +28,10 @@ sys.path.insert(0, sys.argv[1])
 import probe_module
 
 functions = [_kernels.hadamard_B_skew, _kernels.verdict, vortices.vortex_B,
-             vortices.vortex_project, zeitlin.zeitlin_B, _recurrences._harmonic_compiled,
-             _recurrences._legendre_sweep_compiled, laplacian._sweep_compiled]
+             vortices.vortex_project, zeitlin.zeitlin_B,
+             _recurrences._harmonic_compiled.dispatcher(),
+             _recurrences._legendre_sweep_compiled.dispatcher(),
+             laplacian._sweep_compiled.dispatcher()]
 print(json.dumps({
     "directory": str(cache_directory()),
     "paths": [f.stats.cache_path for f in functions],

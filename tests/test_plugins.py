@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.metadata as md
 from collections.abc import Callable
+from pathlib import Path
 from typing import ClassVar
 
 import pytest
@@ -145,6 +146,141 @@ def test_importing_lieflow_and_loading_the_plugins_leaves_heavy_scipy_modules_un
     assert out.stdout.strip() == "[]", out.stdout
 
 
+_THIRD_PARTY = ("lieflow_zeitlin", "lieflow_vortices", "numba")
+
+
+def _imported_after(code: str) -> dict[str, list[str]]:
+    """Run ``code`` in a fresh interpreter; it prints ``loaded(label)`` lines, each the
+    third-party modules imported so far."""
+    import json
+    import subprocess
+    import sys
+
+    prelude = (
+        "import json, sys\n"
+        "def loaded(label):\n"
+        f"    print(json.dumps([label, [m for m in {_THIRD_PARTY!r} if m in sys.modules]]))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", prelude + code], capture_output=True, text=True, check=False
+    )
+    assert out.returncode == 0, out.stderr
+    return dict(json.loads(line) for line in out.stdout.splitlines() if line.startswith("["))
+
+
+@pytest.mark.skipif(
+    "euler_zeitlin" not in lf.default_registry().systems, reason="lieflow-zeitlin not installed"
+)
+def test_a_builtin_system_loads_no_other_plugin(tmp_path: Path) -> None:
+    """``lieflow run`` on a rigid body, and looking up a built-in, import no third-party
+    plugin and no numba (161 ms of ``lieflow run`` before, issue 27); a plugin's system
+    still resolves, and listing the systems loads every plugin (but not numba)."""
+    config = tmp_path / "rb.toml"
+    config.write_text(
+        '[system]\nname = "rigid_body"\n[initial]\nrandom = true\nseed = 0\n'
+        '[scheme]\nname = "midpoint"\n'
+        '[run]\nh = 0.1\nsteps = 3\noutput = "rb.h5"\n',
+        encoding="utf-8",
+    )
+    seen = _imported_after(
+        "import lieflow as lf\n"
+        "from lieflow.app.cli import main\n"
+        f"assert main(['run', '--no-progress', {str(config)!r}]) == 0\n"
+        "loaded('run')\n"
+        "for kind, name in [('system', 'periodic_toda'), ('scheme', 'gauss3'),\n"
+        "                   ('solver', 'newton')]:\n"
+        "    lf.default_registry().create(kind, name)\n"
+        "assert 'rigid_body' in lf.default_registry().systems\n"
+        "assert lf.default_registry().sinks.get('.h5') is not None\n"
+        "body = lf.systems.get('rigid_body')\n"
+        "lf.integrate(body, lf.schemes.get('midpoint'), body.random_state(0), 0.1, steps=2,\n"
+        f"             out={str(tmp_path / 'integrate.h5')!r})\n"
+        "loaded('builtins')\n"
+        "system = lf.systems.get('euler_zeitlin', N=8)\n"
+        "assert type(system).__module__.startswith('lieflow_zeitlin')\n"
+        "loaded('zeitlin')\n"
+    )
+    assert seen["run"] == [] and seen["builtins"] == []
+    assert "lieflow_zeitlin" in seen["zeitlin"]
+    listed = _imported_after("import lieflow as lf\nlf.systems.available()\nloaded('names')\n")
+    assert {"lieflow_zeitlin", "lieflow_vortices"} <= set(listed["names"])
+    # the fluids plugin compiles its kernels at their first use, not when it is imported
+    assert "numba" not in listed["names"]
+
+
+class _Recorder:
+    """A plugin that records that it was loaded, registering ``names`` as systems."""
+
+    def __init__(self, *names: str) -> None:
+        self.names = names
+        self.loaded = False
+
+    @lf.hookimpl
+    def lieflow_register(self, registry: lf.RegistryBuilder) -> None:
+        self.loaded = True
+        for name in self.names:
+            registry.add_system(name, lf.systems.PeriodicToda)
+
+
+def test_lazy_registry_loads_other_plugins_only_for_names_not_lieflows() -> None:
+    mine = _Recorder("chain")
+    reg = lf.load_registry(autoload=False, plugins=[("mine", mine)], lazy=True)
+    assert isinstance(reg.create("system", "rigid_body"), lf.systems.RigidBody)
+    assert "midpoint" in reg.schemes and not mine.loaded
+    # a search that stops at a built-in loads nothing more
+    assert next(n for n, e in reg.systems.items() if e.factory is lf.systems.RigidBody)
+    assert not mine.loaded
+    assert "chain" in reg.systems and mine.loaded
+    assert "mine" in reg.systems["chain"].source
+
+
+def test_lazy_registry_lists_every_plugin() -> None:
+    mine = _Recorder("chain")
+    reg = lf.load_registry(autoload=False, plugins=[("mine", mine)], lazy=True)
+    assert "chain" in sorted(reg.systems) and mine.loaded
+    eager = lf.load_registry(autoload=False, plugins=[("mine", _Recorder("chain"))])
+    for kind in plugins.KINDS:
+        assert list(reg.table(kind)) == list(eager.table(kind))
+
+
+@pytest.mark.parametrize("first", ["alpha", "omega"])
+def test_a_name_two_plugins_register_is_reported_whatever_their_order(first: str) -> None:
+    """Lazily, all third-party plugins load together: the duplicate is found, never resolved
+    to whichever plugin happened to load first."""
+    second = "omega" if first == "alpha" else "alpha"
+    plugins = [(first, _Recorder("chain", f"{first}_only")), (second, _Recorder("chain"))]
+    reg = lf.load_registry(autoload=False, plugins=plugins, lazy=True)
+    for name in ("chain", f"{first}_only"):
+        with pytest.raises(lf.PluginError, match=rf"'{second}' is broken: .*'chain'.*{first}"):
+            reg.entry("system", name)
+    with pytest.raises(lf.PluginError, match="already registered"):
+        sorted(reg.systems)
+    assert isinstance(
+        reg.create("system", "rigid_body"), lf.systems.RigidBody
+    )  # built-ins unaffected
+
+
+def test_a_plugin_that_registers_a_builtin_name_is_broken_when_it_loads() -> None:
+    """A built-in name is lieflow's: looking it up never loads another plugin, and the
+    plugin that registers it too is reported as soon as anything loads it."""
+    reg = lf.load_registry(autoload=False, plugins=[("thief", _Recorder("rigid_body", "x"))],
+                           lazy=True)  # fmt: skip
+    assert "'lieflow'" in reg.systems["rigid_body"].source
+    with pytest.raises(lf.PluginError, match=r"'thief' is broken: .*'rigid_body'.*already"):
+        reg.systems.get("x")
+    assert "'lieflow'" in reg.systems["rigid_body"].source
+
+
+def test_lazy_registry_warns_about_a_broken_plugin_when_it_loads(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setenv(plugins.ERRORS_ENV, "warn")
+    plugs = [("broken", _Plugin(lambda r: 1 / 0)), ("fine", _Recorder("chain"))]
+    reg = lf.load_registry(autoload=False, plugins=plugs, lazy=True)
+    with pytest.warns(plugins.PluginWarning, match="'broken' is broken: ZeroDivisionError"):
+        assert "fine" in reg.systems["chain"].source
+
+
 def _private_lieflow_uses(source: str) -> list[str]:
     """Every private lieflow name a module's source reaches: an imported module or name
     with a part starting with ``_`` under ``lieflow`` (``lieflow._kernels``,
@@ -188,7 +324,6 @@ def _private_lieflow_uses(source: str) -> list[str]:
 def test_the_plugins_use_only_public_lieflow_names() -> None:
     """The plugins in plugins/ are written as a third party would: no private lieflow
     module or name (their compiled B uses :mod:`lieflow.compiled`'s public maps)."""
-    from pathlib import Path
 
     root = Path(__file__).resolve().parents[1] / "plugins"
     # the plugins' code (their tests, under plugins/*/tests, may look inside lieflow)

@@ -14,7 +14,16 @@ Time-to-accuracy at an error level is interpolated on the log–log work–preci
 (:func:`scipy_work_precision.time_to_reach`; its ``energy_error`` field carries the state
 error here). lieflow's curves: the midpoint rule and Gauss-4 (4 stages, order 8) with the
 commutator update at rtol 1e-14 and the conjugation update at rtol 1e-8, and Gauss-2 (order
-4) with the conjugation update. All runs are timed interleaved in one process, median round.
+4) with the conjugation update; then Gauss-2 and Gauss-4 with the conjugation update at rtol
+1e-8 and ``casimir_shift="auto"`` (the same flow stepped on ``B(W) - c⋆W``, an isospectral
+Lie–Poisson scheme of the same order: the setting ``docs/choosing.md`` recommends trying
+first). All runs are timed interleaved in one process, median round.
+
+Both sides run as a user comparing final states would: quflow's ``isomp`` computes no
+diagnostics and returns the last state only, so lieflow runs with ``diagnostics=False`` and
+``save_every=steps`` (the first and the last state kept). :data:`RECOMMENDED` is the one
+configuration the docs recommend for 1e-4 … 1e-6, chosen once for every level and both sizes;
+its own time to each level is reported beside the frontier's.
 
 The floor of a midpoint step with ``u`` fixed-point updates is ``u (2 GEMM + B) + GEMM + B``
 (each term the best time of that operation alone on the same state, as in
@@ -26,7 +35,7 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import Any, Literal
 
 import attrs
 import numpy as np
@@ -50,6 +59,10 @@ TARGET = 1.5
 #: rtol of the conjugation ("accuracy") runs.
 ACCURACY_RTOL = 1e-8
 
+#: The configuration recommended for errors 1e-4 … 1e-6 (docs/conjugation.md): Gauss-2
+#: (order 4), conjugation update at :data:`ACCURACY_RTOL`, Casimir shift ``"auto"``.
+RECOMMENDED = f"lieflow gauss2 conjugation+shift rtol {ACCURACY_RTOL:g}"
+
 
 @attrs.frozen
 class Setup:
@@ -62,18 +75,23 @@ class Setup:
     gauss2_steps: tuple[int, ...]
     reference_steps: int
     repeats: int
+    shifted_gauss2_steps: tuple[int, ...]
+    shifted_gauss_steps: tuple[int, ...]
 
 
 def setups(quick: bool) -> tuple[Setup, ...]:
     """N = 64 over T = 1/2 and N = 128 over T = 1/4 of fluid time (quick: N = 16, T = 1/8,
     one round)."""
     if quick:
-        return (Setup(16, 0.125, (8, 16, 32), (1, 2), (1, 2), 8, 1),)
+        return (Setup(16, 0.125, (8, 16, 32), (1, 2), (1, 2), 8, 1, (1, 2), (1,)),)
     midpoint = (32, 64, 128, 256, 512, 1024)
     # N = 128 over T = 1/4: fixed point diverges for gauss4 at h = 1/4 there, and quflow
-    # needs > 1024 steps for 1e-6 over T = 1/2. Fixed point stalls for gauss2 at h = 1/4.
-    return (Setup(64, 0.5, midpoint, (2, 4, 8, 16), (4, 8, 16), 64, 3),
-            Setup(128, 0.25, midpoint, (2, 4, 8, 16), (4, 8, 16), 32, 2))  # fmt: skip
+    # needs > 1024 steps for 1e-6 over T = 1/2. Fixed point stalls for gauss2 at h = 1/4
+    # (with the Casimir shift it converges there).
+    return (Setup(64, 0.5, midpoint, (2, 4, 8, 16), (4, 8, 16), 64, 5, (2, 3, 4, 6, 8, 12),
+                  (1, 2, 3, 4)),
+            Setup(128, 0.25, midpoint, (2, 4, 8, 16), (4, 8, 16), 32, 3, (2, 3, 4, 6, 8, 12),
+                  (1, 2, 3)))  # fmt: skip
 
 
 def quflow_isomp() -> Callable[..., Any] | None:
@@ -97,16 +115,18 @@ class Curve:
 
 def lieflow_curve(
     system: lf.IsospectralSystem, W0: np.ndarray, T: float, label: str, scheme: lf.Scheme,
-    rtol: float, steps: tuple[int, ...],
+    rtol: float, steps: tuple[int, ...], shift: float | Literal["auto"] = 0.0,
 ) -> Curve:  # fmt: skip
-    """lieflow runs: final state and mean updates per step."""
+    """lieflow runs: final state and mean updates per step (no diagnostics, the first and
+    the last state kept, as quflow's ``isomp`` returns the last state only)."""
     solver = lf.solvers.FixedPoint(rtol=rtol)
 
     def make(n: int) -> Callable[[], tuple[np.ndarray, float]]:
         def go() -> tuple[np.ndarray, float]:
             sol = lf.integrate(
-                system, scheme, W0, h=T / n, steps=n, solver=solver, diagnostics=False
-            )
+                system, scheme, W0, h=T / n, steps=n, solver=solver, diagnostics=False,
+                save_every=n, casimir_shift=shift,
+            )  # fmt: skip
             return sol.W[-1], float(np.mean(sol.iterations))
 
         return go
@@ -197,6 +217,12 @@ def measure(ctx: BenchContext, s: Setup, isomp: Callable[..., Any] | None) -> Si
         lieflow_curve(system, W0, s.T, f"lieflow gauss2 conjugation rtol {ACCURACY_RTOL:g}",
                       BlockGauss(tableaus.gauss(2), update="conjugation"), ACCURACY_RTOL,
                       s.gauss2_steps),
+        lieflow_curve(system, W0, s.T, RECOMMENDED,
+                      BlockGauss(tableaus.gauss(2), update="conjugation"), ACCURACY_RTOL,
+                      s.shifted_gauss2_steps, "auto"),
+        lieflow_curve(system, W0, s.T, f"lieflow gauss4 conjugation+shift rtol {ACCURACY_RTOL:g}",
+                      BlockGauss(g4, update="conjugation"), ACCURACY_RTOL,
+                      s.shifted_gauss_steps, "auto"),
     ]  # fmt: skip
     if isomp is not None:
         isomp(W0.copy(), s.T, steps=1)  # numba compiles on the first call: not timed
@@ -235,23 +261,30 @@ def measure(ctx: BenchContext, s: Setup, isomp: Callable[..., Any] | None) -> Si
     )  # fmt: skip
     lie = [p for p in points if p.side == "lieflow"]
     quf = [p for p in points if p.side == "quflow"]
+    rec = [p for p in lie if p.curve == RECOMMENDED]
     level_rows, ratios = [], []
     for level in LEVELS:
         a, b = time_to_reach(lie, level), time_to_reach(quf, level)
+        c = time_to_reach(rec, level)
         r = None if a is None or b is None else b[0] / a[0]
+        rc = None if c is None or b is None else b[0] / c[0]
         ratios.append(r)
         level_rows.append((
             f"{level:.0e}",
             "—" if a is None else f"{seconds(a[0])} ({a[1].curve}, {a[1].param} steps)",
             "—" if b is None else seconds(b[0]),
             "—" if r is None else f"{r:.2f}×",
+            "—" if c is None else seconds(c[0]),
+            "—" if rc is None else f"{rc:.2f}×",
         ))  # fmt: skip
     levels = Table(
-        ("error", "lieflow best", "quflow isomp", "quflow / lieflow"),
+        ("error", "lieflow best", "quflow isomp", "quflow / lieflow",
+         "recommended alone", "quflow / recommended"),
         tuple(level_rows),
         caption=f"N = {s.N}: seconds to reach the error at T, interpolated on the log–log "
-        "frontier of each side's runs.",
-    )
+        "frontier of each side's runs; 'recommended alone': the curve "
+        f"'{RECOMMENDED}' by itself (one configuration for every level).",
+    )  # fmt: skip
     goal = f"Euler–Zeitlin N = {s.N} ≥ {TARGET}× quflow's time-to-accuracy at 1e-4…1e-6"
     notes: list[str] = []
     if isomp is None:

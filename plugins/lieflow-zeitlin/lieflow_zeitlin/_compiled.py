@@ -24,7 +24,11 @@ import numpy as np
 from lieflow.compiled import skew_hermitian_part
 from lieflow.numba_cache import cached_njit
 
-from .laplacian import _sweep_compiled
+from . import laplacian
+
+#: The partitioned sweeps of :meth:`HoppeYauLaplacian.solve`, compiled (``zeitlin_B`` calls
+#: them).
+_sweep_compiled = laplacian._sweep_compiled.dispatcher()
 
 #: ``params = [c, nb, b, 1, Im diag F_f (N entries), lower, upper, carry_fwd, carry_bwd,
 #: dinv]`` (each factor ``(nb, b, 2(N+1))``, flattened; :func:`params`); the ``1`` is the

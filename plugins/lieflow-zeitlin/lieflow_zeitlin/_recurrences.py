@@ -40,16 +40,17 @@ run as row-wise numpy otherwise (same arithmetic, more Python overhead).
 
 from __future__ import annotations
 
+import functools
 import importlib
 import math
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any
 
+import attrs
 import numpy as np
 from numpy.typing import NDArray
 
 Array = NDArray[Any]
-F = TypeVar("F", bound=Callable[..., Any])
 
 #: Largest N for which the harmonic recurrence keeps every value finite (the dynamic range
 #: of a row is about ``2^N``; starting values are floored at ``1e-300``).
@@ -57,22 +58,46 @@ MAX_N = 1400
 
 _FLOOR = 1e-300
 
-numba: Any
-try:
-    numba = importlib.import_module("numba")
-except ImportError:  # pragma: no cover - exercised by the numpy fallback tests via a flag
-    numba = None
+
+@functools.cache
+def have_numba() -> bool:
+    """Whether numba can be imported (``lieflow-zeitlin[fast]``). The first call imports it:
+    the first use of a compiled kernel, not the import of the plugin (numba takes 0.15 s to
+    import, which every command that loads the plugins paid before)."""
+    try:
+        importlib.import_module("numba")
+    except ImportError:
+        return False
+    return True
 
 
-def _jit(func: F, fastmath: bool = False) -> F:
-    """``numba.njit`` with an on-disk cache in the user's cache directory
-    (:func:`lieflow.numba_cache.cached_njit`); ``fastmath`` lets the compiler reassociate
-    sums (vectorised dot products; the order of additions is then the compiler's)."""
-    if numba is None:  # pragma: no cover
-        return func
+@attrs.frozen
+class _Kernel:
+    """``func`` compiled with numba at its first call, with an on-disk cache in the user's
+    cache directory (:func:`lieflow.numba_cache.cached_njit`); ``fastmath`` lets the compiler
+    reassociate sums (vectorised dot products; the order of additions is then the
+    compiler's); ``reciprocal`` also lets it use reciprocals (LLVM's ``arcp``: 1.4x faster
+    sweeps in :func:`_degree_squares`, which already multiplies by ``1/a``). Call it only
+    where :func:`have_numba`."""
+
+    func: Callable[..., Any]
+    fastmath: bool = False
+    reciprocal: bool = False
+
+    def __call__(self, *args: Any) -> Any:
+        return self.dispatcher()(*args)
+
+    def dispatcher(self) -> Any:
+        """numba's compiled function (compiled on the first call, then the same object): what
+        another compiled function calls."""
+        return _compile(self.func, self.fastmath, self.reciprocal)
+
+
+@functools.cache
+def _compile(func: Callable[..., Any], fastmath: bool, reciprocal: bool = False) -> Any:
     from lieflow.numba_cache import cached_njit
 
-    flags = {"reassoc", "contract"} if fastmath else False
+    flags = ({"reassoc", "contract"} | ({"arcp"} if reciprocal else set())) if fastmath else False
     return cached_njit(func, nogil=True, fastmath=flags)
 
 
@@ -199,7 +224,7 @@ def _harmonic_rows(
     sb[:] = sf * r
 
 
-_harmonic_compiled = _jit(_harmonic_kernel) if numba is not None else None
+_harmonic_compiled = _Kernel(_harmonic_kernel)
 
 
 def _harmonic_sweeps(
@@ -284,7 +309,7 @@ def _harmonic_sweeps(
             coef[q, k] = t
 
 
-_sweeps_compiled = _jit(_harmonic_sweeps, fastmath=True) if numba is not None else None
+_sweeps_compiled = _Kernel(_harmonic_sweeps, fastmath=True)
 
 
 def _scales(stats: Array, k1: int, n: int) -> tuple[Array, Array]:
@@ -301,7 +326,6 @@ def _scales(stats: Array, k1: int, n: int) -> tuple[Array, Array]:
 def harmonic_synthesis(N: int, m: int, C: Array) -> Array:
     """``C @ V_m.T`` for real ``C`` of shape ``(Q, n)`` (columns by degree ``m + k``), fused
     with the recurrence (numba required): ``O(n)`` memory besides the result."""
-    assert _sweeps_compiled is not None
     n = N - m
     a = harmonic_coefficients(N, m)
     f0, b0 = harmonic_start(N, m)
@@ -330,10 +354,9 @@ def harmonic_synthesis(N: int, m: int, C: Array) -> Array:
     return accf * sf + accb * sb
 
 
-def harmonic_analysis(N: int, m: int, X: Array) -> Array:
-    """``X @ V_m`` for real ``X`` of shape ``(P, n)`` (entries along the diagonal): one sweep
-    for the scales, one for the products (numba required)."""
-    assert _sweeps_compiled is not None
+def harmonic_scales(N: int, m: int) -> tuple[Array, Array, Array, int, Array, Array]:
+    """``(a, f0, b0, k1, sf, sb)`` of diagonal ``m``: the recurrence's coefficients, its
+    starting rows, the split degree and the column scales (one sweep, numba required)."""
     n = N - m
     a = harmonic_coefficients(N, m)
     f0, b0 = harmonic_start(N, m)
@@ -342,6 +365,16 @@ def harmonic_analysis(N: int, m: int, X: Array) -> Array:
     empty = np.zeros((0, n))
     _sweeps_compiled(N, m, a, f0, b0, k1, empty, empty, empty, empty, empty, empty, stats)
     sf, sb = _scales(stats, k1, n)
+    return a, f0, b0, k1, sf, sb
+
+
+def harmonic_analysis(N: int, m: int, X: Array) -> Array:
+    """``X @ V_m`` for real ``X`` of shape ``(P, n)`` (entries along the diagonal): one sweep
+    for the scales, one for the products (numba required)."""
+    n = N - m
+    a, f0, b0, k1, sf, sb = harmonic_scales(N, m)
+    empty = np.zeros((0, n))
+    stats = np.zeros((6, n))
     coef = np.zeros((X.shape[0], n))
     _sweeps_compiled(N, m, a, f0, b0, k1, empty, empty, empty, X * sf, X * sb, coef, stats)
     return coef
@@ -360,8 +393,8 @@ def harmonic_diagonal(
     Vt = np.empty((n + 1, n))
     sf = np.empty(n)
     sb = np.empty(n)
-    use = (numba is not None) if compiled is None else compiled
-    kernel = _harmonic_compiled if use and _harmonic_compiled is not None else _harmonic_rows
+    use = have_numba() if compiled is None else compiled
+    kernel = _harmonic_compiled if use and have_numba() else _harmonic_rows
     kernel(N, m, a, f0, b0, k1, Vt, sf, sb)
     return Vt, k1, sf, sb
 
@@ -375,6 +408,127 @@ def harmonics_by_recurrence(N: int, *, compiled: bool | None = None) -> Any:
         V[:, :k1] *= sf[:, None]
         V[:, k1:] *= sb[:, None]
         yield m, V
+
+
+# ------------------------------------------------------------------ sums by degree
+def _degree_squares(
+    N: int,
+    k1s: Array,
+    start: Array,
+    a: Array,
+    f0: Array,
+    b0: Array,
+    sf: Array,
+    sb: Array,
+    W: Array,
+    out: Array,
+) -> None:
+    """``out[q, m + k] += w_m ((x·v_k)² + (y·v_k)²)`` over the diagonals ``m`` of each
+    ``W[q]``: ``x + iy`` is the lower diagonal ``m`` of the skew-Hermitian part of ``W[q]``
+    times the column scales (``sf`` for ``k < k1``, ``sb`` after), ``v_k`` the unscaled rows
+    of :func:`_harmonic_kernel` (same arithmetic: forward from ``f0``, backward from
+    ``b0``), ``w_0 = 1``, ``w_m = 2`` (the upper diagonal's coefficients have the same
+    moduli). Diagonal ``m``'s tables start at ``start[m]``. The recurrence and the two
+    products share one pass over the entries; every work row is local, so the compiler can
+    vectorise that pass (numba)."""
+    K = W.shape[0]
+    c = np.empty(N)
+    u = np.empty(N)
+    v = np.empty(N)
+    re = np.empty(N)
+    im = np.empty(N)
+    x = np.empty(N)
+    y = np.empty(N)
+    for q in range(K):
+        for m in range(N):
+            n = N - m
+            o = start[m]
+            k1 = k1s[m]
+            weight = 1.0 if m == 0 else 2.0
+            for i in range(n):
+                z = 0.5 * (W[q, i + m, i] - np.conj(W[q, i, i + m]))
+                re[i] = z.real
+                im[i] = z.imag
+                c[i] = 2.0 * i + m - (N - 1)
+            # forward (rows 0..k1-1): v_k = (c v_{k-1} - a_{k-1} v_{k-2}) / a_k;
+            # backward (rows n-1..k1): v_k = (c v_{k+1} - a_{k+2} v_{k+2}) / a_{k+1}
+            for back in range(2 if k1 < n else 1):
+                scale = sb if back else sf
+                first = b0 if back else f0
+                step = -1 if back else 1
+                k = n - 1 if back else 0
+                for i in range(n):
+                    x[i] = re[i] * scale[o + i]
+                    y[i] = im[i] * scale[o + i]
+                    u[i] = 0.0
+                    v[i] = first[o + i]
+                for j in range(n - k1 if back else k1):
+                    t0 = 0.0
+                    t1 = 0.0
+                    if j == 0:
+                        for i in range(n):
+                            t0 += x[i] * v[i]
+                            t1 += y[i] * v[i]
+                    else:
+                        inv = 1.0 / a[o + k + back]
+                        ak = a[o + k + back - step]
+                        for i in range(n):
+                            wi = (c[i] * v[i] - ak * u[i]) * inv
+                            u[i] = v[i]
+                            v[i] = wi
+                            t0 += x[i] * wi
+                            t1 += y[i] * wi
+                    out[q, m + k] += weight * (t0 * t0 + t1 * t1)
+                    k += step
+
+
+_degree_squares_compiled = _Kernel(_degree_squares, fastmath=True, reciprocal=True)
+
+
+@attrs.frozen(eq=False)
+class DiagonalTables:
+    """The recurrence tables of all ``N`` diagonals (:func:`harmonic_scales`), packed: built
+    once per ``N`` (O(N³/3) flops, ``5N²/2`` numbers), so that :meth:`squares_by_degree`
+    only runs the product sweeps (numba required; ``N <= MAX_N``).
+
+    Diagonal ``m``'s entries are at ``start[m] : start[m] + N - m + 1`` of ``a`` (the
+    coefficients ``a_{m+k}``, ``k = 0..n``) and of ``f0``, ``b0``, ``sf``, ``sb`` (the last
+    entry unused); ``k1[m]`` is its split degree.
+    """
+
+    N: int
+    k1: Array = attrs.field(repr=False)
+    start: Array = attrs.field(repr=False)
+    a: Array = attrs.field(repr=False)
+    f0: Array = attrs.field(repr=False)
+    b0: Array = attrs.field(repr=False)
+    sf: Array = attrs.field(repr=False)
+    sb: Array = attrs.field(repr=False)
+
+    @classmethod
+    def of(cls, N: int) -> DiagonalTables:
+        """The tables of ``N×N`` matrices."""
+        start = np.concatenate([[0], np.cumsum(N - np.arange(N) + 1)]).astype(np.int64)
+        k1 = np.empty(N, dtype=np.int64)
+        packed = np.zeros((5, int(start[-1])))
+        for m in range(N):
+            a, f0, b0, k1[m], sf, sb = harmonic_scales(N, m)
+            o, n = int(start[m]), N - m
+            packed[0, o : o + n + 1] = a
+            for row, values in enumerate((f0, b0, sf, sb), start=1):
+                packed[row, o : o + n] = values
+        return cls(N, k1, start, *packed)
+
+    def squares_by_degree(self, W: Array) -> Array:
+        """``Σ_{|m|<=l} |<T_lm, A>_F|²`` for ``l = 0..N-1`` of the skew-Hermitian part ``A``
+        of each matrix of ``W`` (``(K, N, N)``, complex128): shape ``(K, N)``. One pass of
+        the recurrence per diagonal and state, fused with the products: about
+        ``N³/3`` entries, each a few flops."""
+        out = np.zeros((W.shape[0], self.N))
+        _degree_squares_compiled(
+            self.N, self.k1, self.start, self.a, self.f0, self.b0, self.sf, self.sb, W, out
+        )
+        return out
 
 
 # ------------------------------------------------------------------ Legendre functions
@@ -426,7 +580,7 @@ def _legendre_rows(x: Array, p0: Array, alpha: Array, beta: Array, P: Array) -> 
         P[k] = alpha[k] * (x * P[k - 1] - beta[k] * P[k - 2])
 
 
-_legendre_compiled = _jit(_legendre_kernel) if numba is not None else None
+_legendre_compiled = _Kernel(_legendre_kernel)
 
 
 def _legendre_sweep(
@@ -463,12 +617,11 @@ def _legendre_sweep(
             coef[q, k] = t
 
 
-_legendre_sweep_compiled = _jit(_legendre_sweep, fastmath=True) if numba is not None else None
+_legendre_sweep_compiled = _Kernel(_legendre_sweep, fastmath=True)
 
 
 def legendre_synthesis(N: int, m: int, theta: Array, C: Array) -> Array:
     """``C @ P`` with ``P = legendre_order(N, m, θ)``, fused (numba required)."""
-    assert _legendre_sweep_compiled is not None
     alpha, beta = legendre_coefficients(N, m)
     acc = np.zeros((C.shape[0], theta.size))
     empty = np.zeros((0, theta.size))
@@ -487,7 +640,6 @@ def legendre_synthesis(N: int, m: int, theta: Array, C: Array) -> Array:
 
 def legendre_analysis(N: int, m: int, theta: Array, X: Array) -> Array:
     """``X @ P.T`` with ``P = legendre_order(N, m, θ)``, fused (numba required)."""
-    assert _legendre_sweep_compiled is not None
     alpha, beta = legendre_coefficients(N, m)
     coef = np.zeros((X.shape[0], N - m))
     _legendre_sweep_compiled(
@@ -507,7 +659,7 @@ def legendre_order(N: int, m: int, theta: Array, *, compiled: bool | None = None
     """``P[k, j] = Y_{m+k, m}(θ_j, 0)`` for ``k = 0..N-m-1``: shape ``(N - m, len(θ))``."""
     alpha, beta = legendre_coefficients(N, m)
     P = np.empty((N - m, theta.size))
-    use = (numba is not None) if compiled is None else compiled
-    kernel = _legendre_compiled if use and _legendre_compiled is not None else _legendre_rows
+    use = have_numba() if compiled is None else compiled
+    kernel = _legendre_compiled if use and have_numba() else _legendre_rows
     kernel(np.cos(theta), legendre_start(m, theta), alpha, beta, P)
     return P

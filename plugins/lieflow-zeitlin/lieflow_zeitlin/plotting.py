@@ -481,8 +481,9 @@ def _colormap(name: str) -> Any:
 
 def distribution_figure(samples: dict[str, Array]) -> Figure:
     """The vorticity distribution: the levels (eigenvalues of ``-iW``) against the area
-    fraction they stand for, and their histogram, first and last sample."""
-    t = np.asarray(samples["t"], dtype=float)
+    fraction they stand for, and their histogram, first and last sample (at the times
+    ``levels_t`` when the levels were not sampled with the rest, :func:`run_samples`)."""
+    t = np.asarray(samples.get("levels_t", samples["t"]), dtype=float)
     levels = np.asarray(samples["vorticity_levels"], dtype=float)
     N = levels.shape[-1]
     fig = _figure(10.0, 4.0)
@@ -525,22 +526,31 @@ def statistics_figure(samples: dict[str, Array]) -> Figure:
 def run_samples(trajectory: Any) -> dict[str, Array]:
     """The diagnostics samples of a run: the file's ``/diagnostics/extra`` rows
     (:func:`lieflow.app.io.read_extra`) or, for files without them, the diagnostics of its
-    saved states (:func:`lieflow_zeitlin.diagnostics.snapshot`). For an ensemble run the
-    spectra, energy and enstrophy are ensemble means, the levels and Casimirs the first
-    member's."""
+    saved states (:func:`lieflow_zeitlin.diagnostics.snapshot`). A run sampled without the
+    levels (``diagnostics_levels = false``) gets the levels and Casimirs of its saved
+    states, at their times ``levels_t``. For an ensemble run the spectra, energy and
+    enstrophy are ensemble means, the levels and Casimirs the first member's."""
     from lieflow.app.io import read_extra
 
     from .diagnostics import snapshot
 
     path = getattr(trajectory, "path", None)
     out = read_extra(path) if path is not None else {}
-    if not out:
+    if not out or "vorticity_levels" not in out:
         system = _file_system(trajectory)
         W = np.asarray(trajectory.W)
         rows = [snapshot(system, w) for w in W]
-        out = {name: np.stack([r[name] for r in rows]) for name in rows[0]}
-        out["t"] = np.asarray(trajectory.t, dtype=float)
-        out["step"] = np.asarray(getattr(trajectory, "step", np.arange(len(W))))
+        saved = {name: np.stack([r[name] for r in rows]) for name in rows[0]}
+        saved["t"] = np.asarray(trajectory.t, dtype=float)
+        saved["step"] = np.asarray(getattr(trajectory, "step", np.arange(len(W))))
+        if out:
+            saved = {
+                **out,
+                "vorticity_levels": saved["vorticity_levels"],
+                "casimirs": saved["casimirs"],
+                "levels_t": saved["t"],
+            }
+        out = saved
     return _ensemble_view(out)
 
 

@@ -166,7 +166,7 @@ _FUSED_ROWS = 16
 
 def _harmonic_product(N: int, m: int, X: Array, *, analysis: bool) -> Array:
     """``X @ V_m`` (analysis) or ``X @ V_m.T`` (synthesis) for real ``X`` of shape ``(Q, n)``."""
-    if _rec.numba is not None and X.shape[0] <= _FUSED_ROWS:
+    if _rec.have_numba() and X.shape[0] <= _FUSED_ROWS:
         if analysis:
             return _rec.harmonic_analysis(N, m, X)
         return _rec.harmonic_synthesis(N, m, X)
@@ -186,7 +186,7 @@ def _harmonic_product(N: int, m: int, X: Array, *, analysis: bool) -> Array:
 def _legendre_product(N: int, m: int, theta: Array, X: Array, *, analysis: bool) -> Array:
     """``X @ P.T`` (analysis, ``X``: ``(Q, n_lat)``) or ``X @ P`` (synthesis, ``(Q, n)``) with
     ``P = P̄_{m+k, m}(θ_j)``, real ``X``."""
-    if _rec.numba is not None and X.shape[0] <= _FUSED_ROWS:
+    if _rec.have_numba() and X.shape[0] <= _FUSED_ROWS:
         if analysis:
             return _rec.legendre_analysis(N, m, theta, X)
         return _rec.legendre_synthesis(N, m, theta, X)

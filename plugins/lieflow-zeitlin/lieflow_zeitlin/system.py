@@ -56,6 +56,7 @@ Users think in relative vorticity ``ζ = Δψ``: :meth:`EulerZeitlin.from_relati
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, Literal
 
@@ -66,7 +67,9 @@ from numpy.typing import ArrayLike, DTypeLike, NDArray
 import lieflow
 from lieflow.backends import from_host, is_numpy, namespace
 
+from . import _recurrences as _rec
 from .laplacian import HoppeYauLaplacian, matrix_size
+from .projection import su_project
 from .quantization import hbar, random_vorticity
 
 Array = NDArray[Any]
@@ -110,6 +113,11 @@ class VorticityAlgebra(lieflow.SU):
         """A seeded random smooth vorticity matrix with root-mean-square vorticity ``scale``."""
         return random_vorticity(self.n, self.degree, seed, rms=scale, dtype=self.precision)
 
+    def project(self, X: ArrayLike) -> Array:
+        """:meth:`lieflow.SU.project`, its skew-Hermitian part in one compiled pass where
+        numba is installed (:func:`~lieflow_zeitlin.projection.su_project`: the same bits)."""
+        return su_project(X, super().project)
+
 
 def _rotation(value: float) -> float:
     try:
@@ -141,6 +149,12 @@ def _every(value: int | None) -> int | None:
             f"diagnostics_every must be a non-negative integer (0: none), got {value!r}"
         )
     return int(value)
+
+
+def _flag(value: bool) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise lieflow.InputError(f"diagnostics_levels must be true or false, got {value!r}")
+    return bool(value)
 
 
 def _time_default(self: Any) -> str:
@@ -177,6 +191,13 @@ class EulerZeitlin(lieflow.IsospectralSystem):
     diagnostics_every : int, optional
         Steps between the samples of :meth:`extra_diagnostics` that ``lieflow run`` writes
         under ``/diagnostics/extra`` (default: every saved state; ``0``: none).
+    diagnostics_levels : bool
+        Whether those samples include the vorticity levels and the Casimirs (default
+        ``True``). They cost one Hermitian eigenvalue problem of size N, about 0.1–0.25
+        midpoint steps per sample at N = 64–512, against 0.02–0.1 for the spectra;
+        ``False`` keeps the spectra, energy and enstrophy only (``lieflow plot`` then takes
+        the levels of the saved states, :func:`~lieflow_zeitlin.vorticity_levels` computes
+        them for any).
 
     Notes
     -----
@@ -200,8 +221,11 @@ class EulerZeitlin(lieflow.IsospectralSystem):
     rotation: float = attrs.field(default=0.0, converter=_rotation, kw_only=True)
     lamb: float = attrs.field(default=0.0, converter=_lamb, kw_only=True)
     diagnostics_every: int | None = attrs.field(default=None, converter=_every, kw_only=True)
+    diagnostics_levels: bool = attrs.field(default=True, converter=_flag, kw_only=True)
     laplacian: HoppeYauLaplacian = attrs.field(init=False, repr=False)
     planetary: Array = attrs.field(init=False, repr=False)
+    # built once: every projection of a stage value goes through it
+    _algebra: VorticityAlgebra = attrs.field(init=False, repr=False)
 
     casimir_powers = (2, 3, 4)
 
@@ -218,6 +242,10 @@ class EulerZeitlin(lieflow.IsospectralSystem):
     @laplacian.default
     def _laplacian(self) -> HoppeYauLaplacian:
         return HoppeYauLaplacian(self.N, scale=self.bracket_scale, shift=self.lamb)
+
+    @_algebra.default
+    def _algebra_default(self) -> VorticityAlgebra:
+        return VorticityAlgebra(self.N, degree=self.random_degree, precision=self.dtype)
 
     @planetary.default
     def _planetary(self) -> Array:
@@ -245,7 +273,7 @@ class EulerZeitlin(lieflow.IsospectralSystem):
     @property
     def algebra(self) -> VorticityAlgebra:
         """su(N) (random elements are smooth vorticity fields)."""
-        return VorticityAlgebra(self.N, degree=self.random_degree, precision=self.dtype)
+        return self._algebra
 
     def _anomaly(self, W: Array) -> Array:
         if not is_numpy(W):  # an array of another library (lieflow.backends)
@@ -270,6 +298,16 @@ class EulerZeitlin(lieflow.IsospectralSystem):
         if self.rotation == 0.0 and self.lamb == 0.0:
             return R
         return self.from_relative(R)
+
+    @functools.cached_property
+    def diagonal_tables(self) -> _rec.DiagonalTables | None:
+        """The recurrence tables of the spectra by degree
+        (:func:`~lieflow_zeitlin.diagnostics.matrix_squares_by_degree`), built on first use
+        (O(N³/3) flops, ``5N²/2`` numbers) and kept; ``None`` without numba or for
+        ``N > 1400``."""
+        if not _rec.have_numba() or self.N > _rec.MAX_N:
+            return None
+        return _rec.DiagonalTables.of(self.N)
 
     def B(self, W: Array) -> Array:
         r"""``σ (Δ_N - F)^{-1}(W - F_f)`` (``σ`` times the stream matrix), broadcasting."""
@@ -343,11 +381,25 @@ class EulerZeitlin(lieflow.IsospectralSystem):
     def extra_diagnostics(self, W: ArrayLike) -> dict[str, Array]:
         """The turbulence diagnostics of one state that ``lieflow run`` stores under
         ``/diagnostics/extra`` (:func:`lieflow_zeitlin.diagnostics.snapshot`): energy and
-        enstrophy spectra of the relative vorticity, their sums, the vorticity levels
-        (eigenvalues of ``-iW``) and the Casimirs ``tr((iW)^k)``, k = 2, 3, 4, 5, 6, 8."""
-        from .diagnostics import snapshot
+        enstrophy spectra of the relative vorticity, their sums and, with
+        ``diagnostics_levels`` (the default), the vorticity levels (eigenvalues of ``-iW``)
+        and the Casimirs ``tr((iW)^k)``, k = 2, 3, 4, 5, 6, 8.
 
-        return snapshot(self, W)
+        ``W`` is a state of a run of this system (the driver's), so only its shape is
+        checked; :func:`~lieflow_zeitlin.diagnostics.snapshot` also checks that a state from
+        elsewhere is in su(N). Cost per sample, in midpoint steps (h = 1/N, rtol 1e-14;
+        ``benchmarks/suites/euler_zeitlin.py``): the spectra 0.02–0.1 (one compiled pass of
+        the harmonic recurrences), the levels and Casimirs 0.1–0.25 (one Hermitian
+        eigenvalue problem, about two complex N×N products) at N = 64–512.
+        """
+        from .diagnostics import _snapshot
+
+        W = np.asarray(W)
+        if W.ndim < 2 or W.shape[-2:] != (self.N, self.N):
+            raise lieflow.InputError(
+                f"W has shape {W.shape}, but su({self.N}) needs (..., {self.N}, {self.N})"
+            )
+        return _snapshot(self, W, levels=self.diagnostics_levels)
 
     def enstrophy(self, W: ArrayLike) -> Array:
         """``||W||_F² = tr((iW)²)`` (the ``k = 2`` Casimir)."""

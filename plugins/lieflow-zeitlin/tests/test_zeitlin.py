@@ -137,13 +137,13 @@ def test_compiled_sweep_gives_the_numpy_bits(
     same bits as the numpy row operations (results must not depend on numba)."""
     from lieflow_zeitlin import laplacian
 
-    if laplacian._sweep_compiled is None:
+    if not laplacian.have_numba():
         pytest.skip("numba is not installed")
     L = lz.HoppeYauLaplacian(N, scale=1.7, shift=shift, block=max(1, N // 3))
     for dtype in (np.complex128, np.complex64):
         X = _random_complex(N, seed=N, batch=(3,)).astype(dtype)
         compiled = L.solve(X)
-        monkeypatch.setattr(laplacian, "_sweep_compiled", None)
+        monkeypatch.setattr(laplacian, "have_numba", lambda: False)
         plain = L.solve(X)
         monkeypatch.undo()
         assert compiled.dtype == plain.dtype == dtype
@@ -151,6 +151,36 @@ def test_compiled_sweep_gives_the_numpy_bits(
         traceless = X - (np.trace(X, axis1=-2, axis2=-1) / N)[:, None, None] * np.eye(N)
         tol = 1e-5 if dtype == np.complex64 else 1e-12
         assert _rel(L.apply(plain), 1.7 * traceless) <= tol
+
+
+@pytest.mark.parametrize("N", [2, 3, 17, 64])
+@pytest.mark.parametrize("batch", [(), (3,), (2, 2)])
+def test_projection_gives_the_bits_of_su_project(
+    monkeypatch: pytest.MonkeyPatch, N: int, batch: tuple[int, ...]
+) -> None:
+    """The system's su(N) projection (compiled skew-Hermitian part where numba is
+    installed) gives lieflow.SU.project's bits, with and without numba, in both precisions;
+    non-complex and non-contiguous input too."""
+    from lieflow_zeitlin import projection
+
+    system = lz.EulerZeitlin(N)
+    assert system.algebra is system.algebra  # built once
+    X = _random_complex(N, seed=N + len(batch), batch=batch)
+    inputs = [X, X.astype(np.complex64), X.real, np.swapaxes(X, -1, -2)]
+    for Y in inputs:
+        expected = lf.SU(N).project(Y)
+        got = system.project_stage(Y)
+        assert got.dtype == expected.dtype and got.shape == expected.shape
+        assert np.array_equal(got, expected)
+        assert np.array_equal(system.project(Y), expected)
+        monkeypatch.setattr(projection, "have_numba", lambda: False)
+        assert np.array_equal(system.project_stage(Y), expected)
+        monkeypatch.undo()
+    # it is the projection: skew-Hermitian, traceless, and Y's own part where Y is in su(N)
+    P = system.project_stage(X)
+    np.testing.assert_array_equal(P, -np.conj(np.swapaxes(P, -1, -2)))
+    assert np.max(np.abs(np.trace(P, axis1=-2, axis2=-1))) <= 1e-14 * N
+    np.testing.assert_allclose(system.project_stage(P), P, rtol=0, atol=1e-15)
 
 
 # --------------------------------------------------------------------------- quantization

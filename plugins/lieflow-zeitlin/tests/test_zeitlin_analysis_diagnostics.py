@@ -113,6 +113,76 @@ def test_casimirs_from_levels_are_traces_of_powers() -> None:
         dg.casimirs_from_levels(levels, [0])
 
 
+@pytest.mark.parametrize("N", [2, 3, 8, 17, 40])
+def test_squares_by_degree_straight_from_the_matrix(N: int) -> None:
+    """The compiled pass (recurrence fused with the products, lower diagonals only) against
+    the coefficients of the eigensolver's harmonics (``matrix_to_sh(method="reference")``),
+    for a stack; a matrix off su(N) gives its skew-Hermitian part's squares."""
+    c = np.stack([lz.random_sh(N, min(N - 1, 6), seed=s) for s in (1, 2)])
+    W = lz.sh_to_matrix(c).reshape(2, 1, N, N)
+    reference = dg._squares_by_degree(lz.matrix_to_sh(W, method="reference"))
+    S = dg.matrix_squares_by_degree(W)
+    assert S.shape == (2, 1, N)
+    np.testing.assert_allclose(S, reference, rtol=1e-13, atol=1e-15 * reference.max())
+    H = np.random.default_rng(3).standard_normal((N, N))
+    H = H + H.T  # Hermitian: no skew-Hermitian part
+    off = dg.matrix_squares_by_degree(W[0, 0] + H)
+    np.testing.assert_allclose(off, S[0, 0], rtol=1e-12, atol=1e-14 * S.max())
+    tables = lz.EulerZeitlin(N).diagonal_tables
+    np.testing.assert_array_equal(dg.matrix_squares_by_degree(W, tables), S)
+    with pytest.raises(lf.InputError, match="tables for N = 9"):
+        dg.matrix_squares_by_degree(W, lz.EulerZeitlin(9).diagonal_tables)
+
+
+def test_squares_by_degree_without_numba(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without numba the squares come from the coefficients: the same numbers."""
+    W = lz.random_vorticity(12, degree=5, seed=2)
+    fast = dg.matrix_squares_by_degree(W)
+    monkeypatch.setattr(dg._rec, "have_numba", lambda: False)
+    np.testing.assert_allclose(dg.matrix_squares_by_degree(W), fast, rtol=1e-13, atol=1e-30)
+
+
+def test_casimirs_of_exactly_isospectral_copies_agree_to_roundoff() -> None:
+    """A permutation and phases ±1, ±i conjugate ``W`` exactly in floating point, so the
+    Casimirs of the copies differ only by the diagnostics' own error: ``<= 4e-16`` of
+    ``||W||_F^k`` (with ``C_2 = Σλ²`` from the levels it was 2e-15 at N = 64)."""
+    N = 64
+    system = lz.EulerZeitlin(N)
+    W = lz.random_vorticity(N, degree=8, seed=1)
+    scale = np.linalg.norm(W) ** np.array(dg.CASIMIR_POWERS)
+    C = system.extra_diagnostics(W)["casimirs"]
+    rng = np.random.default_rng(0)
+    worst = np.zeros(len(dg.CASIMIR_POWERS))
+    for _ in range(10):
+        p = rng.permutation(N)
+        phase = 1j ** rng.integers(0, 4, N)
+        V = phase[:, None] * W[p][:, p] * np.conj(phase)[None, :]
+        worst = np.maximum(worst, np.abs(system.extra_diagnostics(V)["casimirs"] - C) / scale)
+    assert worst.max() <= 4e-16, worst
+    # C_2 is ||W||_F², the others power sums of the levels (traces of powers, k = 3, 4)
+    A = 1j * W
+    assert C[0] == system.enstrophy(W)
+    assert abs(C[1] - np.trace(A @ A @ A).real) <= 1e-15 * scale[1]
+    assert abs(C[2] - np.linalg.norm(A @ A) ** 2) <= 1e-15 * scale[2]
+
+
+def test_extra_diagnostics_check_the_shape_and_match_the_snapshot() -> None:
+    system = lz.EulerZeitlin(10, rotation=0.5, lamb=2.0)
+    W = system.random_state(seed=3)
+    extra, snap = system.extra_diagnostics(W), dg.snapshot(system, W)
+    assert extra.keys() == snap.keys()
+    for name in extra:
+        np.testing.assert_array_equal(extra[name], snap[name])
+    with pytest.raises(lf.InputError, match=r"su\(10\) needs \(\.\.\., 10, 10\)"):
+        system.extra_diagnostics(np.zeros((8, 8), complex))
+    # without the levels: the spectra and their sums, the same numbers
+    lean = lz.EulerZeitlin(10, rotation=0.5, lamb=2.0, diagnostics_levels=False)
+    spectra_only = lean.extra_diagnostics(W)
+    assert sorted(spectra_only) == ["energy", "energy_spectrum", "enstrophy", "enstrophy_spectrum"]
+    for name in spectra_only:
+        np.testing.assert_array_equal(spectra_only[name], snap[name])
+
+
 def test_running_and_time_means() -> None:
     v = np.array([[1.0, 2.0], [3.0, 2.0], [5.0, 8.0]])
     assert np.array_equal(dg.running_mean(v), [[1, 2], [2, 2], [3, 4]])
@@ -192,6 +262,8 @@ def test_diagnostics_every_zero_writes_none_and_is_validated(tmp_path: Path) -> 
     assert io.read_extra(path) == {}
     with pytest.raises(lf.InputError, match="diagnostics_every"):
         lz.EulerZeitlin(8, diagnostics_every=-1)
+    with pytest.raises(lf.InputError, match="diagnostics_levels must be true or false"):
+        lz.EulerZeitlin(8, diagnostics_levels="no")
 
 
 def test_docs_page_shows_the_example_configuration() -> None:

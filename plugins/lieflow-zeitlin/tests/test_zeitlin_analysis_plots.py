@@ -175,6 +175,27 @@ def test_run_samples_of_a_file_without_extra_diagnostics(tmp_path: Path) -> None
     )
 
 
+def test_a_run_sampled_without_levels_plots_the_levels_of_its_saved_states(
+    tmp_path: Path,
+) -> None:
+    """``diagnostics_levels = false``: the samples hold the spectra only; the plots take the
+    levels (and Casimirs) of the saved states, at their own times."""
+    (tmp_path / "run.toml").write_text(
+        CONFIG.replace("diagnostics_every = 2", "diagnostics_every = 2, diagnostics_levels = false")
+    )
+    assert main(["run", str(tmp_path / "run.toml"), "--no-progress"]) == 0
+    extra = io.read_extra(tmp_path / "run.h5")
+    assert sorted(extra) == ["energy", "energy_spectrum", "enstrophy", "enstrophy_spectrum",
+                             "step", "t"]  # fmt: skip
+    traj = io.read_trajectory(tmp_path / "run.h5")
+    samples = plotting.run_samples(traj)
+    assert list(samples["step"]) == list(extra["step"]) == [0, 2, 4, 6, 8, 10, 12]
+    np.testing.assert_array_equal(samples["levels_t"], traj.t)
+    np.testing.assert_allclose(samples["vorticity_levels"], lz.vorticity_levels(traj.W))
+    assert main(["plot", str(tmp_path / "run.h5"), "--out", str(tmp_path)]) == 0
+    assert (tmp_path / "run_distribution.png").stat().st_size > 1000
+
+
 def test_ensemble_run_plots_ensemble_mean_spectra(tmp_path: Path) -> None:
     (tmp_path / "run.toml").write_text(
         CONFIG.replace("seed = 3", "seeds = [3, 4]").replace("steps = 13", "steps = 6")
