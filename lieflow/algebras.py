@@ -164,12 +164,14 @@ class LieAlgebra(ABC):
             if np.any(arr.imag != 0):
                 raise InputError(f"{name} is complex but {self} is a real algebra; pass real data")
             arr = arr.real
-        if not np.all(np.isfinite(arr)):
+        if not np.isfinite(arr).all():
             raise InputError(f"{name} contains NaN or Inf entries; pass finite values")
         arr = np.array(arr, dtype=self.working_dtype(arr.dtype), copy=True)
         tol = max(tol, 64 * float(np.finfo(arr.dtype).eps))
-        if not self.contains(arr, tol):
-            worst = float(np.max(self.distance(arr)))
+        # what contains() tests, on data already of this algebra's shape and kind
+        distance = self.distance(arr)
+        if not (distance <= tol).all():
+            worst = float(np.max(distance))
             raise AlgebraError(
                 f"{name} is not in {self}: relative distance {worst:.2e} > {tol:.0e}. "
                 f"{self._membership_hint()} Use {type(self).__name__}.project(...) to "
