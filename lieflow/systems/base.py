@@ -8,7 +8,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..algebras import Array, LieAlgebra, frobenius_norm
+from ..algebras import GL, SO, SU, Array, LieAlgebra, U, frobenius_norm
 from ..errors import LieflowError
 
 
@@ -97,8 +97,6 @@ class IsospectralSystem(ABC):
         (``lieflow_vortices``) shows a nonlinear one, the Euler–Zeitlin plugin
         (``lieflow_zeitlin``) a complex one (a Laplacian solve).
         """
-        from ..algebras import GL, SO
-
         S = self.hadamard_factor
         if S is None or type(self).project_stage is not IsospectralSystem.project_stage:
             return None
@@ -119,8 +117,6 @@ class IsospectralSystem(ABC):
         phase space anyway (so(n), gl(n), the default there). On u(n) and su(N) the default
         is the algebra's projection, compiled (skew-Hermitian part, trace removed on su(N)),
         when :meth:`project` is the algebra's."""
-        from ..algebras import SU, U
-
         if type(self).project is not IsospectralSystem.project or not isinstance(self.algebra, U):
             return None
         from .. import compiled
