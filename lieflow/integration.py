@@ -217,19 +217,10 @@ def scheme_flow(
     K = W0.size // max(n * n, 1)
     if engine == "auto" and not compiled.wins(n, steps, K, np.iscomplexobj(W0)):
         return flow  # judged before plan(), which loads the system's compiled B
-    plan = compiled.plan(system, scheme, solver, W0)
+    plan = compiled.plan(system, scheme, solver, W0)  # names a missing numba too
     if isinstance(plan, str):
         if engine == "compiled":
             raise InputError(f"engine='compiled' cannot run this case: {plan}; use engine='auto'")
-        return flow
-    try:
-        compiled.kernels()
-    except ImportError as exc:
-        if engine == "compiled":
-            raise InputError(
-                "engine='compiled' needs numba: pip install 'lieflow[fast]' "
-                f"(importing it failed: {exc})"
-            ) from exc
         return flow
     return compiled.CompiledSchemeFlow(system, scheme, solver, warm_start, plan=plan)
 
