@@ -391,6 +391,100 @@ def _wave(shape: tuple[int, ...], complex_data: bool) -> Array:
     return off
 
 
+def _identity(got: Any, dtype: np.dtype) -> tuple[Any, Any, bytes | None]:
+    """What the cache of checked maps compares of a hook's ``(function, params)``: the
+    function, its compiled code for the data's dtype (a numba dispatcher's overload for
+    :func:`~lieflow._kernels.map_signature`: a recompiled function is checked and resolved
+    again) and the ``params`` as float64 bytes; ``(got, None, None)`` if malformed (never
+    taken from the cache)."""
+    if got is None:
+        return None, None, b""
+    if not (isinstance(got, tuple) and len(got) == 2):
+        return got, None, None
+    fn = got[0]
+    overloads = getattr(fn, "overloads", None)
+    code = overloads.get(kernels().map_signature(dtype).args) if overloads is not None else None
+    try:
+        return fn, code, np.asarray(got[1], dtype=np.float64).tobytes()
+    except (TypeError, ValueError):
+        return got, None, None
+
+
+def _same(kept: tuple[Any, ...], now: tuple[Any, ...]) -> bool:
+    """Whether the maps ``now`` (:func:`_identity` of ``B``'s, then of the projection's) are
+    those checked (``kept``): the same function objects and compiled code, the same
+    ``params``, all well formed."""
+    return (
+        all(a is b for a, b in zip(kept[:2] + kept[3:5], now[:2] + now[3:5], strict=True))
+        and now[2] is not None
+        and now[5] is not None
+        and kept[2] == now[2]
+        and kept[5] == now[5]
+    )
+
+
+def _system_maps(
+    system: IsospectralSystem, W0: Array, dtype: np.dtype
+) -> tuple[tuple[Any, Array], tuple[Any, Array] | None] | str:
+    """The system's compiled ``B`` as the loops take it (its address, and its ``params``
+    led by :func:`~lieflow._kernels.inline_code`) and its compiled projection (or
+    ``None``), checked against ``system.B(system.project_stage(V))`` and
+    ``system.project(V)`` (:func:`_checked_map`) on ``V = W0`` and off it; or the reason
+    they cannot be used.
+
+    The check is of the system's maps, not of ``W0``: its result is kept on the system
+    (:attr:`~lieflow.IsospectralSystem._derived`, per dtype) together with the maps and
+    their ``params`` it was made for, and reused while :meth:`compiled_B` and
+    :meth:`compiled_project` return the same functions and ``params``.
+    """
+    try:
+        got_B = system.compiled_B()
+    except Exception as exc:  # a broken plugin: refuse the case, name the failure
+        return f"{system.name}.compiled_B() raised {type(exc).__name__}: {exc}"
+    if got_B is None:
+        hint = " (hadamard_factor is None)" if system.hadamard_factor is None else ""
+        return f"{system.name} has no compiled B{hint}: see IsospectralSystem.compiled_B"
+    try:
+        got_P = system.compiled_project()
+        P_error = None
+    except Exception as exc:  # reported after the check of B, as before
+        got_P, P_error = (
+            None,
+            f"{system.name}.compiled_project() raised {type(exc).__name__}: {exc}",
+        )
+    key = ("compiled maps", dtype)
+    made_for = (*_identity(got_B, dtype), *_identity(got_P, dtype))
+    kept = system._derived.get(key)
+    if P_error is None and kept is not None and _same(kept[0], made_for):
+        return kept[1]
+    k = kernels()
+    W = np.ascontiguousarray(W0.reshape(-1, *W0.shape[-2:])[0])
+    Wp = W + 1e-3 * float(np.abs(W).max(initial=1.0)) * _wave(W.shape, dtype.kind == "c")
+    Bw = _checked_map(
+        f"{system.name}.compiled_B()",
+        got_B,
+        [(V, system.B(system.project_stage(V))) for V in (W, Wp)],
+        dtype,
+    )
+    if isinstance(Bw, str):
+        return Bw
+    if P_error is not None:
+        return P_error
+    P: tuple[Any, Array] | None = None
+    if got_P is not None:
+        Pw = _checked_map(
+            f"{system.name}.compiled_project()", got_P, [(Wp, system.project(Wp))], dtype
+        )
+        if isinstance(Pw, str):
+            return Pw
+        P = Pw
+    params = np.concatenate([[float(k.inline_code(got_B[0]))], Bw[1]])
+    maps = ((Bw[0], params), P)
+    # what the maps are now that the check compiled them
+    system._derived[key] = ((*_identity(got_B, dtype), *_identity(got_P, dtype)), maps)
+    return maps
+
+
 def plan(
     system: IsospectralSystem, scheme: Scheme, solver: Solver, W0: Array
 ) -> CompiledPlan | str:
@@ -399,7 +493,8 @@ def plan(
     Checks the system's compiled ``B`` (:meth:`~lieflow.IsospectralSystem.compiled_B`)
     against ``system.B(system.project_stage(W0))``, and its compiled projection against
     ``system.project(W0)``, to roundoff, so that a subclass overriding ``B`` without its
-    compiled form cannot be integrated wrongly.
+    compiled form cannot be integrated wrongly — once per system and dtype while the hooks
+    return the same maps (:func:`_system_maps`).
     """
     dtype = np.dtype(W0.dtype)
     if dtype == np.complex128 and not system.algebra.skew:
@@ -419,38 +514,13 @@ def plan(
             "(only FixedPoint without Anderson acceleration, alone or first in Auto)"
         )
     try:
-        k = kernels()
+        kernels()
     except ImportError as exc:
         return f"it needs numba: pip install 'lieflow[fast]' (importing it failed: {exc})"
-    try:
-        got_B = system.compiled_B()
-    except Exception as exc:  # a broken plugin: refuse the case, name the failure
-        return f"{system.name}.compiled_B() raised {type(exc).__name__}: {exc}"
-    if got_B is None:
-        hint = " (hadamard_factor is None)" if system.hadamard_factor is None else ""
-        return f"{system.name} has no compiled B{hint}: see IsospectralSystem.compiled_B"
-    W = np.ascontiguousarray(W0.reshape(-1, *W0.shape[-2:])[0])
-    Wp = W + 1e-3 * float(np.abs(W).max(initial=1.0)) * _wave(W.shape, dtype.kind == "c")
-    Bw = _checked_map(
-        f"{system.name}.compiled_B()",
-        got_B,
-        [(V, system.B(system.project_stage(V))) for V in (W, Wp)],
-        dtype,
-    )
-    if isinstance(Bw, str):
-        return Bw
-    try:
-        got_P = system.compiled_project()
-    except Exception as exc:
-        return f"{system.name}.compiled_project() raised {type(exc).__name__}: {exc}"
-    P: tuple[Any, Array] | None = None
-    if got_P is not None:
-        Pw = _checked_map(
-            f"{system.name}.compiled_project()", got_P, [(Wp, system.project(Wp))], dtype
-        )
-        if isinstance(Pw, str):
-            return Pw
-        P = Pw
+    maps = _system_maps(system, W0, dtype)
+    if isinstance(maps, str):
+        return maps
+    (B, params), P = maps
     kind, A, b = form
     if kind not in ("sydirk", "reduced"):
         return f"scheme {scheme.name!r}: unknown compiled form {kind!r}"
@@ -458,13 +528,13 @@ def plan(
     r = fixed.rule
     return CompiledPlan(
         kind=kind,
-        n=int(W.shape[-1]),
+        n=int(W0.shape[-1]),
         dtype=dtype,
         skew=bool(system.algebra.skew),
         A=np.ascontiguousarray(A, dtype=np.float64),
         b=np.ascontiguousarray(b, dtype=np.float64),
-        B=Bw[0],
-        params=np.concatenate([[float(k.inline_code(got_B[0]))], Bw[1]]),
+        B=B,
+        params=params,
         project=None if P is None else P[0],
         pparams=np.zeros(0) if P is None else P[1],
         rule=np.array([r.rtol, r.atol, r.roundoff_floor, r.divergence_factor], dtype=float),

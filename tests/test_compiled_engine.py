@@ -80,10 +80,14 @@ def test_a_plugin_system_runs_compiled(scheme: str) -> None:
 
     plan.B.signature = rebuilt
     assert numba.typeof(plan.B) == numba.core.types.FunctionType(plan.B._signature)
-    # a plugin's map is resolved afresh for every plan (its dispatcher could be recompiled),
-    # lieflow's own maps once per process
+    # a plugin's map is resolved once per system, kept with its check while its dispatcher
+    # holds the same compiled code; lieflow's own maps once per process
     again = compiled.plan(system, lf.schemes.get(scheme), lf.solvers.FixedPoint(), W0)
-    assert isinstance(again, compiled.CompiledPlan) and again.B is not plan.B
+    assert isinstance(again, compiled.CompiledPlan) and again.B is plan.B
+    del plan.B.signature
+    other = vortices.PointVortices()
+    fresh = compiled.plan(other, lf.schemes.get(scheme), lf.solvers.FixedPoint(), W0)
+    assert isinstance(fresh, compiled.CompiledPlan) and fresh.B is not plan.B
     body = lf.systems.GeneralizedRigidBody.random_inertia(5, seed=1)
     plans = [
         compiled.plan(body, lf.schemes.get(scheme), lf.solvers.FixedPoint(), body.random_state(k))

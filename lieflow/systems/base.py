@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
@@ -10,6 +11,23 @@ from numpy.typing import ArrayLike
 
 from ..algebras import GL, SO, SU, Array, LieAlgebra, U, frobenius_norm
 from ..errors import LieflowError
+
+
+def read_only(arr: np.ndarray) -> np.ndarray:
+    """``arr`` made read-only (in place) and returned: a system's constant arrays, so that
+    nothing can change a system after it was built (values derived from it are kept on it,
+    :attr:`IsospectralSystem._derived`). Pass an array the system owns (a copy)."""
+    arr.setflags(write=False)
+    return arr
+
+
+class _Derived(dict[Any, Any]):
+    """Values derived from one system and kept on it (:attr:`IsospectralSystem._derived`):
+    process-local (compiled function addresses), so a copy or a pickle of the system
+    starts without them."""
+
+    def __reduce__(self) -> tuple[type[_Derived], tuple[()]]:
+        return (type(self), ())
 
 
 class IsospectralSystem(ABC):
@@ -122,6 +140,18 @@ class IsospectralSystem(ABC):
         from .. import compiled
 
         return compiled.skew_hermitian_part, np.array([isinstance(self.algebra, SU)], float)
+
+    @functools.cached_property
+    def _derived(self) -> _Derived:
+        """Values derived from this system and kept on it: the compiled engine's checked
+        maps per dtype (:func:`lieflow.compiled.plan` checks :meth:`compiled_B` and
+        :meth:`compiled_project` against :meth:`B` and :meth:`project` once per system
+        and dtype, not on every call). A system is a value: the built-in systems' arrays
+        are read-only; a system whose ``B`` can change after it was built must not be
+        integrated on the compiled engine before and after the change (its maps' ``params``
+        are compared on each call: a change that shows in them is checked again). Starts
+        empty in a copy or a pickle."""
+        return _Derived()
 
     def B_derivative(self, W: Array, dW: Array) -> Array:
         """Fréchet derivative ``B'(W)[dW]``; needed by Newton's method (SPEC §5).
