@@ -151,8 +151,9 @@ def run(ctx: BenchContext) -> Section:
         met=met,
         gap="" if met else f"worst {seconds(worst.fixed)} ({worst.label}, {worst.engine})",
         limit="argument validation, the diagnostics of W0 and of the first chunk, the "
-        "Solution, and on the compiled engine the plan's checks of the system's compiled B "
-        "and one numba dispatch per chunk",
+        "sink and the Solution, and on the compiled engine the plan (the system's compiled "
+        "maps are checked once per system, but looked up on every call) and one numba "
+        "dispatch per chunk",
     )
     notes = (
         f"Fixed cost = T(k) − k·T(L)/L with L = {LONG['numpy']} steps (numpy) or "

@@ -107,7 +107,9 @@ class IsospectralSystem(ABC):
         the decorator :func:`lieflow.compiled.compiled_map`) so that it is cached too; lieflow's
         own maps (:data:`lieflow.compiled.MAPS`) are there to return or call. The engine checks it
         against :meth:`B` and :meth:`project_stage` on the initial state (to roundoff)
-        before use. Importing numba inside this method keeps it optional.
+        before use, once per system and dtype while this method returns the same function
+        and ``params`` (:attr:`_derived`). Importing numba inside this method keeps it
+        optional.
 
         The default is derived from :attr:`hadamard_factor` ``S`` for the algebra's own
         stage projection on so(n) (``(S - shift) ⊙ (W - W^T)/2``) and gl(n)
