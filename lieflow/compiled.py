@@ -44,6 +44,7 @@ from __future__ import annotations
 import functools
 import importlib.util
 import math
+import sys
 from collections.abc import Callable, Sequence
 from types import ModuleType
 from typing import Any, TypeVar
@@ -80,11 +81,14 @@ def available() -> bool:
 
 def kernels() -> ModuleType:
     """The compiled loops (imports numba; raises ``ImportError`` without it)."""
-    from . import _kernels
+    loaded = sys.modules.get(f"{__package__}._kernels")  # no import statement once loaded
+    if loaded is None:
+        from . import _kernels
 
-    if _kernels.numba is None:
+        loaded = _kernels
+    if loaded.numba is None:
         raise ImportError("No module named 'numba'")
-    return _kernels
+    return loaded
 
 
 # ------------------------------------------------------------ a system's compiled maps
@@ -410,17 +414,22 @@ def _identity(got: Any, dtype: np.dtype) -> tuple[Any, Any, bytes | None]:
         return got, None, None
 
 
-def _same(kept: tuple[Any, ...], now: tuple[Any, ...]) -> bool:
-    """Whether the maps ``now`` (:func:`_identity` of ``B``'s, then of the projection's) are
-    those checked (``kept``): the same function objects and compiled code, the same
-    ``params``, all well formed."""
-    return (
-        all(a is b for a, b in zip(kept[:2] + kept[3:5], now[:2] + now[3:5], strict=True))
-        and now[2] is not None
-        and now[5] is not None
-        and kept[2] == now[2]
-        and kept[5] == now[5]
-    )
+def _unchanged(kept: tuple[Any, Any, bytes | None], got: Any) -> bool:
+    """Whether a hook's ``(function, params)`` (``got``) is what was checked (``kept``, its
+    :func:`_identity` then): the same function object, its checked compiled code still
+    among its overloads (not recompiled), the same ``params``."""
+    fn, code, params = kept
+    if got is None or fn is None:
+        return got is None and fn is None
+    if params is None or not (isinstance(got, tuple) and len(got) == 2) or got[0] is not fn:
+        return False
+    overloads = getattr(fn, "overloads", None)
+    if overloads is not None and not any(c is code for c in overloads.values()):
+        return False
+    try:
+        return np.asarray(got[1], dtype=np.float64).tobytes() == params
+    except (TypeError, ValueError):
+        return False
 
 
 def _system_maps(
@@ -453,10 +462,14 @@ def _system_maps(
             f"{system.name}.compiled_project() raised {type(exc).__name__}: {exc}",
         )
     key = ("compiled maps", dtype)
-    made_for = (*_identity(got_B, dtype), *_identity(got_P, dtype))
     kept = system._derived.get(key)
-    if P_error is None and kept is not None and _same(kept[0], made_for):
-        return kept[1]
+    if (
+        P_error is None
+        and kept is not None
+        and _unchanged(kept[0], got_B)
+        and _unchanged(kept[1], got_P)
+    ):
+        return kept[2]
     k = kernels()
     W = np.ascontiguousarray(W0.reshape(-1, *W0.shape[-2:])[0])
     Wp = W + 1e-3 * float(np.abs(W).max(initial=1.0)) * _wave(W.shape, dtype.kind == "c")
@@ -481,7 +494,7 @@ def _system_maps(
     params = np.concatenate([[float(k.inline_code(got_B[0]))], Bw[1]])
     maps = ((Bw[0], params), P)
     # what the maps are now that the check compiled them
-    system._derived[key] = ((*_identity(got_B, dtype), *_identity(got_P, dtype)), maps)
+    system._derived[key] = (_identity(got_B, dtype), _identity(got_P, dtype), maps)
     return maps
 
 

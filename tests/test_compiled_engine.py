@@ -149,6 +149,27 @@ def test_a_system_with_its_own_compiled_B(scheme: str) -> None:
     assert system.hadamard_factor is None
 
 
+def test_a_recompiled_map_is_checked_and_resolved_again() -> None:
+    """The checked maps kept on a system hold the map's compiled code: after a recompile
+    (the old code is released) the next plan checks and resolves the map again."""
+    own_B = numba.njit(_cubic_B)
+
+    @attrs.frozen(eq=False)
+    class Own(CubicBody):
+        def compiled_B(self, shift: float = 0.0) -> tuple[Any, np.ndarray] | None:
+            return (own_B, np.append(self.S.ravel(), self.c)) if shift == 0.0 else None
+
+    system, mid, fp = Own(), lf.schemes.get("midpoint"), lf.solvers.FixedPoint()
+    W0 = 0.7 * system.random_state(seed=2)
+    first = compiled.plan(system, mid, fp, W0)
+    assert isinstance(first, compiled.CompiledPlan)
+    assert compiled.plan(system, mid, fp, W0).B is first.B  # type: ignore[union-attr]
+    own_B.recompile()
+    again = compiled.plan(system, mid, fp, W0)
+    assert isinstance(again, compiled.CompiledPlan) and again.B is not first.B
+    _agree(*_both(system, mid, W0, 0.05, steps=40))
+
+
 def test_a_wrong_compiled_B_is_refused() -> None:
     @attrs.frozen(eq=False)
     class Liar(CubicBody):
