@@ -207,6 +207,11 @@ class CompiledPlan:
     irule: Array = attrs.field(repr=False)
     solver_name: str
     conjugation: bool = attrs.field(default=False, kw_only=True)
+    #: What :meth:`advance` passes the loops unchanged from call to call, per warm-start
+    #: depth (built on first use and kept: a plan is kept on its system, see :func:`plan`).
+    _static: dict[int, tuple[Any, ...]] = attrs.field(
+        init=False, factory=dict, eq=False, repr=False
+    )
 
     def warm_shape(self) -> tuple[int, ...]:
         """Core shape of the warm-start offsets of one trajectory."""
@@ -226,7 +231,6 @@ class CompiledPlan:
         warm-start state: the kept solutions ``history`` (most recent first), how many are
         kept (``depth``; 0: no warm starts) and how many the next prediction uses
         (``trusted``), as in :class:`~lieflow.warm_start.WarmStart`."""
-        k = kernels()
         batch, n = W.shape[:-2], self.n
         K = math.prod(batch)
         core = self.warm_shape()
@@ -238,18 +242,18 @@ class CompiledPlan:
         for j in range(filled):
             hist[j] = np.asarray(history[j], dtype=self.dtype).reshape(K, size)
         flags = np.array([filled, int(trusted)], dtype=np.int64)
-        irule = np.concatenate((self.irule, np.array([depth > 0, self.conjugation], np.int64)))
         states = np.empty((steps, K, n, n), dtype=self.dtype)
         iters = np.zeros(steps, dtype=np.int64)
-        s = self.b.size
-        buf, fbuf = k.workspace(self.dtype, K, size, s, n, keep, int(self.irule[0]))
-        run = k.entry(f"{self.kind}_advance", self.dtype)
+        static = self._static.get(depth)
+        if static is None:
+            static = self._static[depth] = self._arguments(depth)
+        k, run, irule, weights, gemm = static
+        buf, fbuf = k.workspace(self.dtype, K, size, self.b.size, n, keep, int(self.irule[0]))
         project = self.project is not None
         done = run(
             Wk, h * self.A, h * self.b, self.skew, self.B, self.params,
             self.project if project else self.B, self.pparams, project, self.rule,
-            irule, hist, np.array(extrapolation_matrix(keep)), flags, states, iters,
-            k.gemm(self.dtype), buf, fbuf,
+            irule, hist, weights, flags, states, iters, gemm, buf, fbuf,
         )  # fmt: skip
         shape = (*batch, *core)
         return CompiledSteps(
@@ -259,6 +263,17 @@ class CompiledPlan:
             int(flags[1]),
             done == steps,
         )
+
+    def _arguments(self, depth: int) -> tuple[Any, ...]:
+        """The loops' module and entry point, and the arguments that depend on the
+        warm-start ``depth`` alone: ``irule`` extended by ``(depth > 0, conjugation)``, the
+        extrapolation weights (a writable copy: the loops' type), the product. The loops
+        write none of them."""
+        k = kernels()
+        irule = np.concatenate((self.irule, np.array([depth > 0, self.conjugation], np.int64)))
+        weights = np.array(extrapolation_matrix(max(depth, 1)))
+        run = k.entry(f"{self.kind}_advance", self.dtype)
+        return k, run, irule, weights, k.gemm(self.dtype)
 
 
 @attrs.frozen(eq=False)
@@ -537,9 +552,16 @@ def plan(
     kind, A, b = form
     if kind not in ("sydirk", "reduced"):
         return f"scheme {scheme.name!r}: unknown compiled form {kind!r}"
+    # the last plan made for this system and dtype, while it is for the same (frozen)
+    # scheme and solver objects and the same checked maps
+    key = ("compiled plan", dtype)
+    kept = system._derived.get(key)
+    if kept is not None and kept[0] is scheme and kept[1] is solver and kept[2] is maps:
+        made: CompiledPlan = kept[3]
+        return made
     fixed, retry_cold = fp
     r = fixed.rule
-    return CompiledPlan(
+    made = CompiledPlan(
         kind=kind,
         n=int(W0.shape[-1]),
         dtype=dtype,
@@ -555,6 +577,8 @@ def plan(
         solver_name=fixed.name,
         conjugation=getattr(scheme, "update", "commutator") == "conjugation",
     )
+    system._derived[key] = (scheme, solver, maps, made)
+    return made
 
 
 def wins(n: int, steps: int, trajectories: int = 1, complex_data: bool = False) -> bool:

@@ -289,6 +289,24 @@ def test_changed_compiled_maps_are_checked_again_and_used() -> None:
     assert not copy.deepcopy(HADAMARD["rigid_body"])._derived
 
 
+@pytest.mark.usefixtures("numba")
+def test_a_plan_is_kept_for_the_same_scheme_and_solver() -> None:
+    system = lf.systems.GeneralizedRigidBody.random_inertia(5, seed=4)
+    mid, fp = lf.schemes.get("midpoint"), lf.solvers.FixedPoint()
+    first = compiled.plan(system, mid, fp, _state(system))
+    assert compiled.plan(system, mid, fp, _state(system, seed=1)) is first
+    gauss = compiled.plan(system, lf.schemes.get("gauss3"), fp, _state(system))
+    loose = compiled.plan(system, mid, lf.solvers.FixedPoint(rtol=1e-8), _state(system))
+    assert isinstance(first, compiled.CompiledPlan) and first.kind == "sydirk"
+    assert isinstance(gauss, compiled.CompiledPlan) and gauss.kind == "reduced"
+    assert isinstance(loose, compiled.CompiledPlan) and loose.rule[0] == 1e-8
+    assert first.rule[0] == 1e-14
+    # one kept plan run with and without warm starts, in turn: each as numpy runs it
+    for warm in (False, True, False):
+        _assert_same(*_both(system, mid, _state(system), 0.05, steps=30, solver=fp,
+                            warm_start=warm))  # fmt: skip
+
+
 def test_builtin_systems_are_read_only_values() -> None:
     moments = np.array([1.0, 2.0, 3.0])
     body = lf.systems.RigidBody(moments)
