@@ -21,6 +21,7 @@ from .config import BenchContext
 from .contenders import available_engines, integrate_has_engine
 from .report import Section, render
 from .suites import (
+    call_cost,
     euler_zeitlin,
     file_output,
     iteration_cost,
@@ -44,6 +45,7 @@ SUITES: tuple[tuple[str, Callable[[BenchContext], Section]], ...] = (
     ("scipy", scipy_work_precision.run),
     ("so3", so3_throughput.run),
     ("iteration_cost", iteration_cost.run),
+    ("call_cost", call_cost.run),
     ("zeitlin", euler_zeitlin.run),
     ("quflow", quflow_accuracy.run),
     ("splitting", splitting.run),

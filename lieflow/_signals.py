@@ -9,6 +9,7 @@ section ends, so the interrupt still happens — just not half-way.
 
 from __future__ import annotations
 
+import _signal  # signal's C core: what signal.signal calls, without its enum conversions
 import signal
 import threading
 from collections.abc import Iterator
@@ -16,7 +17,7 @@ from contextlib import contextmanager
 from types import FrameType
 from typing import Any
 
-_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+_SIGNALS = (int(signal.SIGINT), int(signal.SIGTERM))
 
 
 @contextmanager
@@ -24,6 +25,11 @@ def deferred() -> Iterator[None]:
     """Hold ``SIGINT`` and ``SIGTERM`` until the ``with`` block ends, then re-raise them.
 
     Outside the main thread (where Python cannot install handlers) it does nothing.
+
+    The handlers are swapped through ``_signal``, the C module :func:`signal.signal` wraps:
+    the wrapper converts every handler it is given or returns to an enum, by raising and
+    catching an exception for a Python function (14 µs for the four swaps, against 1.3 µs;
+    every :func:`lieflow.integrate` call enters this section once).
     """
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -33,12 +39,12 @@ def deferred() -> Iterator[None]:
     def hold(signum: int, _frame: FrameType | None) -> None:
         received.append(signum)
 
-    previous = {int(s): signal.signal(s, hold) for s in _SIGNALS}
+    previous = {s: _signal.signal(s, hold) for s in _SIGNALS}
     try:
         yield
     finally:
         for s, handler in previous.items():
-            signal.signal(s, handler)
+            _signal.signal(s, handler)
         for s in dict.fromkeys(received):
             signal.raise_signal(s)
 

@@ -41,8 +41,10 @@ trust is decided for the whole stack, as numpy does.
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import math
+import sys
 from collections.abc import Callable, Sequence
 from types import ModuleType
 from typing import Any, TypeVar
@@ -79,11 +81,14 @@ def available() -> bool:
 
 def kernels() -> ModuleType:
     """The compiled loops (imports numba; raises ``ImportError`` without it)."""
-    from . import _kernels
+    loaded = sys.modules.get(f"{__package__}._kernels")  # no import statement once loaded
+    if loaded is None:
+        from . import _kernels
 
-    if _kernels.numba is None:
+        loaded = _kernels
+    if loaded.numba is None:
         raise ImportError("No module named 'numba'")
-    return _kernels
+    return loaded
 
 
 # ------------------------------------------------------------ a system's compiled maps
@@ -202,6 +207,11 @@ class CompiledPlan:
     irule: Array = attrs.field(repr=False)
     solver_name: str
     conjugation: bool = attrs.field(default=False, kw_only=True)
+    #: What :meth:`advance` passes the loops unchanged from call to call, per warm-start
+    #: depth (built on first use and kept: a plan is kept on its system, see :func:`plan`).
+    _static: dict[int, tuple[Any, ...]] = attrs.field(
+        init=False, factory=dict, eq=False, repr=False
+    )
 
     def warm_shape(self) -> tuple[int, ...]:
         """Core shape of the warm-start offsets of one trajectory."""
@@ -221,7 +231,6 @@ class CompiledPlan:
         warm-start state: the kept solutions ``history`` (most recent first), how many are
         kept (``depth``; 0: no warm starts) and how many the next prediction uses
         (``trusted``), as in :class:`~lieflow.warm_start.WarmStart`."""
-        k = kernels()
         batch, n = W.shape[:-2], self.n
         K = math.prod(batch)
         core = self.warm_shape()
@@ -233,18 +242,18 @@ class CompiledPlan:
         for j in range(filled):
             hist[j] = np.asarray(history[j], dtype=self.dtype).reshape(K, size)
         flags = np.array([filled, int(trusted)], dtype=np.int64)
-        irule = np.append(self.irule, np.array([depth > 0, self.conjugation], dtype=np.int64))
         states = np.empty((steps, K, n, n), dtype=self.dtype)
         iters = np.zeros(steps, dtype=np.int64)
-        s = self.b.size
-        buf, fbuf = k.workspace(self.dtype, K, size, s, n, keep, int(self.irule[0]))
-        run = k.entry(f"{self.kind}_advance", self.dtype)
+        static = self._static.get(depth)
+        if static is None:
+            static = self._static[depth] = self._arguments(depth)
+        k, run, irule, weights, gemm = static
+        buf, fbuf = k.workspace(self.dtype, K, size, self.b.size, n, keep, int(self.irule[0]))
         project = self.project is not None
         done = run(
             Wk, h * self.A, h * self.b, self.skew, self.B, self.params,
             self.project if project else self.B, self.pparams, project, self.rule,
-            irule, hist, np.array(extrapolation_matrix(keep)), flags, states, iters,
-            k.gemm(self.dtype), buf, fbuf,
+            irule, hist, weights, flags, states, iters, gemm, buf, fbuf,
         )  # fmt: skip
         shape = (*batch, *core)
         return CompiledSteps(
@@ -254,6 +263,17 @@ class CompiledPlan:
             int(flags[1]),
             done == steps,
         )
+
+    def _arguments(self, depth: int) -> tuple[Any, ...]:
+        """The loops' module and entry point, and the arguments that depend on the
+        warm-start ``depth`` alone: ``irule`` extended by ``(depth > 0, conjugation)``, the
+        extrapolation weights (a writable copy: the loops' type), the product. The loops
+        write none of them."""
+        k = kernels()
+        irule = np.concatenate((self.irule, np.array([depth > 0, self.conjugation], np.int64)))
+        weights = np.array(extrapolation_matrix(max(depth, 1)))
+        run = k.entry(f"{self.kind}_advance", self.dtype)
+        return k, run, irule, weights, k.gemm(self.dtype)
 
 
 @attrs.frozen(eq=False)
@@ -345,6 +365,7 @@ def _checked_map(
     of ``checks`` against ``want`` (the numpy result) to roundoff; or the reason it cannot
     be used (which names the check: ``"on W0"``, then ``"off W0"``)."""
     k = kernels()
+    tiny = np.finfo(float).tiny
     if not (isinstance(got, tuple) and len(got) == 2):
         return f"{what} must return (function, params), got {got!r}"
     fn, params = got
@@ -365,8 +386,9 @@ def _checked_map(
                 f"{what} does not compile for (W, params, out) with {dtype} data: "
                 f"{type(exc).__name__}: {exc}"
             )
-        scale = max(float(np.max(np.abs(want), initial=0.0)), np.finfo(float).tiny)
-        if not float(np.max(np.abs(out - want), initial=0.0)) <= 1e-12 * scale:
+        # the arrays' own max (not np.max's Python wrapper: 1 µs less a call)
+        scale = max(float(np.abs(want).max(initial=0.0)), tiny)
+        if not float(np.abs(out - want).max(initial=0.0)) <= 1e-12 * scale:
             return f"{what} does not reproduce the numpy result {'on' if i == 0 else 'off'} W0"
     try:
         return k.function_pointer(fn, dtype), params
@@ -377,6 +399,120 @@ def _checked_map(
         )
 
 
+@functools.cache
+def _wave(shape: tuple[int, ...], complex_data: bool) -> Array:
+    """The direction ``cos(j) (+ i sin(j))`` (``j``: the entries' flat indices) along which
+    :func:`plan` checks a system's compiled maps off ``W0``; read-only, one per shape
+    (a function of its immutable arguments alone, cached)."""
+    wave = np.arange(math.prod(shape)).reshape(shape)
+    off = np.cos(wave) + (1j * np.sin(wave) if complex_data else 0.0)
+    off.setflags(write=False)
+    return off
+
+
+def _identity(got: Any, dtype: np.dtype) -> tuple[Any, Any, bytes | None]:
+    """What the cache of checked maps compares of a hook's ``(function, params)``: the
+    function, its compiled code for the data's dtype (a numba dispatcher's overload for
+    :func:`~lieflow._kernels.map_signature`: a recompiled function is checked and resolved
+    again) and the ``params`` as float64 bytes; ``(got, None, None)`` if malformed (never
+    taken from the cache)."""
+    if got is None:
+        return None, None, b""
+    if not (isinstance(got, tuple) and len(got) == 2):
+        return got, None, None
+    fn = got[0]
+    overloads = getattr(fn, "overloads", None)
+    code = overloads.get(kernels().map_signature(dtype).args) if overloads is not None else None
+    try:
+        return fn, code, np.asarray(got[1], dtype=np.float64).tobytes()
+    except (TypeError, ValueError):
+        return got, None, None
+
+
+def _unchanged(kept: tuple[Any, Any, bytes | None], got: Any) -> bool:
+    """Whether a hook's ``(function, params)`` (``got``) is what was checked (``kept``, its
+    :func:`_identity` then): the same function object, its checked compiled code still
+    among its overloads (not recompiled), the same ``params``."""
+    fn, code, params = kept
+    if got is None or fn is None:
+        return got is None and fn is None
+    if params is None or not (isinstance(got, tuple) and len(got) == 2) or got[0] is not fn:
+        return False
+    overloads = getattr(fn, "overloads", None)
+    if overloads is not None and not any(c is code for c in overloads.values()):
+        return False
+    try:
+        return np.asarray(got[1], dtype=np.float64).tobytes() == params
+    except (TypeError, ValueError):
+        return False
+
+
+def _system_maps(
+    system: IsospectralSystem, W0: Array, dtype: np.dtype
+) -> tuple[tuple[Any, Array], tuple[Any, Array] | None] | str:
+    """The system's compiled ``B`` as the loops take it (its address, and its ``params``
+    led by :func:`~lieflow._kernels.inline_code`) and its compiled projection (or
+    ``None``), checked against ``system.B(system.project_stage(V))`` and
+    ``system.project(V)`` (:func:`_checked_map`) on ``V = W0`` and off it; or the reason
+    they cannot be used.
+
+    The check is of the system's maps, not of ``W0``: its result is kept on the system
+    (:attr:`~lieflow.IsospectralSystem._derived`, per dtype) together with the maps and
+    their ``params`` it was made for, and reused while :meth:`compiled_B` and
+    :meth:`compiled_project` return the same functions and ``params``.
+    """
+    try:
+        got_B = system.compiled_B()
+    except Exception as exc:  # a broken plugin: refuse the case, name the failure
+        return f"{system.name}.compiled_B() raised {type(exc).__name__}: {exc}"
+    if got_B is None:
+        hint = " (hadamard_factor is None)" if system.hadamard_factor is None else ""
+        return f"{system.name} has no compiled B{hint}: see IsospectralSystem.compiled_B"
+    try:
+        got_P = system.compiled_project()
+        P_error = None
+    except Exception as exc:  # reported after the check of B, as before
+        got_P, P_error = (
+            None,
+            f"{system.name}.compiled_project() raised {type(exc).__name__}: {exc}",
+        )
+    key = ("compiled maps", dtype)
+    kept = system._derived.get(key)
+    if (
+        P_error is None
+        and kept is not None
+        and _unchanged(kept[0], got_B)
+        and _unchanged(kept[1], got_P)
+    ):
+        return kept[2]
+    k = kernels()
+    W = np.ascontiguousarray(W0.reshape(-1, *W0.shape[-2:])[0])
+    Wp = W + 1e-3 * float(np.abs(W).max(initial=1.0)) * _wave(W.shape, dtype.kind == "c")
+    Bw = _checked_map(
+        f"{system.name}.compiled_B()",
+        got_B,
+        [(V, system.B(system.project_stage(V))) for V in (W, Wp)],
+        dtype,
+    )
+    if isinstance(Bw, str):
+        return Bw
+    if P_error is not None:
+        return P_error
+    P: tuple[Any, Array] | None = None
+    if got_P is not None:
+        Pw = _checked_map(
+            f"{system.name}.compiled_project()", got_P, [(Wp, system.project(Wp))], dtype
+        )
+        if isinstance(Pw, str):
+            return Pw
+        P = Pw
+    params = np.concatenate([[float(k.inline_code(got_B[0]))], Bw[1]])
+    maps = ((Bw[0], params), P)
+    # what the maps are now that the check compiled them
+    system._derived[key] = (_identity(got_B, dtype), _identity(got_P, dtype), maps)
+    return maps
+
+
 def plan(
     system: IsospectralSystem, scheme: Scheme, solver: Solver, W0: Array
 ) -> CompiledPlan | str:
@@ -385,7 +521,8 @@ def plan(
     Checks the system's compiled ``B`` (:meth:`~lieflow.IsospectralSystem.compiled_B`)
     against ``system.B(system.project_stage(W0))``, and its compiled projection against
     ``system.project(W0)``, to roundoff, so that a subclass overriding ``B`` without its
-    compiled form cannot be integrated wrongly.
+    compiled form cannot be integrated wrongly — once per system and dtype while the hooks
+    return the same maps (:func:`_system_maps`).
     """
     dtype = np.dtype(W0.dtype)
     if dtype == np.complex128 and not system.algebra.skew:
@@ -408,51 +545,31 @@ def plan(
         kernels()
     except ImportError as exc:
         return f"it needs numba: pip install 'lieflow[fast]' (importing it failed: {exc})"
-    try:
-        got_B = system.compiled_B()
-    except Exception as exc:  # a broken plugin: refuse the case, name the failure
-        return f"{system.name}.compiled_B() raised {type(exc).__name__}: {exc}"
-    if got_B is None:
-        hint = " (hadamard_factor is None)" if system.hadamard_factor is None else ""
-        return f"{system.name} has no compiled B{hint}: see IsospectralSystem.compiled_B"
-    W = np.ascontiguousarray(W0.reshape(-1, *W0.shape[-2:])[0])
-    wave = np.arange(W.size).reshape(W.shape)
-    off = np.cos(wave) + (1j * np.sin(wave) if dtype.kind == "c" else 0.0)
-    Wp = W + 1e-3 * float(np.max(np.abs(W), initial=1.0)) * off
-    Bw = _checked_map(
-        f"{system.name}.compiled_B()",
-        got_B,
-        [(V, system.B(system.project_stage(V))) for V in (W, Wp)],
-        dtype,
-    )
-    if isinstance(Bw, str):
-        return Bw
-    try:
-        got_P = system.compiled_project()
-    except Exception as exc:
-        return f"{system.name}.compiled_project() raised {type(exc).__name__}: {exc}"
-    P: tuple[Any, Array] | None = None
-    if got_P is not None:
-        Pw = _checked_map(
-            f"{system.name}.compiled_project()", got_P, [(Wp, system.project(Wp))], dtype
-        )
-        if isinstance(Pw, str):
-            return Pw
-        P = Pw
+    maps = _system_maps(system, W0, dtype)
+    if isinstance(maps, str):
+        return maps
+    (B, params), P = maps
     kind, A, b = form
     if kind not in ("sydirk", "reduced"):
         return f"scheme {scheme.name!r}: unknown compiled form {kind!r}"
+    # the last plan made for this system and dtype, while it is for the same (frozen)
+    # scheme and solver objects and the same checked maps
+    key = ("compiled plan", dtype)
+    kept = system._derived.get(key)
+    if kept is not None and kept[0] is scheme and kept[1] is solver and kept[2] is maps:
+        made: CompiledPlan = kept[3]
+        return made
     fixed, retry_cold = fp
     r = fixed.rule
-    return CompiledPlan(
+    made = CompiledPlan(
         kind=kind,
-        n=int(W.shape[-1]),
+        n=int(W0.shape[-1]),
         dtype=dtype,
         skew=bool(system.algebra.skew),
         A=np.ascontiguousarray(A, dtype=np.float64),
         b=np.ascontiguousarray(b, dtype=np.float64),
-        B=Bw[0],
-        params=np.concatenate([[float(kernels().inline_code(got_B[0]))], Bw[1]]),
+        B=B,
+        params=params,
         project=None if P is None else P[0],
         pparams=np.zeros(0) if P is None else P[1],
         rule=np.array([r.rtol, r.atol, r.roundoff_floor, r.divergence_factor], dtype=float),
@@ -460,6 +577,8 @@ def plan(
         solver_name=fixed.name,
         conjugation=getattr(scheme, "update", "commutator") == "conjugation",
     )
+    system._derived[key] = (scheme, solver, maps, made)
+    return made
 
 
 def wins(n: int, steps: int, trajectories: int = 1, complex_data: bool = False) -> bool:

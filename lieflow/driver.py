@@ -502,8 +502,12 @@ def run(
                 monitor.stop()
         finally:
             # Checkpoint what was computed (a failed run keeps its last state), then close.
-            # With interrupts deferred, so a second Ctrl-C cannot split the two.
-            with _signals.deferred():
+            # With interrupts deferred, so a second Ctrl-C cannot split the two (where a
+            # sink keeps something outside the process: Sink's ``durable``).
+            if any(getattr(sink, "durable", True) for sink in sinks):
+                with _signals.deferred():
+                    _finish(sinks, status, failure, wall)
+            else:
                 _finish(sinks, status, failure, wall)
     if failure is not None and on_failure == "raise":
         raise failure

@@ -23,7 +23,7 @@ import hashlib
 import json
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, ClassVar, Literal, Protocol, runtime_checkable
 
 import attrs
 import numpy as np
@@ -68,6 +68,12 @@ class Sink(Protocol):
     The driver calls :meth:`record` for every chunk of steps, in order; :meth:`checkpoint`
     at its checkpoint cadence and once at the end; :meth:`close` exactly once, however the
     run ends; :meth:`result` after that, for what the caller gets back.
+
+    The driver holds interrupts (:func:`lieflow._signals.deferred`) while it takes the last
+    checkpoint and closes the sinks, so that a second Ctrl-C cannot split the two. A sink
+    that keeps nothing outside the process may say so with a class attribute
+    ``durable = False`` (:class:`MemorySink`); a run whose sinks all do skips that section
+    (two signal-handler swaps per call). Without the attribute a sink is durable.
     """
 
     def record(self, chunk: Chunk, keep: Array, diagnostics: ChunkDiagnostics | None) -> None:
@@ -269,6 +275,8 @@ class MemorySink:
         solution has none.
     """
 
+    #: Keeps nothing outside the process: no interrupts held while it closes (:class:`Sink`).
+    durable: ClassVar[bool] = False
     system: Any
     scheme: str
     h: float

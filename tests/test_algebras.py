@@ -62,6 +62,26 @@ def test_validate_refuses_bad_input() -> None:
         lf.SO(0)
 
 
+@pytest.mark.parametrize("g", ALGEBRAS, ids=str)
+def test_validate_decides_as_contains(g: lf.LieAlgebra) -> None:
+    """validate accepts what contains accepts and refuses the rest: exact members (which it
+    accepts without computing the distance), members perturbed within the tolerance, and
+    data perturbed beyond it, whose error names the distance."""
+    X = g.random(seed=3)
+    rng = np.random.default_rng(0)
+    for size, inside in ((0.0, True), (1e-14, True), (1e-6, False)):
+        Y = X + size * np.linalg.norm(X) * rng.standard_normal(X.shape)
+        if size and type(g) is lf.GL:
+            inside = True  # every real matrix is in gl(n)
+        assert g.contains(Y) is inside
+        if inside:
+            out = g.validate(Y)
+            assert out is not Y and np.array_equal(out, Y)
+        else:
+            with pytest.raises(lf.AlgebraError, match=r"relative distance \d\.\d\de-0[67]"):
+                g.validate(Y)
+
+
 def test_validate_keeps_single_precision() -> None:
     X = lf.U(3).random(0).astype(np.complex64)
     assert lf.U(3).validate(X, tol=1e-6).dtype == np.complex64

@@ -293,3 +293,18 @@ def test_startup_suite_quick_reports_what_each_case_imported() -> None:
     assert rows["lieflow run"][3] == "none"
     assert "lieflow_zeitlin" in rows["lieflow run, all plugins loaded first"][3]
     assert section.targets[0].met is True
+
+
+def test_call_cost_suite_quick_reports_every_case() -> None:
+    """The fixed-cost suite (issue 27): a row per system, engine and diagnostics setting,
+    a verdict against 50 µs, and the first step's updates (a cold solve) listed."""
+    from benchmarks.config import BenchContext, quick
+    from benchmarks.suites import call_cost
+
+    section = call_cost.run(BenchContext(quick(), ("compiled",), "numpy"))
+    (table,) = section.tables
+    assert len(table.rows) == 8
+    assert {row[1] for row in table.rows} == {"numpy", "compiled"}
+    assert section.targets[0].met is not None and "50 µs" in section.targets[0].target
+    first = [row[7] for row in table.rows]
+    assert all(cell.split()[0] in ("7", "5") for cell in first)  # the cold first solves

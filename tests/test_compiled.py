@@ -3,7 +3,9 @@ same failures via the handover to numpy, clear errors for unsupported cases."""
 
 from __future__ import annotations
 
-from typing import Any
+import copy
+import pickle
+from typing import Any, ClassVar
 
 import attrs
 import numpy as np
@@ -216,6 +218,105 @@ def test_compiled_refuses_systems_without_a_faithful_hadamard_factor() -> None:
                        engine="numpy")  # fmt: skip
     auto = lf.integrate(liar, lf.schemes.get("midpoint"), _state(liar), 0.01, steps=2)
     np.testing.assert_array_equal(auto.W, ref.W)
+
+
+class _Counted(lf.systems.RigidBody):
+    """A rigid body that counts its calls of ``B`` (in a list: the system is frozen)."""
+
+    calls: ClassVar[list[int]] = []
+
+    def B(self, W: np.ndarray) -> np.ndarray:
+        self.calls.append(1)
+        return super().B(W)
+
+
+@pytest.mark.usefixtures("numba")
+def test_compiled_maps_are_checked_once_per_system_and_dtype() -> None:
+    system = _Counted()
+    system.calls.clear()
+    scheme = lf.schemes.get("midpoint")
+    first = lf.integrate(system, scheme, _state(system), 0.1, steps=3, engine="compiled",
+                         diagnostics=False)  # fmt: skip
+    assert len(system.calls) == 2  # the check: on W0 and off it; the loops call their own B
+    again = lf.integrate(system, scheme, _state(system, seed=1), 0.1, steps=3,
+                         engine="compiled", diagnostics=False)  # fmt: skip
+    assert len(system.calls) == 2  # kept on the system: not checked again
+    ref = lf.integrate(system, scheme, _state(system, seed=1), 0.1, steps=3, engine="numpy",
+                       diagnostics=False)  # fmt: skip
+    _assert_same(ref, again)
+    assert first.success
+    system.calls.clear()
+    other = _Counted()  # another system: checked on its own
+    lf.integrate(other, scheme, _state(other), 0.1, steps=1, engine="compiled",
+                 diagnostics=False)  # fmt: skip
+    assert len(system.calls) == 2
+
+
+class _Mutable(lf.IsospectralSystem):
+    """A user's system that is not a value: its ``S`` can be changed in place."""
+
+    algebra = lf.SO(3)
+    linear_B = True
+
+    def __init__(self) -> None:
+        self.S = -lf.systems.RigidBody((1.0, 2.0, 3.0)).weights.copy()
+
+    @property
+    def hadamard_factor(self) -> np.ndarray:
+        return self.S
+
+    def B(self, W: np.ndarray) -> np.ndarray:
+        return W * self.S
+
+    def hamiltonian(self, W: np.ndarray) -> np.ndarray:
+        return -0.5 * np.sum(W * W * self.S, axis=(-2, -1))
+
+
+@pytest.mark.usefixtures("numba")
+def test_changed_compiled_maps_are_checked_again_and_used() -> None:
+    system = _Mutable()
+    scheme = lf.schemes.get("midpoint")
+    W0 = _state(system)
+    _assert_same(*_both(system, scheme, W0, 0.1, steps=4))
+    system.S[0, 1] = system.S[1, 0] = -5.0  # compiled_B's params change with B
+    ref, fast = _both(system, scheme, W0, 0.1, steps=4)
+    _assert_same(ref, fast)
+    # the maps kept on a system do not travel: a pickle or copy starts without them
+    system.S[0, 1] = system.S[1, 0] = -0.25
+    clone = pickle.loads(pickle.dumps(system))
+    assert not clone._derived
+    _assert_same(*_both(clone, scheme, W0, 0.1, steps=4))
+    assert not copy.deepcopy(HADAMARD["rigid_body"])._derived
+
+
+@pytest.mark.usefixtures("numba")
+def test_a_plan_is_kept_for_the_same_scheme_and_solver() -> None:
+    system = lf.systems.GeneralizedRigidBody.random_inertia(5, seed=4)
+    mid, fp = lf.schemes.get("midpoint"), lf.solvers.FixedPoint()
+    first = compiled.plan(system, mid, fp, _state(system))
+    assert compiled.plan(system, mid, fp, _state(system, seed=1)) is first
+    gauss = compiled.plan(system, lf.schemes.get("gauss3"), fp, _state(system))
+    loose = compiled.plan(system, mid, lf.solvers.FixedPoint(rtol=1e-8), _state(system))
+    assert isinstance(first, compiled.CompiledPlan) and first.kind == "sydirk"
+    assert isinstance(gauss, compiled.CompiledPlan) and gauss.kind == "reduced"
+    assert isinstance(loose, compiled.CompiledPlan) and loose.rule[0] == 1e-8
+    assert first.rule[0] == 1e-14
+    # one kept plan run with and without warm starts, in turn: each as numpy runs it
+    for warm in (False, True, False):
+        _assert_same(*_both(system, mid, _state(system), 0.05, steps=30, solver=fp,
+                            warm_start=warm))  # fmt: skip
+
+
+def test_builtin_systems_are_read_only_values() -> None:
+    moments = np.array([1.0, 2.0, 3.0])
+    body = lf.systems.RigidBody(moments)
+    grb = lf.systems.GeneralizedRigidBody(moments)
+    toda = lf.systems.PeriodicToda(4)
+    for arr in (body.inertia, body.weights, grb.J, grb.weights, toda.sign):
+        with pytest.raises(ValueError, match="read-only"):
+            arr[0] = 7.0
+    moments[0] = 9.0  # the caller's array is copied, not frozen, and not shared
+    assert body.inertia[0] == 1.0 and grb.J[0] == 1.0
 
 
 @pytest.mark.usefixtures("numba")

@@ -80,10 +80,14 @@ def test_a_plugin_system_runs_compiled(scheme: str) -> None:
 
     plan.B.signature = rebuilt
     assert numba.typeof(plan.B) == numba.core.types.FunctionType(plan.B._signature)
-    # a plugin's map is resolved afresh for every plan (its dispatcher could be recompiled),
-    # lieflow's own maps once per process
+    # a plugin's map is resolved once per system, kept with its check while its dispatcher
+    # holds the same compiled code; lieflow's own maps once per process
     again = compiled.plan(system, lf.schemes.get(scheme), lf.solvers.FixedPoint(), W0)
-    assert isinstance(again, compiled.CompiledPlan) and again.B is not plan.B
+    assert isinstance(again, compiled.CompiledPlan) and again.B is plan.B
+    del plan.B.signature
+    other = vortices.PointVortices()
+    fresh = compiled.plan(other, lf.schemes.get(scheme), lf.solvers.FixedPoint(), W0)
+    assert isinstance(fresh, compiled.CompiledPlan) and fresh.B is not plan.B
     body = lf.systems.GeneralizedRigidBody.random_inertia(5, seed=1)
     plans = [
         compiled.plan(body, lf.schemes.get(scheme), lf.solvers.FixedPoint(), body.random_state(k))
@@ -143,6 +147,27 @@ def test_a_system_with_its_own_compiled_B(scheme: str) -> None:
     ref, fast = _both(system, lf.schemes.get(scheme), W0, 0.05, steps=80)
     _agree(ref, fast)
     assert system.hadamard_factor is None
+
+
+def test_a_recompiled_map_is_checked_and_resolved_again() -> None:
+    """The checked maps kept on a system hold the map's compiled code: after a recompile
+    (the old code is released) the next plan checks and resolves the map again."""
+    own_B = numba.njit(_cubic_B)
+
+    @attrs.frozen(eq=False)
+    class Own(CubicBody):
+        def compiled_B(self, shift: float = 0.0) -> tuple[Any, np.ndarray] | None:
+            return (own_B, np.append(self.S.ravel(), self.c)) if shift == 0.0 else None
+
+    system, mid, fp = Own(), lf.schemes.get("midpoint"), lf.solvers.FixedPoint()
+    W0 = 0.7 * system.random_state(seed=2)
+    first = compiled.plan(system, mid, fp, W0)
+    assert isinstance(first, compiled.CompiledPlan)
+    assert compiled.plan(system, mid, fp, W0).B is first.B  # type: ignore[union-attr]
+    own_B.recompile()
+    again = compiled.plan(system, mid, fp, W0)
+    assert isinstance(again, compiled.CompiledPlan) and again.B is not first.B
+    _agree(*_both(system, mid, W0, 0.05, steps=40))
 
 
 def test_a_wrong_compiled_B_is_refused() -> None:

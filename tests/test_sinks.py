@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 from typing import Any
 
@@ -67,6 +68,32 @@ def test_integrate_into_a_sink_object_returns_its_result() -> None:
                  checkpoint_seconds=0)  # fmt: skip
     taken = [sink.calls[i - 1] for i, c in enumerate(sink.calls) if c[0] == "checkpoint"]
     assert taken[:-1] == [("record", k) for k in range(1, 8)]  # after every (one-step) chunk
+
+
+class Closing(Recorder):
+    """A Sink that notes the SIGINT handler in force when it is closed."""
+
+    def close(self, status: str, failure: Any, wall_time: float) -> None:
+        self.handler = signal.getsignal(signal.SIGINT)
+        super().close(status, failure, wall_time)
+
+
+class InMemory(Closing):
+    """The same, keeping nothing outside the process."""
+
+    durable = False
+
+
+def test_interrupts_are_held_while_durable_sinks_close() -> None:
+    default = signal.getsignal(signal.SIGINT)
+    flow = lf.integration.scheme_flow(RB, MID, lf.solvers.FixedPoint(), W0, 3, engine="numpy")
+    for sinks, held in (((Closing(),), True), ((InMemory(),), False),
+                        ((InMemory(), Closing()), True)):  # fmt: skip
+        lf.driver.run(flow, W0, 0.1, 3, sinks=sinks)
+        assert all((s.handler is not default) is held for s in sinks)
+        assert all(s.calls[-2:] == [("checkpoint", False), ("close", "complete")] for s in sinks)
+    assert signal.getsignal(signal.SIGINT) is default
+    assert lf.sinks.MemorySink.durable is False
 
 
 @pytest.mark.parametrize(

@@ -100,3 +100,23 @@ def test_ensemble_matches_individual_runs() -> None:
     for k in range(5):
         alone = lf.integrate(system, scheme, stack[k], h=0.1, steps=30, solver=tight())
         np.testing.assert_allclose(together.W_final[k], alone.W_final, rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("batch", [(), (3,), (2, 2)])
+def test_default_casimirs_are_traces_of_powers(batch: tuple[int, ...]) -> None:
+    """``Re tr W^k`` from the eigenvalues (an independent evaluation), for one state and
+    stacks, real (so(n), gl(n)) and complex (u(n)) data."""
+    rng = np.random.default_rng(5)
+    for system in (lf.systems.GeneralizedRigidBody.random_inertia(6, seed=2),
+                   lf.systems.PeriodicToda(5), HermitianBody(4)):  # fmt: skip
+        alg = system.algebra
+        X = rng.standard_normal((*batch, alg.n, alg.n))
+        if alg.dtype.kind == "c":
+            X = X + 1j * rng.standard_normal(X.shape)
+        W = alg.project(X)
+        C = system.casimirs(W)
+        lam = np.linalg.eigvals(W)
+        powers = [k for k in system.casimir_powers if k <= alg.n]
+        want = np.stack([np.real(np.sum(lam**k, axis=-1)) for k in powers], axis=-1)
+        assert C.shape == (*batch, len(powers)) and C.dtype == np.float64
+        np.testing.assert_allclose(C, want, rtol=1e-10, atol=1e-10)

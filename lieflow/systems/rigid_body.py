@@ -10,16 +10,17 @@ import numpy as np
 from ..algebras import SO, Array, minus_dagger
 from ..backends import from_host, is_numpy, namespace
 from ..errors import InputError
-from .base import IsospectralSystem
+from .base import IsospectralSystem, read_only
 
 
 def _positive_vector(values: Sequence[float] | np.ndarray, what: str) -> np.ndarray:
-    arr = np.asarray(values, dtype=float)
+    """``values`` as a read-only float64 copy, checked positive and finite."""
+    arr = np.array(values, dtype=float)
     if arr.ndim != 1 or arr.size < 2 or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
         raise InputError(
             f"{what} must be a 1-D sequence of positive finite numbers, got {values!r}"
         )
-    return arr
+    return read_only(arr)
 
 
 def _moments(values: Sequence[float] | np.ndarray) -> np.ndarray:
@@ -95,7 +96,7 @@ class GeneralizedRigidBody(IsospectralSystem):
 
     @weights.default
     def _weights(self) -> np.ndarray:
-        return 1.0 / (self.J[:, None] + self.J[None, :])
+        return read_only(1.0 / (self.J[:, None] + self.J[None, :]))
 
     @algebra.default
     def _algebra(self) -> SO:
@@ -103,7 +104,7 @@ class GeneralizedRigidBody(IsospectralSystem):
 
     @_factor.default
     def _negative_weights(self) -> np.ndarray:
-        return -self.weights
+        return read_only(-self.weights)
 
     def B(self, W: Array) -> Array:
         return W * _like(self._factor, W)
@@ -155,11 +156,11 @@ class RigidBody(IsospectralSystem):
         w = np.zeros((3, 3))
         for i, j, k in ((0, 1, 2), (1, 2, 0), (0, 2, 1)):
             w[i, j] = w[j, i] = inv[k]
-        return w
+        return read_only(w)
 
     @_factor.default
     def _negative_weights(self) -> np.ndarray:
-        return -self.weights
+        return read_only(-self.weights)
 
     def B(self, W: Array) -> Array:
         return W * _like(self._factor, W)

@@ -10,7 +10,7 @@ from numpy.typing import ArrayLike
 
 from ..algebras import GL, Array
 from ..errors import InputError
-from .base import IsospectralSystem
+from .base import IsospectralSystem, read_only
 
 #: The paper's initial condition for n = 4 (eigenvalues ±1, ±sqrt 5).
 PAPER_W0 = np.array(
@@ -91,7 +91,7 @@ class PeriodicToda(IsospectralSystem):
         s[i + 1, i] = -1.0
         s[0, n - 1] = -1.0
         s[n - 1, 0] = 1.0
-        return s
+        return read_only(s)
 
     @property
     def name(self) -> str:

@@ -1,0 +1,175 @@
+"""The fixed cost of one :func:`lieflow.integrate` call (issue 27, item 5): what a call costs
+beyond its steps.
+
+Definition: ``fixed(k) = T(k) − k · T(L) / L``, where ``T(k)`` is the wall time of a whole
+``lieflow.integrate(..., steps=k)`` call and ``T(L) / L`` the per-step cost of a long run of
+the same case (``L`` steps: ``L = 100`` on the numpy engine, ``2000`` on the compiled one,
+so that its own fixed cost adds under 1 % to that figure). ``T(1)``, ``T(2)`` and ``T(L)``
+are timed interleaved, round by round in this process (median round of each), in process
+CPU time (:func:`time.process_time`: on a shared machine other jobs' load moves wall times of
+a few hundred microseconds by 2× from one second to the next). What the fixed
+cost holds: argument validation, the engine's set-up (the compiled plan), the diagnostics of
+``W0``, the sink and the :class:`~lieflow.Solution`, the driver's set-up and teardown, and
+whatever the first steps cost beyond a long run's average (a cold first solve: no warm start
+yet).
+
+Cases: the so(3) rigid body (h = 0.1) and the so(10) generalized rigid body (h = 0.01) of the
+reproduction suite, midpoint rule, default solver, both engines, with the default
+diagnostics and with ``diagnostics=False``. ``steps=0`` is refused (``InputError``), so it
+has no cost to report.
+"""
+
+from __future__ import annotations
+
+import time
+
+import attrs
+import numpy as np
+
+import lieflow as lf
+from lieflow.app.reproduce import Case
+
+from ..config import BenchContext
+from ..report import Section, Table, TargetCheck, seconds
+
+#: Issue 27 item 5: at most this many seconds of fixed cost per call.
+TARGET = 50e-6
+
+#: (label, reproduction-suite system, n, h).
+CASES: tuple[tuple[str, str, int, float], ...] = (
+    ("so(3) rigid body", "rigid_body", 3, 0.1),
+    ("so(10) generalized rigid body", "generalized_rigid_body", 10, 0.01),
+)
+
+HEADER = ("system", "engine", "diagnostics", "T(1 step)", "T(2 steps)", "per step (long run)",
+          "fixed cost T(1) − 1·step", "updates: first step (mean)",
+          "T(2) − 2·steps")  # fmt: skip
+
+#: Steps of the long run that gives the per-step cost, per engine.
+LONG = {"numpy": 100, "compiled": 2000}
+
+
+@attrs.frozen
+class CallCost:
+    """One case's timings (median rounds, seconds)."""
+
+    label: str
+    engine: str
+    diagnostics: bool
+    one: float
+    two: float
+    long_steps: int
+    long: float
+    first_updates: int
+    mean_updates: float
+
+    @property
+    def per_step(self) -> float:
+        """Per-step cost of the long run."""
+        return self.long / self.long_steps
+
+    @property
+    def fixed(self) -> float:
+        """``T(1) − per_step``."""
+        return self.one - self.per_step
+
+    @property
+    def fixed_two(self) -> float:
+        """``T(2) − 2 per_step``."""
+        return self.two - 2 * self.per_step
+
+
+def measure(
+    ctx: BenchContext, case: tuple[str, str, int, float], engine: str, diagnostics: bool
+) -> CallCost:
+    """Time ``integrate`` for 1, 2 and a long run of steps, interleaved."""
+    label, name, n, h = case
+    system, W0 = Case(name, "", n, h, 1, 1e-14).build(ctx.seed)
+    scheme = lf.schemes.get("midpoint")
+    long_steps = 20 if ctx.config.quick else LONG[engine]
+    rounds = 5 if ctx.config.quick else 101
+
+    def call(steps: int) -> lf.Solution:
+        return lf.integrate(system, scheme, W0, h, steps=steps, engine=engine,
+                            diagnostics=diagnostics)  # fmt: skip
+
+    counts = (1, 2, long_steps)
+    times: dict[int, list[float]] = {k: [] for k in counts}
+    updates = call(long_steps).iterations  # the compiled engine loads its loops on first use
+    for _ in range(rounds):
+        for k in counts:
+            began = time.process_time()
+            call(k)
+            times[k].append(time.process_time() - began)
+        # untimed: the call after a long run pays for the memory that run returned to the
+        # system (page faults, up to 0.4 ms), which a run of short calls does not
+        call(1)
+    one, two, long = (float(np.median(times[k])) for k in counts)
+    return CallCost(label, engine, diagnostics, one, two, long_steps, long, int(updates[0]),
+                    float(updates.mean()))  # fmt: skip
+
+
+def run(ctx: BenchContext) -> Section:
+    """Every case, engine and diagnostics setting; target: fixed cost ≤ 50 µs."""
+    start = time.perf_counter()
+    engines = [e for e in LONG if e == "numpy" or e in ctx.engines]
+    rows = [
+        measure(ctx, case, engine, diagnostics)
+        for case in CASES
+        for engine in engines
+        for diagnostics in (True, False)
+    ]
+    cells = tuple(
+        (
+            r.label,
+            r.engine,
+            "on" if r.diagnostics else "off",
+            seconds(r.one),
+            seconds(r.two),
+            f"{seconds(r.per_step)} ({r.long_steps} steps)",
+            seconds(r.fixed),
+            f"{r.first_updates} ({r.mean_updates:.2f})",
+            seconds(r.fixed_two),
+        )
+        for r in rows
+    )
+    table = Table(
+        HEADER,
+        cells,
+        caption="One lieflow.integrate call, midpoint rule, default solver: the whole call "
+        "for 1 and 2 steps and the per-step cost of a long run, timed interleaved (CPU time).",
+    )
+    worst = max(rows, key=lambda r: r.fixed)
+    met = bool(worst.fixed <= TARGET)
+    target = TargetCheck(
+        target=f"fixed cost of an integrate call (issue 27) ≤ {seconds(TARGET)}",
+        measured=", ".join(
+            f"{r.label.split()[0]} {r.engine} diagnostics {'on' if r.diagnostics else 'off'}: "
+            f"{seconds(r.fixed)}"
+            for r in rows
+        ),
+        met=met,
+        gap="" if met else f"worst {seconds(worst.fixed)} ({worst.label}, {worst.engine})",
+        limit="argument validation, the diagnostics of W0 and of the first chunk, the "
+        "sink and the Solution, and on the compiled engine the plan (the system's compiled "
+        "maps are checked once per system, but looked up on every call) and one numba "
+        "dispatch per chunk",
+    )
+    notes = (
+        f"Fixed cost = T(k) − k·T(L)/L with L = {LONG['numpy']} steps (numpy) or "
+        f"{LONG['compiled']} (compiled); medians of {5 if ctx.config.quick else 101} "
+        "interleaved rounds of process CPU time. It includes what the first, cold solve "
+        "costs beyond the long run's average step (no warm start before the second step: "
+        "its updates against the long run's mean per step are listed; the algorithm's cost, "
+        "not overhead).",
+        "steps=0 is refused (InputError: steps must be a positive integer).",
+    )
+    return Section(
+        title="Fixed cost of one integrate call",
+        intro="What a call to lieflow.integrate costs beyond its steps: validation, set-up, "
+        "the diagnostics of W0, the Solution.",
+        tables=(table,),
+        targets=(target,),
+        notes=notes,
+        seconds=time.perf_counter() - start,
+    )
