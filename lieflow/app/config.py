@@ -54,7 +54,8 @@ import attrs
 import numpy as np
 
 from ..algebras import Array
-from ..errors import LieflowError, PluginError, quote, shorten
+from ..backends import check_device
+from ..errors import InputError, LieflowError, PluginError, quote, shorten
 from ..flows import Flow, Splitting
 from ..integration import Engine, scheme_flow
 from ..plugins import Kind, Registry, default_registry
@@ -256,6 +257,12 @@ class RunSettings:
         Seconds between checkpoints (the resume point; saved states are written in blocks
         between them), ``None`` (``checkpoint = "saves"``): at every saved state. Not part
         of the identity.
+    device : str
+        Where the steps run (:func:`lieflow.backends.place`): ``"cpu"`` (default; NumPy),
+        ``"cupy"``, ``"cupy:1"``, ``"torch"``, ``"torch:cuda:1"``, ``"jax"``, ... The state
+        (and, on resume, the warm start) is placed there once; states reach the file a chunk
+        at a time. Other than ``"cpu"`` the steps run on the array library (the numpy
+        engine's source; ``engine = "compiled"`` is refused). Not part of the identity.
     """
 
     h: float
@@ -266,6 +273,7 @@ class RunSettings:
     engine: str = "auto"
     casimir_shift: float | str = 0.0
     checkpoint: float | None = 1.0
+    device: str = "cpu"
 
 
 @attrs.frozen
@@ -344,8 +352,9 @@ class RunSetup:
         ``[run] engine``, composed with the ``[splitting]`` flows if there are any."""
         run = self.config.run
         stepped = shifted(self.system, self.W0, run.casimir_shift)
+        engine = run.engine if run.device == "cpu" else "numpy"  # the array library's steps
         inner = scheme_flow(stepped, self.scheme, self.solver, self.W0, run.steps,
-                            engine=cast(Engine, run.engine))  # fmt: skip
+                            engine=cast(Engine, engine))  # fmt: skip
         if self.config.splitting is None:
             return inner
         return Splitting.named(self.config.splitting.method, *self.flows, inner)
@@ -371,6 +380,7 @@ class RunSetup:
             config_text=cfg.text,
             config_source=cfg.source,
             checkpoint_seconds=cfg.run.checkpoint,
+            device=cfg.run.device,
         )
 
 
@@ -732,6 +742,18 @@ def _run(raw: Mapping[str, Any], source: str, base: Path, default_output: str) -
                 "checkpoint", f"must be >= 0 seconds, got {checkpoint!r}",
                 'write checkpoint = 1.0 (seconds between checkpoints) or "saves"',
             )  # fmt: skip
+    device = sec.string("device", required=False, hint='"cpu"') or "cpu"
+    try:
+        check_device(device)
+    except InputError as exc:
+        raise sec.error(
+            "device", str(exc), 'device = "cpu" (or "cupy", "torch:cuda:0", ...)'
+        ) from exc
+    if device != "cpu" and engine == "compiled":
+        raise sec.error(
+            "engine", f'"compiled" runs on the CPU only, not on device {device!r}',
+            'leave engine out (or "auto") with a device: the array library runs the steps',
+        )  # fmt: skip
     sec.finish()
     out = Path(output or default_output).expanduser()
     return RunSettings(
@@ -743,6 +765,7 @@ def _run(raw: Mapping[str, Any], source: str, base: Path, default_output: str) -
         engine,
         shift,
         checkpoint,
+        device,
     )
 
 

@@ -13,6 +13,7 @@ sinks call it, a chunk at a time).
 
 from __future__ import annotations
 
+import importlib
 from types import ModuleType
 from typing import Any
 
@@ -31,8 +32,12 @@ __all__ = [
     "is_numpy",
     "machine_epsilon",
     "namespace",
+    "place",
     "to_numpy",
 ]
+
+#: The array libraries a device name may start with (:func:`place`).
+DEVICE_LIBRARIES = ("cpu", "cupy", "torch", "jax", "array_api_strict")
 
 
 def is_numpy(x: Any) -> bool:
@@ -159,3 +164,56 @@ def all_finite(x: Any) -> bool:
         return bool(np.isfinite(x).all())  # the method: np.all's Python layers cost 1 µs
     xp = namespace(x)
     return bool(xp.all(xp.isfinite(x)))
+
+
+def check_device(name: str) -> str:
+    """``name`` if it names a device :func:`place` knows (``"cpu"``, ``"cupy"``,
+    ``"cupy:1"``, ``"torch"``, ``"torch:cuda:1"``, ``"jax"``, ``"jax:gpu:0"``,
+    ``"array_api_strict"``), without importing its library; else
+    :class:`~lieflow.errors.InputError`."""
+    library, _, rest = name.partition(":")
+    if library not in DEVICE_LIBRARIES or (library in ("cpu", "array_api_strict") and rest):
+        raise InputError(
+            f"unknown device {name!r}: use one of 'cpu', 'cupy' or 'cupy:<index>', 'torch' or "
+            "'torch:<torch device>' (e.g. 'torch:cuda:1'), 'jax' or 'jax:<platform>:<index>', "
+            "'array_api_strict' (the CPU reference of the array API, for tests)"
+        )
+    return name
+
+
+def place(a: Any, device: str) -> Any:
+    """The host array ``a`` on ``device`` (:func:`check_device`): ``"cpu"`` returns ``a``
+    itself; ``"cupy[:i]"`` a CuPy array on GPU ``i`` (default: the current one);
+    ``"torch[:dev]"`` a PyTorch tensor on ``dev`` (default ``"cuda"``); ``"jax[:platform[:i]]"``
+    a JAX array (default: JAX's default device; double precision is switched on, as
+    ``jax_enable_x64``, since lieflow's states are float64/complex128); ``"array_api_strict"``
+    an ``array_api_strict`` array (the CPU, through the array API: what the tests run).
+
+    Raises :class:`~lieflow.errors.InputError` when the library is not installed or the
+    device does not exist.
+    """
+    library, _, rest = check_device(device).partition(":")
+    if library == "cpu":
+        return a
+    data = np.ascontiguousarray(a)
+    try:
+        module = importlib.import_module(library)
+    except ImportError as exc:
+        raise InputError(
+            f"device {device!r} needs {library}, which is not installed: install it (with "
+            "CUDA for a GPU) or choose another device"
+        ) from exc
+    try:
+        if library == "cupy":
+            with module.cuda.Device(int(rest) if rest else module.cuda.Device().id):
+                return module.asarray(data)
+        if library == "torch":
+            return module.from_numpy(data).to(rest or "cuda")
+        if library == "jax":
+            module.config.update("jax_enable_x64", True)
+            platform, _, index = rest.partition(":")
+            devices = module.devices(platform) if platform else module.devices()
+            return module.device_put(data, devices[int(index) if index else 0])
+        return module.asarray(data)
+    except (RuntimeError, ValueError, IndexError, AttributeError, AssertionError) as exc:
+        raise InputError(f"cannot place the state on device {device!r}: {exc}") from exc

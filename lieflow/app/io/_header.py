@@ -50,6 +50,9 @@ class TrajectoryHeader(RunInfo):
         one when the run ends however it ends): saved states and diagnostics are buffered
         and written in blocks in between. ``0``: after every chunk of steps; ``None``:
         after every chunk that holds a saved state (``[run] checkpoint = "saves"``).
+    device : str
+        Where the steps run (``[run] device``, :func:`lieflow.backends.place`): the state and
+        the warm start read from a checkpoint are placed there once.
     """
 
     output: Path
@@ -58,6 +61,7 @@ class TrajectoryHeader(RunInfo):
     make_directory: bool = False
     config_source: str = ""
     checkpoint_seconds: float | None = CHECKPOINT_SECONDS
+    device: str = "cpu"
 
 
 def _header(run: TrajectoryHeader | RunSetup) -> TrajectoryHeader:

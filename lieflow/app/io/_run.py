@@ -10,8 +10,10 @@ from pathlib import Path
 from typing import Any
 
 import attrs
+import numpy as np
 
-from ... import _signals, driver
+from ... import _signals, driver, tree
+from ...backends import place
 from ...driver import Cadence, Diagnostics, Monitor
 from ...errors import ConvergenceError, LieflowError
 from ...sinks import Sink
@@ -143,6 +145,11 @@ def _run_flow(
         else:
             W, done = ck.W, ck.step
             state = ck.state(flow.init(W))
+        if header.device != "cpu":  # placed once; chunks come back through the sinks
+            W = place(W, header.device)
+            state = tree.map_leaves(
+                lambda x: place(x, header.device) if isinstance(x, np.ndarray) else x, state
+            )
         sinks = (writer, *(also(writer) if also is not None else ()))
     except BaseException:  # Ctrl-C before stepping: the file says so, and is resumable
         writer.close("interrupted", None, 0.0)

@@ -20,6 +20,7 @@ import numpy as np
 
 from ... import _signals, driver, tree
 from ...algebras import Array
+from ...backends import is_foreign_array
 from ...driver import Chunk, ChunkDiagnostics, Diagnostics
 from ...errors import ConvergenceError, LieflowError
 from ...sinks import Ending, RunInfo, to_host
@@ -516,8 +517,9 @@ class TrajectoryWriter:
         ``index`` to the spare slot with its SHA-256 digest, flush and fsync, then point
         ``current`` at it (the commit point; :meth:`checkpoint` flushes and fsyncs it)."""
         items: dict[str, Any] = {"W": W}
-        for path, leaf in tree.paths(state):
-            items[f"{_STATE}/{path}" if path else _STATE] = leaf
+        for path, leaf in tree.paths(state):  # a device's warm start comes to the host here
+            host = to_host(leaf) if is_foreign_array(leaf) else leaf
+            items[f"{_STATE}/{path}" if path else _STATE] = host
         slot_id = 1 - self._slot
         _write_slot(self._slots[slot_id], index, t, items, self._slot_data[slot_id])
         _sync(self._f)  # the rows and the slot are on disk before the commit point names them

@@ -1,0 +1,129 @@
+"""``[run] device``: ``lieflow run`` (and sweeps, through the same run) on another array
+library's device — here ``array_api_strict`` on the CPU, the device code path CI can run.
+
+Expected values come from the NumPy engine on the host, run from the same configuration."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import lieflow as lf
+from lieflow import backends
+from lieflow.app import io
+from lieflow.app.cli import main
+
+xps = pytest.importorskip("array_api_strict")
+
+CONFIG = """
+[system]
+name = "rigid_body"
+params = {{ inertia = [1.0, 2.0, 3.0] }}
+[initial]
+random = true
+seed = 3
+[scheme]
+name = "{scheme}"
+[solver]
+name = "fixed_point"
+params = {{ rtol = 1e-14 }}
+[run]
+h = 0.1
+steps = {steps}
+save_every = 5
+checkpoint = "saves"
+{extra}
+"""
+
+
+def _config(tmp_path: Path, name: str, scheme: str = "gauss2", steps: int = 40, **run: str) -> Path:
+    extra = "\n".join(f"{k} = {v}" for k, v in run.items())
+    path = tmp_path / f"{name}.toml"
+    path.write_text(CONFIG.format(scheme=scheme, steps=steps, extra=extra), encoding="utf-8")
+    return path
+
+
+@pytest.mark.parametrize("scheme", ["midpoint", "gauss2"])
+def test_a_run_on_a_device_library_matches_the_host(tmp_path: Path, scheme: str) -> None:
+    host = _config(tmp_path, "host", scheme, engine='"numpy"')
+    device = _config(tmp_path, "device", scheme, device='"array_api_strict"')
+    assert main(["run", str(host), "--no-progress", "--out", str(tmp_path / "host.h5")]) == 0
+    assert main(["run", str(device), "--no-progress", "--out", str(tmp_path / "dev.h5")]) == 0
+    ref, got = io.read_trajectory(tmp_path / "host.h5"), io.read_trajectory(tmp_path / "dev.h5")
+    assert isinstance(got.W, np.ndarray) and got.W.shape == ref.W.shape == (9, 3, 3)
+    np.testing.assert_array_equal(got.iterations, ref.iterations)
+    assert np.max(np.abs(got.W - ref.W)) <= 1e-14 * np.max(np.abs(ref.W))
+    assert float(np.max(np.abs(got.casimir_drift))) <= 1e-14
+
+
+def test_resume_on_a_device_continues_from_the_checkpoint(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Interrupted at step 23 on the device, resumed there: the warm start read from the
+    file is placed on the device too (the resumed steps take the host's iterations)."""
+    host = _config(tmp_path, "host", engine='"numpy"')
+    device = _config(tmp_path, "device", device='"array_api_strict"')
+    assert main(["run", str(host), "--no-progress", "--out", str(tmp_path / "host.h5")]) == 0
+    placed: list[str] = []
+    real_place, real_advance = backends.place, lf.driver.advance
+
+    def counting(a: Any, name: str) -> Any:
+        placed.append(name)
+        return real_place(a, name)
+
+    def interrupted(*args: Any, **kwargs: Any) -> Iterator[lf.driver.Chunk]:
+        for chunk in real_advance(*args, **kwargs):
+            assert not backends.is_numpy(chunk.W)  # the steps run on the device library
+            yield chunk
+            if chunk.stop == 23:
+                raise KeyboardInterrupt
+
+    from lieflow.app.io import _run
+
+    monkeypatch.setattr(_run, "place", counting)
+    monkeypatch.setattr(lf.driver, "advance", interrupted)
+    out = str(tmp_path / "dev.h5")
+    assert main(["run", str(device), "--no-progress", "--out", out]) == 130
+    assert io.read_checkpoint(tmp_path / "dev.h5").step == 23
+    monkeypatch.setattr(lf.driver, "advance", real_advance)
+    before = len(placed)
+    assert main(["run", str(device), "--no-progress", "--out", out, "--resume"]) == 0
+    assert len(placed) > before + 1  # the state and the warm start's arrays
+    ref, got = io.read_trajectory(tmp_path / "host.h5"), io.read_trajectory(tmp_path / "dev.h5")
+    np.testing.assert_array_equal(got.iterations, ref.iterations)
+    assert np.max(np.abs(got.W - ref.W)) <= 1e-14 * np.max(np.abs(ref.W))
+    assert got.meta["resumes"] == 1
+
+
+@pytest.mark.parametrize(
+    ("run", "expected"),
+    [
+        ({"device": '"gpu"'}, "unknown device 'gpu'"),
+        ({"device": '"cpu:1"'}, "unknown device 'cpu:1'"),
+        ({"device": '"array_api_strict"', "engine": '"compiled"'}, "runs on the CPU only"),
+    ],
+)
+def test_bad_devices_are_refused_before_anything_is_written(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], run: dict[str, str], expected: str
+) -> None:
+    config = _config(tmp_path, "bad", **run)
+    assert main(["run", str(config), "--no-progress", "--out", str(tmp_path / "x.h5")]) == 2
+    err = capsys.readouterr().err
+    assert expected in err and "[run]" in err
+    assert not (tmp_path / "x.h5").exists()
+
+
+def test_a_device_whose_library_is_missing_says_what_to_install() -> None:
+    try:
+        import cupy  # noqa: F401
+    except ImportError:
+        with pytest.raises(lf.InputError, match="needs cupy, which is not installed"):
+            backends.place(np.eye(2), "cupy")
+    else:  # pragma: no cover - a machine with CuPy
+        pytest.skip("CuPy is installed")
+    assert backends.place(np.eye(2), "cpu") is not None
+    assert backends.namespace(backends.place(np.eye(2), "array_api_strict")) is xps
