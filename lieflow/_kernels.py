@@ -12,11 +12,13 @@ One compiled driver and per-formulation map kernels:
   (:func:`_sydirk_step`: a composition of midpoint solves; :func:`_reduced_step`: the
   reduced stage form), each the numpy code path written out entry by entry.
 
-The system enters as compiled functions passed as *arguments* of the type
-:func:`map_type` (``B(W, params, out)`` and ``project(W, params, out)``, see
-:meth:`lieflow.IsospectralSystem.compiled_B`): a typed first-class function keeps the loops
+The system enters as compiled functions passed as *arguments*, by address (an ``int64``,
+:func:`address`), and called as numba's first-class function type of :func:`map_signature`
+(``B(W, params, out)`` and ``project(W, params, out)``, see
+:meth:`lieflow.IsospectralSystem.compiled_B`): a typed function argument keeps the loops
 in numba's on-disk cache whatever the system (an untyped dispatcher argument would make
-numba recompile them in every process). ``B`` is the stage-value ``B`` of
+numba recompile them in every process), and an integer costs the call no Python-level
+typing. ``B`` is the stage-value ``B`` of
 :class:`~lieflow.schemes.base.StageProblem`, i.e. ``B(project_stage(W))``.
 
 numba's cache tracks this file only, not the files of the functions it inlines; the two
@@ -413,16 +415,11 @@ def inline_code(function: Any) -> int:
     return next((c for f, c in codes.items() if f is function), CALL_MAP)
 
 
-_Protocol: Any = object if numba is None else numba.core.types.WrapperAddressProtocol
-
-
-class _FunctionPointer(_Protocol):
-    """A compiled map as the loops take it: its address, resolved once.
-
-    numba turns a dispatcher passed for a first-class function argument into an address
-    on every call, through Python (a few hundred microseconds per argument and call); an
-    object of numba's wrapper address protocol hands over the address it holds.
-    """
+class _FunctionPointer:
+    """A compiled function as the loops take it: its address, resolved once (numba's
+    C-callable wrapper of the compiled ``signature``), with the function, which keeps the
+    compiled code alive. The entry points take the address as an integer (:func:`address`,
+    :func:`_at`)."""
 
     def __init__(self, function: Any, dtype: np.dtype, signature: Any = None) -> None:
         from numba.experimental.function_type import _get_wrapper_address
@@ -431,23 +428,9 @@ class _FunctionPointer(_Protocol):
         self.dtype = np.dtype(dtype)
         self._signature = map_signature(self.dtype) if signature is None else signature
         self.address = _get_wrapper_address(function, self._signature)
-        self.numba_type = numba.core.types.FunctionType(self._signature)
-
-    def __wrapper_address__(self) -> int:
-        return int(self.address)
 
     def signature(self) -> Any:
         return self._signature
-
-
-if numba is not None:
-
-    @numba.extending.typeof_impl.register(_FunctionPointer)
-    def _typeof_function_pointer(value: _FunctionPointer, _context: Any) -> Any:
-        """The numba type of a :class:`_FunctionPointer` argument, built once: numba's
-        own typing of the protocol builds a new ``FunctionType`` on every call (~12 µs
-        per argument and call, three arguments per chunk)."""
-        return value.numba_type
 
 
 def function_pointer(function: Any, dtype: np.dtype) -> Any:
@@ -467,6 +450,18 @@ def function_pointer(function: Any, dtype: np.dtype) -> Any:
     if key not in _ENTRIES or _ENTRIES[key].function is not function:
         _ENTRIES[key] = _FunctionPointer(function, key[1])
     return _ENTRIES[key]
+
+
+def address(pointer: Any, signature: Any) -> int:
+    """The address of ``pointer`` (a :class:`_FunctionPointer`: :func:`function_pointer`,
+    :func:`gemm`) for the entry points, which take their functions as integers (:func:`_at`)
+    and so cannot check them: raises ``TypeError`` unless ``pointer`` is a resolved function
+    of exactly ``signature`` (the type the loops call it with)."""
+    if not (isinstance(pointer, _FunctionPointer) and pointer.signature() == signature):
+        raise TypeError(
+            f"the compiled loops take a resolved function of signature {signature}, got {pointer!r}"
+        )
+    return int(pointer.address)
 
 
 # ------------------------------------------------------------------ formulations
@@ -1058,9 +1053,46 @@ _advance_sydirk = _driver(_sydirk_step, _sydirk_views)
 _advance_reduced = _driver(_reduced_step, _reduced_views)
 
 
+def _at(signature_of: Callable[[np.dtype], Any]) -> Any:
+    """An intrinsic ``f(address, like)``: the compiled function at ``address`` (an
+    ``int64``: a :class:`_FunctionPointer`'s :attr:`~_FunctionPointer.address`) as a value of
+    the first-class function type of ``signature_of(like.dtype)`` — the value numba unboxes
+    from a :class:`_FunctionPointer` argument (the address in its C-callable slot, the
+    others null), made in compiled code: the entry points take the addresses as integers,
+    which their dispatcher types without Python (a function object is typed by a Python
+    call per argument and call, ~4 µs each)."""
+
+    def at(typingctx: Any, address: Any, like: Any) -> Any:
+        from numba.core import cgutils
+        from numba.np.numpy_support import as_dtype
+
+        if not isinstance(address, numba.types.Integer):
+            return None
+        ftype = numba.types.FunctionType(signature_of(as_dtype(like.dtype)))
+
+        def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+            value = cgutils.create_struct_proxy(ftype)(context, builder)
+            pointer = context.get_value_type(numba.types.voidptr)
+            value.c_addr = builder.inttoptr(args[0], pointer)
+            value.py_addr = cgutils.get_null_value(pointer)
+            value.jit_addr = cgutils.get_null_value(pointer)
+            return value._getvalue()
+
+        return ftype(address, like), codegen
+
+    return numba.extending.intrinsic(at)
+
+
+if numba is not None:
+    _map_at = _at(map_signature)
+    _product_at = _at(lambda dtype: _PRODUCT_SIGNATURES[np.dtype(dtype)])
+
+
 def _entry_points(key: str) -> tuple[Any, Any]:
     """The two entry points, closures over ``key`` (:data:`RULE_KEY`) so that numba's
-    cache key (which hashes closure variables) changes with the stopping rule."""
+    cache key (which hashes closure variables) changes with the stopping rule. They take
+    the system's maps and the product by address (``B``, ``P``, ``gemm``: ``int64``, see
+    :func:`_at`)."""
 
     def sydirk_advance(
         W: Any, hA: Any, hb: Any, skew: bool, B: Any, params: Any, P: Any, pparams: Any,
@@ -1069,8 +1101,9 @@ def _entry_points(key: str) -> tuple[Any, Any]:
     ) -> int:  # fmt: skip
         """The chunk loop of compositions of midpoint steps, ``hb = h b``."""
         key  # noqa: B018 - part of the cache key
-        return _advance_sydirk(W, hA, hb, skew, B, params, P, pparams, project, rule, irule,
-                               hist, weights, flags, states, iters, gemm, buf, fbuf)  # fmt: skip
+        return _advance_sydirk(W, hA, hb, skew, _map_at(B, W), params, _map_at(P, W), pparams,
+                               project, rule, irule, hist, weights, flags, states, iters,
+                               _product_at(gemm, W), buf, fbuf)  # fmt: skip
 
     def reduced_advance(
         W: Any, hA: Any, hb: Any, skew: bool, B: Any, params: Any, P: Any, pparams: Any,
@@ -1079,16 +1112,11 @@ def _entry_points(key: str) -> tuple[Any, Any]:
     ) -> int:  # fmt: skip
         """The chunk loop of the reduced stage form, ``hA = h A``, ``hb = h b``."""
         key  # noqa: B018 - part of the cache key
-        return _advance_reduced(W, hA, hb, skew, B, params, P, pparams, project, rule,
-                                irule, hist, weights, flags, states, iters, gemm, buf,
-                                fbuf)  # fmt: skip
+        return _advance_reduced(W, hA, hb, skew, _map_at(B, W), params, _map_at(P, W),
+                                pparams, project, rule, irule, hist, weights, flags, states,
+                                iters, _product_at(gemm, W), buf, fbuf)  # fmt: skip
 
     return sydirk_advance, reduced_advance
-
-
-def map_type(dtype: np.dtype) -> Any:
-    """The first-class function type of :func:`map_signature` (how the loops take a map)."""
-    return numba.types.FunctionType(map_signature(dtype))
 
 
 def _compile_entry(func: F, dtype: np.dtype) -> F:
@@ -1098,11 +1126,9 @@ def _compile_entry(func: F, dtype: np.dtype) -> F:
         return func
     t = numba.types
     f8, i8, d = t.float64, t.int64, numba.from_dtype(dtype)
-    M = map_type(dtype)
-    G = numba.types.FunctionType(_PRODUCT_SIGNATURES[np.dtype(dtype)])
     sig = t.int64(
-        d[:, :, ::1], f8[:, ::1], f8[::1], t.boolean, M, f8[::1], M, f8[::1], t.boolean,
-        f8[::1], i8[::1], d[:, :, ::1], f8[:, ::1], i8[::1], d[:, :, :, ::1], i8[::1], G,
+        d[:, :, ::1], f8[:, ::1], f8[::1], t.boolean, i8, f8[::1], i8, f8[::1], t.boolean,
+        f8[::1], i8[::1], d[:, :, ::1], f8[:, ::1], i8[::1], d[:, :, :, ::1], i8[::1], i8,
         d[::1], f8[::1],
     )  # fmt: skip
     # without reference counting (see the module's docstring) where this numba has the

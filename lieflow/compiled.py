@@ -247,13 +247,12 @@ class CompiledPlan:
         static = self._static.get(depth)
         if static is None:
             static = self._static[depth] = self._arguments(depth)
-        k, run, irule, weights, gemm = static
+        k, run, irule, weights, B, P, gemm = static
         buf, fbuf = k.workspace(self.dtype, K, size, self.b.size, n, keep, int(self.irule[0]))
-        project = self.project is not None
         done = run(
-            Wk, h * self.A, h * self.b, self.skew, self.B, self.params,
-            self.project if project else self.B, self.pparams, project, self.rule,
-            irule, hist, weights, flags, states, iters, gemm, buf, fbuf,
+            Wk, h * self.A, h * self.b, self.skew, B, self.params, P, self.pparams,
+            self.project is not None, self.rule, irule, hist, weights, flags, states, iters,
+            gemm, buf, fbuf,
         )  # fmt: skip
         shape = (*batch, *core)
         return CompiledSteps(
@@ -267,13 +266,20 @@ class CompiledPlan:
     def _arguments(self, depth: int) -> tuple[Any, ...]:
         """The loops' module and entry point, and the arguments that depend on the
         warm-start ``depth`` alone: ``irule`` extended by ``(depth > 0, conjugation)``, the
-        extrapolation weights (a writable copy: the loops' type), the product. The loops
-        write none of them."""
+        extrapolation weights (a writable copy: the loops' type), and the addresses of
+        ``B``, the projection (``B``'s when there is none: not called) and the product,
+        each checked to be a resolved function of the signature the loops call it with
+        (:func:`lieflow._kernels.address`; the loops take bare integers). The loops write
+        none of them."""
         k = kernels()
         irule = np.concatenate((self.irule, np.array([depth > 0, self.conjugation], np.int64)))
         weights = np.array(extrapolation_matrix(max(depth, 1)))
         run = k.entry(f"{self.kind}_advance", self.dtype)
-        return k, run, irule, weights, k.gemm(self.dtype)
+        signature = k.map_signature(self.dtype)
+        B = k.address(self.B, signature)
+        P = B if self.project is None else k.address(self.project, signature)
+        gemm = k.gemm(self.dtype)
+        return k, run, irule, weights, B, P, k.address(gemm, gemm.signature())
 
 
 @attrs.frozen(eq=False)

@@ -73,18 +73,15 @@ def test_a_plugin_system_runs_compiled(scheme: str) -> None:
     # each new state is put back on the spheres |m_i| = |Γ_i| inside the loops
     assert float(system.phase_space_distance(fast.W).max()) < 1e-15
 
-    # a pointer is typed with the numba type it was built with (numba's typing of the
-    # protocol rebuilds it from signature() on every call: ~12 µs per argument and chunk)
-    def rebuilt() -> None:
-        raise AssertionError("typed from signature() again")
-
-    plan.B.signature = rebuilt
-    assert numba.typeof(plan.B) == numba.core.types.FunctionType(plan.B._signature)
+    # the loops take the maps and the product by address: integers, which numba types
+    # without Python (a function object argument cost ~4 µs per argument and call)
+    run = compiled.kernels().entry(f"{plan.kind}_advance", plan.dtype)
+    (args,) = run.signatures
+    assert [args[i] for i in (4, 6, 16)] == [numba.types.int64] * 3
     # a plugin's map is resolved once per system, kept with its check while its dispatcher
     # holds the same compiled code; lieflow's own maps once per process
     again = compiled.plan(system, lf.schemes.get(scheme), lf.solvers.FixedPoint(), W0)
     assert isinstance(again, compiled.CompiledPlan) and again.B is plan.B
-    del plan.B.signature
     other = vortices.PointVortices()
     fresh = compiled.plan(other, lf.schemes.get(scheme), lf.solvers.FixedPoint(), W0)
     assert isinstance(fresh, compiled.CompiledPlan) and fresh.B is not plan.B
@@ -183,6 +180,33 @@ def test_a_wrong_compiled_B_is_refused() -> None:
     auto = lf.integrate(system, lf.schemes.get("midpoint"), system.random_state(seed=0), 0.05,
                         steps=2)  # fmt: skip
     assert auto.success
+
+
+def test_the_loops_get_only_resolved_maps_of_their_signature() -> None:
+    """The entry points take their functions as bare addresses; a plan whose map is not a
+    resolved function of the loops' signature for its dtype is refused before the loops
+    (a wrong address would be called unchecked)."""
+    body = lf.systems.GeneralizedRigidBody.random_inertia(4, seed=1)
+    W0 = body.random_state(seed=3)
+    plan = compiled.plan(body, lf.schemes.get("midpoint"), lf.solvers.FixedPoint(), W0)
+    assert isinstance(plan, compiled.CompiledPlan)
+    k = compiled.kernels()
+    good = plan.advance(W0, 0.05, 3)
+    assert good.done == 3
+    wrong = {
+        "B": k.gemm(np.float64),  # resolved, but (A, B, out, ta, tb): not a map
+        "project": k.gemm(np.float64),
+    }
+    wrong_B_dispatcher = attrs.evolve(plan, B=compiled.hadamard_B)
+    for field, value in wrong.items():
+        bad = attrs.evolve(plan, **{field: value})
+        with pytest.raises(TypeError, match="resolved function of signature"):
+            bad.advance(W0, 0.05, 3)
+    with pytest.raises(TypeError, match="resolved function of signature"):
+        wrong_B_dispatcher.advance(W0, 0.05, 3)
+    # the same plan, rebuilt with its own maps, gives the same bits
+    same = attrs.evolve(plan, B=plan.B).advance(W0, 0.05, 3)
+    assert same.states.tobytes() == good.states.tobytes()
 
 
 def test_toda_is_symmetrized_every_step_inside_the_loops() -> None:
