@@ -87,6 +87,8 @@ def minus_dagger(X: Array) -> Array:
 
 def frobenius_norm(X: Array) -> Array:
     """Frobenius norm over the last two axes."""
+    if type(X) is np.ndarray:  # the array's own sum: np.sum's wrapper costs ~1 µs a call
+        return np.sqrt((np.abs(X) ** 2).sum(axis=(-2, -1)))
     return np.sqrt(np.sum(np.abs(X) ** 2, axis=(-2, -1)))
 
 

@@ -58,6 +58,9 @@ def _mask(kept: bool) -> Array:
     return mask
 
 
+#: The smallest positive normal float64: the floor of the energy error's denominator.
+_TINY = float(np.finfo(float).tiny)
+
 #: The keep masks of a one-step chunk (read-only): ``_ONE_STEP[kept]``.
 _ONE_STEP = (_mask(False), _mask(True))
 
@@ -319,9 +322,7 @@ class Diagnostics:
     def energy_error(self, H: Array) -> Array:
         """Relative energy error of energies ``H``."""
         H0 = self.H0.astype(float, copy=False)
-        return np.abs(np.asarray(H, dtype=float) - H0) / np.maximum(
-            np.abs(H0), np.finfo(float).tiny
-        )
+        return np.abs(np.asarray(H, dtype=float) - H0) / np.maximum(np.abs(H0), _TINY)
 
     def casimir_drift(self, C: Array) -> Array:
         """Casimir drift of Casimirs ``C``."""

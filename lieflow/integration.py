@@ -196,10 +196,10 @@ def scheme_flow(
     :class:`InputError` if numba is missing or the case is not supported. ``"auto"``: the
     compiled engine where it is supported, installed and faster
     (:func:`lieflow.compiled.wins`, judged for ``steps`` steps of ``W0``), else numpy.
+    The flow is built once, of the class it ends up with.
     """
-    flow = SchemeFlow(system, scheme, solver, warm_start)
     if engine == "numpy":
-        return flow
+        return SchemeFlow(system, scheme, solver, warm_start)
     if engine not in ("auto", "compiled"):
         raise InputError(f"engine must be 'auto', 'numpy' or 'compiled', got {engine!r}")
     if not is_numpy(W0):  # an array of another library (lieflow.backends)
@@ -208,20 +208,21 @@ def scheme_flow(
                 f"engine='compiled' runs NumPy arrays only, got a {type(W0).__module__} "
                 "array; use engine='auto' (the array's own library runs the steps)"
             )
-        return flow
+        return SchemeFlow(system, scheme, solver, warm_start)
     from . import compiled
 
     if engine == "auto" and not compiled.available():
-        return flow
+        return SchemeFlow(system, scheme, solver, warm_start)
     n = W0.shape[-1]
     K = W0.size // max(n * n, 1)
+    # judged before plan(), which loads the system's compiled B
     if engine == "auto" and not compiled.wins(n, steps, K, np.iscomplexobj(W0)):
-        return flow  # judged before plan(), which loads the system's compiled B
+        return SchemeFlow(system, scheme, solver, warm_start)
     plan = compiled.plan(system, scheme, solver, W0)  # names a missing numba too
     if isinstance(plan, str):
         if engine == "compiled":
             raise InputError(f"engine='compiled' cannot run this case: {plan}; use engine='auto'")
-        return flow
+        return SchemeFlow(system, scheme, solver, warm_start)
     return compiled.CompiledSchemeFlow(system, scheme, solver, warm_start, plan=plan)
 
 

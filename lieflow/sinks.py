@@ -327,7 +327,9 @@ class MemorySink:
             self._extra.extend(diagnostics.extra)
         n = self._kept
         index = keep.nonzero()[0]  # keep is 1-D (np.flatnonzero's wrapper costs ~1 µs)
-        self._W[n : n + index.size] = to_host(chunk.W[index])
+        # every state kept (a one-step chunk, save_every=1): the chunk itself, no gathered copy
+        kept = chunk.W if index.size == keep.size else chunk.W[index]
+        self._W[n : n + index.size] = to_host(kept)
         self._k[n : n + index.size] = index + (a + 1)  # the step indices kept
         n += index.size
         self._kept = n
