@@ -28,6 +28,7 @@ from .algebras import Array
 from .backends import all_finite, is_numpy, to_numpy
 from .errors import ConvergenceError, InputError
 from .flows import Flow
+from .schemes.base import StepStats
 from .systems.base import IsospectralSystem
 
 if TYPE_CHECKING:
@@ -272,9 +273,7 @@ def _batched(
     while k < steps:
         m = min(batch, steps - k)
         Ws = np.empty((m, *shape), dtype)
-        iterations = np.empty(m, np.int64)
-        residuals = np.empty(m)
-        solvers: list[str] = []
+        done: list[StepStats] = []
         j, began = 0, clock()
         try:
             while j < m:
@@ -283,16 +282,24 @@ def _batched(
                     W, state, stats = flow.step(W, t, h, state)
                 except ConvergenceError as exc:
                     raise exc.at(k + j + 1, t) from exc
-                _check_finite(W, stats.iterations, stats.solver, stats.residual, k + j, h)
+                if not all_finite(W):
+                    _check_finite(W, stats.iterations, stats.solver, stats.residual, k + j, h)
                 Ws[j] = W
-                iterations[j], residuals[j] = stats.iterations, stats.residual
-                solvers.append(stats.solver)
+                done.append(stats)
                 j += 1
                 if clock() - began >= BATCH_SECONDS:
                     break
         finally:  # the steps done reach the consumer, however the chunk ends
             if j:
-                yield Chunk(k, h, Ws[:j], iterations[:j], residuals[:j], tuple(solvers), state)
+                yield Chunk(
+                    k,
+                    h,
+                    Ws[:j],
+                    np.array([s.iterations for s in done], dtype=np.int64),
+                    np.array([s.residual for s in done], dtype=np.float64),
+                    tuple(s.solver for s in done),
+                    state,
+                )
         k += j
 
 

@@ -259,6 +259,10 @@ class WarmStart:
         """:meth:`guess` and what :meth:`Prediction.advance` needs after the solve (the
         history stacked once for both: one step's worth of :meth:`guess` and
         :meth:`advance`, with the same results)."""
+        last, previous = self.last, self.previous
+        if type(last) is np.ndarray and type(previous) is tuple and not previous:
+            # one solution kept (warm_start=1): the guess is a copy of it, or cold
+            return Prediction(self, last.copy() if int(self.trusted) else None, [last], None)
         history = self.history()
         # one solution: nothing to stack (its prediction is a copy, its error one norm)
         stack = _stacked(history) if len(history) > 1 else None
@@ -321,6 +325,8 @@ def _advanced(state: WarmStart, solved: Any, history: list[Any], stack: Any) -> 
                 best, best_error = m, error
     if best == len(history) and best < state.depth:
         best += 1
+    if type(state.previous) is tuple and not state.previous:  # one kept: it is replaced
+        return WarmStart(solved, (), best)
     return state.replaced([solved, *history], best)
 
 
