@@ -315,6 +315,13 @@ class Prediction:
 def _advanced(state: WarmStart, solved: Any, history: list[Any], stack: Any) -> WarmStart:
     """:meth:`WarmStart.advance` given ``state``'s history and, if the caller has it, its
     :func:`_stacked` form ``stack`` (one stacking per step serves the guess and this)."""
+    previous = state.previous
+    if type(previous) is tuple and not previous and len(history) == 1:
+        last = history[0]
+        if type(solved) is np.ndarray and type(last) is np.ndarray and last.shape == solved.shape:
+            # one solution kept (warm_start=1), as below: the last solution is trusted next
+            # when it predicted ``solved`` better than the cold guess
+            return WarmStart(solved, (), int(squared_norm(solved - last) < squared_norm(solved)))
     best = 0
     best_error = (
         squared_norm(solved) if isinstance(solved, np.ndarray) else tree.sum_of_squares(solved)
@@ -325,8 +332,6 @@ def _advanced(state: WarmStart, solved: Any, history: list[Any], stack: Any) -> 
                 best, best_error = m, error
     if best == len(history) and best < state.depth:
         best += 1
-    if type(state.previous) is tuple and not state.previous:  # one kept: it is replaced
-        return WarmStart(solved, (), best)
     return state.replaced([solved, *history], best)
 
 
