@@ -60,6 +60,9 @@ def minus_dagger(X: Array) -> Array:
     n = 512 4.3 → 1.7 ms, n = 1024 13.6 → 8.2 ms (a plain ``X + X``: 0.03 / 0.15 / 1.4 ms).
     Arrays of another library (:mod:`lieflow.backends`): ``X - dagger(X)``.
     """
+    if type(X) is np.ndarray and X.dtype.char == "d" and X.shape[-1] <= _BLOCK:
+        # the common case first (twice an update at small n): as below
+        return X - X.swapaxes(-1, -2).copy()
     if not is_numpy(X):
         return X - dagger(X)
     n = X.shape[-1]
@@ -98,8 +101,22 @@ def _relative_defect(X: Array, P: Array) -> Array:
     return frobenius_norm(X - P) / scale
 
 
+def _half() -> Array:
+    half = np.array(0.5)
+    half.setflags(write=False)
+    return half
+
+
+#: 0.5 as a read-only 0-d float64 array: ``Y *= _HALF`` is ``Y *= 0.5`` (the same
+#: product) in about half the time for a small ``Y`` (3×3: 0.35 against 0.6 µs).
+_HALF = _half()
+
+
 def _halved(Y: Array) -> Array:
     """``Y / 2``, in place when ``Y`` is a (fresh) floating array."""
+    if type(Y) is np.ndarray and Y.dtype.char == "d":  # float64 first (twice a step)
+        Y *= _HALF
+        return Y
     if not (type(Y) is np.ndarray or is_numpy(Y)) or Y.dtype.kind in "fc":
         Y *= 0.5
         return Y
@@ -259,6 +276,8 @@ class SO(LieAlgebra):
     symbol: ClassVar[str] = "so"
 
     def project(self, X: ArrayLike) -> Array:
+        if type(X) is np.ndarray and X.dtype.char == "d":  # the common case first
+            return _halved(minus_dagger(X))
         X = _array(X)
         if is_numpy(X) and X.dtype.kind == "c":  # (X - X^T)/2, not (X - X^†)/2
             return _halved(X - transpose(X))

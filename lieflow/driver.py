@@ -28,6 +28,7 @@ from .algebras import Array
 from .backends import all_finite, is_numpy, to_numpy
 from .errors import ConvergenceError, InputError
 from .flows import Flow
+from .schemes.base import StepStats
 from .systems.base import IsospectralSystem
 
 if TYPE_CHECKING:
@@ -42,6 +43,7 @@ __all__ = [
     "MultiStepFlow",
     "Outcome",
     "advance",
+    "batch_steps",
     "chunk_steps",
     "run",
 ]
@@ -63,6 +65,23 @@ _TINY = float(np.finfo(float).tiny)
 
 #: The keep masks of a one-step chunk (read-only): ``_ONE_STEP[kept]``.
 _ONE_STEP = (_mask(False), _mask(True))
+
+
+#: A chunk of steps taken one :meth:`~lieflow.flows.Flow.step` call each (:func:`advance`'s
+#: ``batch``) holds at most this many entries of states ...
+BATCH_ENTRIES = 4096
+#: ... at most this many steps ...
+BATCH_STEPS = 64
+#: ... and ends once its steps have taken this many seconds.
+BATCH_SECONDS = 0.005
+
+
+def batch_steps(W0: Array) -> int:
+    """Steps per chunk of a flow stepped one :meth:`~lieflow.flows.Flow.step` call at a time
+    (:func:`advance`'s ``batch``): :data:`BATCH_STEPS` for small states, fewer for larger
+    ones (1 from :data:`BATCH_ENTRIES` entries on, where the per-chunk work of :func:`run`
+    is a small part of a step)."""
+    return max(1, min(BATCH_STEPS, BATCH_ENTRIES // max(1, math.prod(W0.shape))))
 
 
 def chunk_steps(W0: Array) -> int:
@@ -172,6 +191,7 @@ def advance(
     *,
     start: int = 0,
     state: Any = None,
+    batch: int = 1,
 ) -> Iterator[Chunk]:
     """Advance ``flow`` from ``W0`` (the state after step ``start``) up to step ``steps``.
 
@@ -190,6 +210,13 @@ def advance(
     state : tree of arrays, optional
         The flow's state after step ``start`` (a checkpoint's, to resume bit-for-bit);
         ``flow.init(W0)`` by default.
+    batch : int
+        At most this many steps per chunk of a flow that is not a :class:`MultiStepFlow`
+        (numpy states only; each chunk also ends after :data:`BATCH_SECONDS`): the
+        steps are the same, one :meth:`~lieflow.flows.Flow.step` call each, and the
+        consumer's work per chunk is shared by them. A step that fails, or a
+        ``KeyboardInterrupt`` while stepping, first yields the chunk of the steps done
+        before it.
 
     Yields
     ------
@@ -208,6 +235,9 @@ def advance(
     many = getattr(flow, "step_many", None)
     many = many if callable(many) else None
     size = chunk_steps(W0)
+    if many is None and batch > 1 and is_numpy(W0):
+        yield from _batched(flow, W0, h, steps, start, state, batch)
+        return
     while k < steps:
         if many is not None:
             # Chunks end at multiples of ``size`` counted from step 0, wherever the run
@@ -235,6 +265,45 @@ def advance(
             state,
         )
         k += 1
+
+
+def _batched(
+    flow: Flow, W: Array, h: float, steps: int, k: int, state: Any, batch: int
+) -> Iterator[Chunk]:
+    """:func:`advance` of a flow in chunks of up to ``batch`` steps (numpy states)."""
+    clock = time.perf_counter
+    shape, dtype = W.shape, W.dtype
+    while k < steps:
+        m = min(batch, steps - k)
+        Ws = np.empty((m, *shape), dtype)
+        done: list[StepStats] = []
+        j, began = 0, clock()
+        try:
+            while j < m:
+                t = (k + j) * h
+                try:
+                    W, state, stats = flow.step(W, t, h, state)
+                except ConvergenceError as exc:
+                    raise exc.at(k + j + 1, t) from exc
+                if not all_finite(W):
+                    _check_finite(W, stats.iterations, stats.solver, stats.residual, k + j, h)
+                Ws[j] = W
+                done.append(stats)
+                j += 1
+                if clock() - began >= BATCH_SECONDS:
+                    break
+        finally:  # the steps done reach the consumer, however the chunk ends
+            if j:
+                yield Chunk(
+                    k,
+                    h,
+                    Ws[:j],
+                    np.array([s.iterations for s in done], dtype=np.int64),
+                    np.array([s.residual for s in done], dtype=np.float64),
+                    tuple(s.solver for s in done),
+                    state,
+                )
+        k += j
 
 
 def _per_state(f: Any, W: Array) -> Array:
@@ -456,7 +525,14 @@ def run(
             interrupts.arm()
         if monitor is not None:  # inside: Ctrl-C while a progress bar starts is an interrupt
             monitor.start(start, steps)
-        for chunk in advance(flow, W0, h, steps, start=start, state=state):
+        # Chunks of several steps of a numpy flow unless a monitor, a Ctrl-C handler (a
+        # file's resume points) or checkpoints after every chunk are to see every step;
+        # they end where a checkpoint every ``every`` steps falls due.
+        if monitor is not None or interrupts is not None or seconds == 0:
+            batch = 1
+        else:
+            batch = min(batch_steps(W0), every or BATCH_STEPS)
+        for chunk in advance(flow, W0, h, steps, start=start, state=state, batch=batch):
             if not is_numpy(chunk.W):  # another array library: to the host, once per chunk
                 chunk = attrs.evolve(chunk, W=to_numpy(chunk.W))
             if chunk.W.shape[0] == 1:  # one step (a numpy-engine chunk): its mask in Python

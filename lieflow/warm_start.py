@@ -259,6 +259,10 @@ class WarmStart:
         """:meth:`guess` and what :meth:`Prediction.advance` needs after the solve (the
         history stacked once for both: one step's worth of :meth:`guess` and
         :meth:`advance`, with the same results)."""
+        last, previous = self.last, self.previous
+        if type(last) is np.ndarray and type(previous) is tuple and not previous:
+            # one solution kept (warm_start=1): the guess is a copy of it, or cold
+            return Prediction(self, last.copy() if int(self.trusted) else None, [last], None)
         history = self.history()
         # one solution: nothing to stack (its prediction is a copy, its error one norm)
         stack = _stacked(history) if len(history) > 1 else None
@@ -311,6 +315,13 @@ class Prediction:
 def _advanced(state: WarmStart, solved: Any, history: list[Any], stack: Any) -> WarmStart:
     """:meth:`WarmStart.advance` given ``state``'s history and, if the caller has it, its
     :func:`_stacked` form ``stack`` (one stacking per step serves the guess and this)."""
+    previous = state.previous
+    if type(previous) is tuple and not previous and len(history) == 1:
+        last = history[0]
+        if type(solved) is np.ndarray and type(last) is np.ndarray and last.shape == solved.shape:
+            # one solution kept (warm_start=1), as below: the last solution is trusted next
+            # when it predicted ``solved`` better than the cold guess
+            return WarmStart(solved, (), int(squared_norm(solved - last) < squared_norm(solved)))
     best = 0
     best_error = (
         squared_norm(solved) if isinstance(solved, np.ndarray) else tree.sum_of_squares(solved)

@@ -86,7 +86,7 @@ def _long_run(system_name: str, scheme_name: str, steps: int, engine: str) -> No
     _check_long_run(system, scheme, sol, h)
 
 
-@pytest.mark.parametrize(("system_name", "scheme_name"), itertools.product(SYSTEMS, COMPILED))
+@pytest.mark.parametrize(("system_name", "scheme_name"), list(itertools.product(SYSTEMS, COMPILED)))
 def test_ten_thousand_steps_compiled(system_name: str, scheme_name: str) -> None:
     refusal = _compiled_refusal(system_name, scheme_name)
     assert refusal is None, f"the compiled engine no longer runs this pair: {refusal}"
@@ -94,7 +94,9 @@ def test_ten_thousand_steps_compiled(system_name: str, scheme_name: str) -> None
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("system_name", "scheme_name"), itertools.product(SYSTEMS, NUMPY_ONLY))
+@pytest.mark.parametrize(
+    ("system_name", "scheme_name"), list(itertools.product(SYSTEMS, NUMPY_ONLY))
+)
 def test_ten_thousand_steps_numpy(system_name: str, scheme_name: str) -> None:
     _long_run(system_name, scheme_name, 10_000, "numpy")
 

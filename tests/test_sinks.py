@@ -304,3 +304,56 @@ casimir_shift = 0.5
     sol = lf.integrate(system, scheme, W0, 0.05, steps=6, save_every=2, solver=solver,
                        warm_start=2, casimir_shift=0.5, out=out, resume=True)  # fmt: skip
     assert sol.saved_steps.tolist() == [0, 6]
+
+
+class FailsAt:
+    """A flow stepping the rigid body that raises ``exc`` at step ``k``."""
+
+    name = "fails"
+
+    def __init__(self, k: int, exc: BaseException) -> None:
+        self.flow, self.k, self.exc = lf.SchemeFlow(RB, MID), k, exc
+
+    def init(self, W0: np.ndarray) -> Any:
+        return self.flow.init(W0)
+
+    def step(self, W: np.ndarray, t: float, h: float, state: Any) -> Any:
+        if round(t / h) + 1 == self.k:
+            raise self.exc
+        return self.flow.step(W, t, h, state)
+
+
+def test_chunks_of_many_steps_are_the_one_step_chunks_joined() -> None:
+    flow = lf.SchemeFlow(RB, MID)
+    one = list(lf.driver.advance(flow, W0, 0.1, 150))
+    many = list(lf.driver.advance(flow, W0, 0.1, 150, batch=64))
+    assert [c.size for c in one] == [1] * 150
+    assert len(many) < 10 and [c.stop for c in many][-1] == 150
+    assert [c.start for c in many[1:]] == [c.stop for c in many[:-1]]
+    for name in ("W", "iterations", "residuals"):
+        a = np.concatenate([getattr(c, name) for c in one])
+        b = np.concatenate([getattr(c, name) for c in many])
+        assert np.array_equal(a, b)  # the same steps, bit for bit
+    assert sum((c.solvers for c in many), ()) == sum((c.solvers for c in one), ())
+    assert np.array_equal(many[-1].state.history()[0], one[-1].state.history()[0])
+
+
+@pytest.mark.parametrize(
+    "exc",
+    [
+        lf.ConvergenceError("diverged", solver="x", iterations=3, residuals=(1.0,)),
+        KeyboardInterrupt(),
+    ],
+)
+def test_a_chunk_cut_by_a_failure_or_ctrl_c_yields_its_steps_first(exc: BaseException) -> None:
+    chunks: list[Any] = []
+    with pytest.raises(type(exc)) as info:
+        for chunk in lf.driver.advance(FailsAt(40, exc), W0, 0.1, 100, batch=64):
+            chunks.append(chunk)
+    assert [c.stop for c in chunks] == [39] and chunks[0].W.shape == (39, 3, 3)
+    failure = info.value
+    if isinstance(failure, lf.ConvergenceError):
+        assert failure.step == 40
+    sink = Recorder()
+    lf.integrate(RB, MID, W0, 0.1, steps=100, out=sink, engine="numpy")  # batched chunks
+    assert sink.kept[-1] == 100 and len([c for c in sink.calls if c[0] == "record"]) < 10

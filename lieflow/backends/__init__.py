@@ -14,6 +14,7 @@ sinks call it, a chunk at a time).
 from __future__ import annotations
 
 import importlib
+import math
 from types import ModuleType
 from typing import Any
 
@@ -158,8 +159,23 @@ def machine_epsilon(dtype: Any, like: Any) -> float:
     return float(namespace(like).finfo(dtype).eps)
 
 
+#: Up to this many entries :func:`all_finite` of a float64 array is a ``math.hypot``.
+_HYPOT_SIZE = 64
+
+
 def all_finite(x: Any) -> bool:
     """Whether every entry of ``x`` is finite (one scalar to the host)."""
+    if type(x) is np.ndarray and x.dtype.char == "d" and x.size <= _HYPOT_SIZE:
+        # a small float64 array (a state checked after each step): its norm by math.hypot
+        # of the entries as Python floats (3×3: 0.3 against 1.5 µs), finite exactly when
+        # every entry is (an inf or nan entry makes it inf or nan, and hypot does not
+        # overflow before the norm itself does); an infinite norm is checked entrywise
+        try:
+            if math.hypot(*x.ravel().tolist()) < math.inf:
+                return True
+        except OverflowError:
+            pass
+        return bool(np.isfinite(x).all())
     if is_numpy(x):
         return bool(np.isfinite(x).all())  # the method: np.all's Python layers cost 1 µs
     xp = namespace(x)

@@ -123,7 +123,19 @@ def solve(
     large). Iterations of both attempts are counted. Raises :class:`ConvergenceError` if
     the solve does not converge."""
     problem = build(warm)
-    res = solver.solve(problem)
+    return retry(solver, build, warm, problem, solver.solve(problem))
+
+
+def retry(
+    solver: Solver,
+    build: Callable[[Array | None], P],
+    warm: Array | None,
+    problem: P,
+    res: SolveResult,
+) -> tuple[P, SolveResult]:
+    """:func:`solve` after its first attempt: ``res`` of ``problem = build(warm)``. A scheme
+    that builds and solves its problem itself (no ``build`` closure per stage and step)
+    hands the result here when it did not converge."""
     if not res.converged and warm is not None:
         problem, first = build(None), res
         res = solver.solve(problem)

@@ -20,8 +20,8 @@ from .base import (
     StepResult,
     StepStats,
     real_scalar,
+    retry,
     scratch,
-    solve,
     solve_right,
 )
 
@@ -158,20 +158,26 @@ class SyDIRK(Scheme):
         warm: Array | None = None,
     ) -> StepResult:
         W = W0
-        s = self.tableau.stages
-        host = is_numpy(W0)
+        weights = self.tableau.b.tolist()
+        host = type(W0) is np.ndarray or is_numpy(W0)
+        shape = W0.shape
         offsets: Any = (
-            np.empty((*W0.shape[:-2], s, *W0.shape[-2:]), dtype=W0.dtype) if host else None
+            np.empty((*shape[:-2], len(weights), *shape[-2:]), dtype=W0.dtype) if host else None
         )
         parts: list[Any] = []  # the offsets of another array library, stacked at the end
         iterations = 0
         commutator = self.update == "commutator"
-        for i, bi in enumerate(self.tableau.b.tolist()):
+        for i, bi in enumerate(weights):
+            hi = bi * h
+            guess = None if warm is None else warm[..., i, :, :]
+            problem = MidpointProblem(system, W, hi, guess)
+            res = solver.solve(problem)
+            if not res.converged:  # retried cold (or raised): the one rule of schemes.solve
 
-            def build(guess: Array | None, W: Array = W, hi: float = bi * h) -> MidpointProblem:
-                return MidpointProblem(system, W, hi, guess)
+                def build(guess: Array | None, W: Array = W, hi: float = hi) -> MidpointProblem:
+                    return MidpointProblem(system, W, hi, guess)
 
-            problem, res = solve(solver, build, None if warm is None else warm[..., i, :, :])
+                problem, res = retry(solver, build, guess, problem, res)
             iterations += res.iterations
             x = res.x
             if host:
