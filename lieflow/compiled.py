@@ -566,18 +566,22 @@ def plan(
     kind, A, b = form
     if kind not in ("sydirk", "reduced"):
         return f"scheme {scheme.name!r}: unknown compiled form {kind!r}"
-    # the last plan made for this system and dtype, while it is for the same (frozen)
-    # scheme and solver objects and the same checked maps
-    key = ("compiled plan", dtype)
-    kept = system._derived.get(key)
-    if kept is not None and kept[0] is scheme and kept[1] is solver and kept[2] is maps:
-        made: CompiledPlan = kept[3]
-        return made
+    # the last plan made for this system and dtype, while it is for the same checked maps
+    # and the same values of everything else it holds (a scheme or solver built anew for
+    # each call, e.g. by lf.schemes.get, still finds it)
     fixed, retry_cold = fp
     r = fixed.rule
+    conjugation = getattr(scheme, "update", "commutator") == "conjugation"
+    n = int(W0.shape[-1])
+    same = (n, kind, A.tobytes(), b.tobytes(), A.shape, conjugation, fixed.name, retry_cold, r)
+    key = ("compiled plan", dtype)
+    kept = system._derived.get(key)
+    if kept is not None and kept[1] is maps and kept[0] == same:
+        made: CompiledPlan = kept[2]
+        return made
     made = CompiledPlan(
         kind=kind,
-        n=int(W0.shape[-1]),
+        n=n,
         dtype=dtype,
         skew=bool(system.algebra.skew),
         A=np.ascontiguousarray(A, dtype=np.float64),
@@ -589,9 +593,9 @@ def plan(
         rule=np.array([r.rtol, r.atol, r.roundoff_floor, r.divergence_factor], dtype=float),
         irule=np.array([r.max_iter, r.patience, r.window, r.project, retry_cold], dtype=np.int64),
         solver_name=fixed.name,
-        conjugation=getattr(scheme, "update", "commutator") == "conjugation",
+        conjugation=conjugation,
     )
-    system._derived[key] = (scheme, solver, maps, made)
+    system._derived[key] = (same, maps, made)
     return made
 
 

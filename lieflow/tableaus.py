@@ -263,12 +263,16 @@ def _integral(coeffs: list[Decimal], upper: Decimal) -> Decimal:
     return sum((a * upper ** (k + 1) / (k + 1) for k, a in enumerate(coeffs)), Decimal(0))
 
 
+@functools.cache
 def gauss(s: int) -> ButcherTableau:
     r"""The s-stage Gauss–Legendre collocation tableau, order ``2s`` (SPEC §4.6).
 
     Nodes ``c_i`` are the roots of the shifted Legendre polynomial; with the Lagrange
     basis :math:`\ell_j` on the nodes, :math:`a_{ij} = \int_0^{c_i} \ell_j` and
     :math:`b_j = \int_0^1 \ell_j`.
+
+    Built once per ``s`` (a tableau is an immutable value: frozen, read-only arrays), as
+    are the other named tableaus of this module.
     """
     if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 1:
         raise TableauError(f"Gauss–Legendre needs a positive integer number of stages, got {s!r}")
@@ -371,11 +375,13 @@ def composition_weights(name: str) -> tuple[tuple[float, ...], int]:
         return tuple(float(w) for w in weights()), order
 
 
+@functools.cache
 def triple_jump() -> ButcherTableau:
     """Triple jump, order 4: ``b = (x, 1 - 2x, x)``, ``x = 1 / (2 - 2^{1/3})``."""
     return composition(*composition_weights("triple_jump"), "triple_jump")
 
 
+@functools.cache
 def suzuki5() -> ButcherTableau:
     """Suzuki's 5-stage composition, order 4.
 
@@ -384,11 +390,13 @@ def suzuki5() -> ButcherTableau:
     return composition(*composition_weights("suzuki5"), "suzuki5")
 
 
+@functools.cache
 def yoshida6() -> ButcherTableau:
     """Yoshida's 7-stage order-6 composition (solution A), the paper's 7s-SyDIRK (SPEC §4.2)."""
     return composition(*composition_weights("yoshida6"), "sydirk7")
 
 
+@functools.cache
 def midpoint() -> ButcherTableau:
     """The implicit midpoint rule, ``A = [1/2]``, ``b = [1]``, order 2."""
     return composition([1.0], 2, "midpoint")

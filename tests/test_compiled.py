@@ -301,6 +301,16 @@ def test_a_plan_is_kept_for_the_same_scheme_and_solver() -> None:
     assert isinstance(gauss, compiled.CompiledPlan) and gauss.kind == "reduced"
     assert isinstance(loose, compiled.CompiledPlan) and loose.rule[0] == 1e-8
     assert first.rule[0] == 1e-14
+    # kept by value (the last plan per dtype): a scheme and solver built anew, as
+    # lf.schemes.get does on every call, find it; another update or tolerance does not
+    first = compiled.plan(system, mid, fp, _state(system))
+    fresh = lf.schemes.get("midpoint"), lf.solvers.FixedPoint()
+    assert compiled.plan(system, *fresh, _state(system)) is first
+    cayley = compiled.plan(system, lf.schemes.SyDIRK(update="conjugation"), fp, _state(system))
+    assert isinstance(cayley, compiled.CompiledPlan) and cayley is not first
+    assert cayley.conjugation and not first.conjugation
+    capped = compiled.plan(system, mid, lf.solvers.FixedPoint(max_iter=7), _state(system))
+    assert isinstance(capped, compiled.CompiledPlan) and capped.irule[0] == 7
     # one kept plan run with and without warm starts, in turn: each as numpy runs it
     for warm in (False, True, False):
         _assert_same(*_both(system, mid, _state(system), 0.05, steps=30, solver=fp,

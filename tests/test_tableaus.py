@@ -80,3 +80,14 @@ def test_malformed_tableaus() -> None:
         lf.ButcherTableau(A=[[0.5, 0.0]], b=[1.0], order=1, name="bad")
     with pytest.raises(lf.TableauError):
         T.gauss(0)
+
+
+def test_named_tableaus_are_built_once_and_cannot_be_changed() -> None:
+    """The named tableaus are values: one object per name (built once, its order checked
+    once), whose arrays nobody can write into."""
+    for make in (T.midpoint, T.triple_jump, lambda: T.gauss(3)):
+        t = make()
+        assert make() is t
+        for arr in (t.A, t.b, t.c):
+            with pytest.raises(ValueError, match="read-only"):
+                arr[0] = 0.0
