@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,34 @@ import lieflow as lf
 
 def tight() -> lf.solvers.FixedPoint:
     return lf.solvers.FixedPoint(rtol=1e-15)
+
+
+def rigid_body_config(
+    *, scheme: str = "midpoint", seed: int = 3, rtol: float = 1e-15, **run: object
+) -> str:
+    """A ``lieflow run`` configuration of the so(3) rigid body, inertia (1, 2, 3), from a
+    seeded random state, fixed-point iteration at ``rtol``; ``run``: the ``[run]`` table's
+    keys as Python values (``h``, ``steps``, ``output``, ...)."""
+    table = "\n".join(f"{key} = {json.dumps(value)}" for key, value in run.items())
+    return f"""
+[system]
+name = "rigid_body"
+params = {{ inertia = [1.0, 2.0, 3.0] }}
+
+[initial]
+random = true
+seed = {seed}
+
+[scheme]
+name = "{scheme}"
+
+[solver]
+name = "fixed_point"
+params = {{ rtol = {rtol!r} }}
+
+[run]
+{table}
+"""
 
 
 class HermitianBody(lf.IsospectralSystem):

@@ -13,7 +13,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from helpers import damage_last_chunk
+from helpers import damage_last_chunk, rigid_body_config
 
 import lieflow as lf
 from lieflow.app import io
@@ -21,29 +21,13 @@ from lieflow.app.cli import main
 from lieflow.app.config import ConfigError, build, load_config
 from lieflow.app.io import _reader
 
-CONFIG = """
-[system]
-name = "rigid_body"
-params = {{ inertia = [1.0, 2.0, 3.0] }}
 
-[initial]
-random = true
-seed = {seed}
+def config_text(seed: int, steps: int) -> str:
+    # engine numpy: what is tested here is the file, not the engine (no numba start-up)
+    return rigid_body_config(
+        seed=seed, h=0.1, steps=steps, save_every=10, output="traj.h5", engine="numpy"
+    )
 
-[scheme]
-name = "midpoint"
-
-[solver]
-name = "fixed_point"
-params = {{ rtol = 1e-15 }}
-
-[run]
-h = 0.1
-steps = {steps}
-save_every = 10
-output = "traj.h5"
-engine = "numpy"  # what is tested here is the file, not the engine (no numba start-up)
-"""
 
 #: long enough that a run is still going when the test acts on it (it is always stopped)
 FOREVER = 10**9
@@ -51,7 +35,7 @@ FOREVER = 10**9
 
 def write_config(tmp_path: Path, *, seed: int = 0, steps: int = 60, name: str = "run") -> Path:
     path = tmp_path / f"{name}.toml"
-    path.write_text(CONFIG.format(seed=seed, steps=steps), encoding="utf-8")
+    path.write_text(config_text(seed=seed, steps=steps), encoding="utf-8")
     return path
 
 
@@ -199,7 +183,7 @@ def test_sigterm_marks_the_file_interrupted_and_it_resumes(tmp_path: Path) -> No
     traj = io.read_trajectory(out)
     assert traj.status == "interrupted"
     done = traj.completed_steps
-    config.write_text(CONFIG.format(seed=0, steps=done + 20), encoding="utf-8")
+    config.write_text(config_text(seed=0, steps=done + 20), encoding="utf-8")
     assert main(["run", str(config), "--no-progress", "--resume"]) == 0
     assert io.read_trajectory(out).completed_steps == done + 20
 
@@ -240,7 +224,7 @@ def test_a_bit_flipped_in_the_checkpoint_is_refused_without_writing(
 ) -> None:
     """It used to resume and finish "complete" with energy error 2e-11 instead of 6.6e-15."""
     config, out = finished
-    config.write_text(CONFIG.format(seed=0, steps=80), encoding="utf-8")
+    config.write_text(config_text(seed=0, steps=80), encoding="utf-8")
     _flip(out, _checkpoint_offset(out) + 3)
     before = out.read_bytes()
     assert main(["run", str(config), "--no-progress", "--resume"]) == 2
@@ -260,7 +244,7 @@ def test_a_chunk_a_killed_write_left_unreadable_is_refused_on_resume(
     write, as h5py's "filter returned failure during read" (seen when a Dask worker was
     SIGKILLed): now it is refused, before any step is computed, with the fix."""
     config, out = finished
-    config.write_text(CONFIG.format(seed=0, steps=80), encoding="utf-8")
+    config.write_text(config_text(seed=0, steps=80), encoding="utf-8")
     damage_last_chunk(out, "iterations")  # not read by the checkpoint's checks
     assert main(["run", str(config), "--no-progress", "--resume"]) == 2
     err = capsys.readouterr().err

@@ -13,38 +13,20 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from helpers import rigid_body_config
 
 import lieflow as lf
 from lieflow.app import io
 from lieflow.app.config import ConfigError, RunSetup, build, load_config, parse_config
 
-CONFIG = """
-[system]
-name = "rigid_body"
-params = {{ inertia = [1.0, 2.0, 3.0] }}
 
-[initial]
-random = true
-seed = 3
-
-[scheme]
-name = "{scheme}"
-
-[solver]
-name = "fixed_point"
-params = {{ rtol = 1e-15 }}
-
-[run]
-h = 0.1
-steps = {steps}
-save_every = 10
-output = "traj.h5"
-"""
+def config_text(scheme: str, steps: int) -> str:
+    return rigid_body_config(scheme=scheme, h=0.1, steps=steps, save_every=10, output="traj.h5")
 
 
 def write_config(tmp_path: Path, scheme: str = "gauss2", steps: int = 60) -> Path:
     path = tmp_path / "run.toml"
-    path.write_text(CONFIG.format(scheme=scheme, steps=steps), encoding="utf-8")
+    path.write_text(config_text(scheme=scheme, steps=steps), encoding="utf-8")
     return path
 
 
@@ -217,7 +199,7 @@ def test_resume_without_a_file_starts_afresh(tmp_path: Path, reference: Path) ->
 
 
 def test_failed_step_keeps_the_steps_before_it(tmp_path: Path) -> None:
-    text = CONFIG.format(scheme="midpoint", steps=20).replace(
+    text = config_text(scheme="midpoint", steps=20).replace(
         "params = { rtol = 1e-15 }", "params = { rtol = 1e-15, max_iter = 2 }"
     )
     setup = build(parse_config(text, base_dir=tmp_path))
@@ -241,11 +223,11 @@ def test_reading_a_file_that_is_not_a_trajectory(tmp_path: Path) -> None:
 
 
 def test_config_identity_ignores_steps_and_output(tmp_path: Path) -> None:
-    a = parse_config(CONFIG.format(scheme="gauss2", steps=10), base_dir=tmp_path)
+    a = parse_config(config_text(scheme="gauss2", steps=10), base_dir=tmp_path)
     b = parse_config(
-        CONFIG.format(scheme="gauss2", steps=99).replace("traj.h5", "x.h5"), base_dir=tmp_path
+        config_text(scheme="gauss2", steps=99).replace("traj.h5", "x.h5"), base_dir=tmp_path
     )
-    c = parse_config(CONFIG.format(scheme="gauss3", steps=10), base_dir=tmp_path)
+    c = parse_config(config_text(scheme="gauss3", steps=10), base_dir=tmp_path)
     assert a.identity() == b.identity() != c.identity()
     assert a.run.output == tmp_path / "traj.h5"
     assert a.initial.seed == 3 and a.solver.params["rtol"] == 1e-15

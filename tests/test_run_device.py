@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers import rigid_body_config
 
 import lieflow as lf
 from lieflow import backends
@@ -19,38 +20,20 @@ from lieflow.app.cli import main
 
 xps = pytest.importorskip("array_api_strict")
 
-CONFIG = """
-[system]
-name = "rigid_body"
-params = {{ inertia = [1.0, 2.0, 3.0] }}
-[initial]
-random = true
-seed = 3
-[scheme]
-name = "{scheme}"
-[solver]
-name = "fixed_point"
-params = {{ rtol = 1e-14 }}
-[run]
-h = 0.1
-steps = {steps}
-save_every = 5
-checkpoint = "saves"
-{extra}
-"""
 
-
-def _config(tmp_path: Path, name: str, scheme: str = "gauss2", steps: int = 40, **run: str) -> Path:
-    extra = "\n".join(f"{k} = {v}" for k, v in run.items())
+def _config(tmp_path: Path, name: str, scheme: str = "gauss2", **run: str) -> Path:
     path = tmp_path / f"{name}.toml"
-    path.write_text(CONFIG.format(scheme=scheme, steps=steps, extra=extra), encoding="utf-8")
+    text = rigid_body_config(
+        scheme=scheme, rtol=1e-14, h=0.1, steps=40, save_every=5, checkpoint="saves", **run
+    )
+    path.write_text(text, encoding="utf-8")
     return path
 
 
 @pytest.mark.parametrize("scheme", ["midpoint", "gauss2"])
 def test_a_run_on_a_device_library_matches_the_host(tmp_path: Path, scheme: str) -> None:
-    host = _config(tmp_path, "host", scheme, engine='"numpy"')
-    device = _config(tmp_path, "device", scheme, device='"array_api_strict"')
+    host = _config(tmp_path, "host", scheme, engine="numpy")
+    device = _config(tmp_path, "device", scheme, device="array_api_strict")
     assert main(["run", str(host), "--no-progress", "--out", str(tmp_path / "host.h5")]) == 0
     assert main(["run", str(device), "--no-progress", "--out", str(tmp_path / "dev.h5")]) == 0
     ref, got = io.read_trajectory(tmp_path / "host.h5"), io.read_trajectory(tmp_path / "dev.h5")
@@ -65,8 +48,8 @@ def test_resume_on_a_device_continues_from_the_checkpoint(
 ) -> None:
     """Interrupted at step 23 on the device, resumed there: the warm start read from the
     file is placed on the device too (the resumed steps take the host's iterations)."""
-    host = _config(tmp_path, "host", engine='"numpy"')
-    device = _config(tmp_path, "device", device='"array_api_strict"')
+    host = _config(tmp_path, "host", engine="numpy")
+    device = _config(tmp_path, "device", device="array_api_strict")
     assert main(["run", str(host), "--no-progress", "--out", str(tmp_path / "host.h5")]) == 0
     placed: list[str] = []
     real_place, real_advance = backends.place, lf.driver.advance
@@ -102,9 +85,9 @@ def test_resume_on_a_device_continues_from_the_checkpoint(
 @pytest.mark.parametrize(
     ("run", "expected"),
     [
-        ({"device": '"gpu"'}, "unknown device 'gpu'"),
-        ({"device": '"cpu:1"'}, "unknown device 'cpu:1'"),
-        ({"device": '"array_api_strict"', "engine": '"compiled"'}, "runs on the CPU only"),
+        ({"device": "gpu"}, "unknown device 'gpu'"),
+        ({"device": "cpu:1"}, "unknown device 'cpu:1'"),
+        ({"device": "array_api_strict", "engine": "compiled"}, "runs on the CPU only"),
     ],
 )
 def test_bad_devices_are_refused_before_anything_is_written(

@@ -11,7 +11,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from helpers import damage_last_chunk
+from helpers import damage_last_chunk, rigid_body_config
 
 import lieflow as lf
 from lieflow.app import io
@@ -19,30 +19,13 @@ from lieflow.app.cli import main
 from lieflow.app.io import _reader
 from lieflow.app.salvage import salvage
 
-CONFIG = """
-[system]
-name = "rigid_body"
-params = {{ inertia = [1.0, 2.0, 3.0] }}
 
-[initial]
-random = true
-seed = 3
+def config_text(steps: int, name: str) -> str:
+    return rigid_body_config(
+        h=0.1, steps=steps, save_every=100, checkpoint="saves", output=f"{name}.h5",
+        engine="numpy",
+    )  # fmt: skip
 
-[scheme]
-name = "midpoint"
-
-[solver]
-name = "fixed_point"
-params = {{ rtol = 1e-15 }}
-
-[run]
-h = 0.1
-steps = {steps}
-save_every = 100
-checkpoint = "saves"
-output = "{name}.h5"
-engine = "numpy"
-"""
 
 #: three chunks of per-step rows (1024 rows each): 0..1023, 1024..2047, 2048..2100
 STEPS = 2100
@@ -50,7 +33,7 @@ STEPS = 2100
 
 def _run(tmp_path: Path, name: str, steps: int = STEPS, *extra: str) -> tuple[Path, Path]:
     config = tmp_path / f"{name}.toml"
-    config.write_text(CONFIG.format(steps=steps, name=name), encoding="utf-8")
+    config.write_text(config_text(steps=steps, name=name), encoding="utf-8")
     assert main(["run", str(config), "--no-progress", *extra]) == 0
     return config, tmp_path / f"{name}.h5"
 
@@ -121,7 +104,7 @@ def test_salvage_falls_back_to_the_previous_checkpoint_and_resumes_bit_for_bit(
     assert (tmp_path / "run.h5.damaged").read_bytes() == damaged  # the original, kept
     salvaged = io.read_trajectory(out)
     assert salvaged.status == "interrupted" and salvaged.completed_steps == 2000
-    config.write_text(CONFIG.format(steps=STEPS + 100, name="run"), encoding="utf-8")
+    config.write_text(config_text(steps=STEPS + 100, name="run"), encoding="utf-8")
     assert main(["run", str(config), "--no-progress", "--resume"]) == 0
     _same(io.read_trajectory(out), reference)
 
@@ -142,7 +125,7 @@ def test_salvage_after_a_killed_write_keeps_the_verified_prefix(
     assert kept.completed_steps == 1000
     np.testing.assert_array_equal(kept.energy, reference.energy[:1001])
     np.testing.assert_array_equal(kept.W, reference.W[:11])
-    config.write_text(CONFIG.format(steps=STEPS + 100, name="run"), encoding="utf-8")
+    config.write_text(config_text(steps=STEPS + 100, name="run"), encoding="utf-8")
     assert main(["run", str(config), "--no-progress", "--resume"]) == 0
     done = io.read_trajectory(out)
     assert done.status == "complete" and done.completed_steps == STEPS + 100
@@ -158,7 +141,7 @@ def test_salvage_of_a_damaged_last_chunk_keeps_the_checkpoint_before_it(
     damage_last_chunk(out, "iterations")  # rows 2048..2100: the checkpoint at 2000 is intact
     report = salvage(out)
     assert (report.kept_steps, report.bit_for_bit) == (2000, True)
-    config.write_text(CONFIG.format(steps=STEPS + 100, name="run"), encoding="utf-8")
+    config.write_text(config_text(steps=STEPS + 100, name="run"), encoding="utf-8")
     assert main(["run", str(config), "--no-progress", "--resume"]) == 0
     _same(io.read_trajectory(out), reference)
 
@@ -272,7 +255,7 @@ def test_damaged_data_in_the_spare_slot_is_overwritten_by_the_next_checkpoint(
     data[offset + 1] ^= 2
     out.write_bytes(bytes(data))
     io.read_trajectory(out)
-    config.write_text(CONFIG.format(steps=STEPS + 100, name="run"), encoding="utf-8")
+    config.write_text(config_text(steps=STEPS + 100, name="run"), encoding="utf-8")
     assert main(["run", str(config), "--no-progress", "--resume"]) == 0
     _same(io.read_trajectory(out), reference)
 
