@@ -159,13 +159,15 @@ def machine_epsilon(dtype: Any, like: Any) -> float:
     return float(namespace(like).finfo(dtype).eps)
 
 
-#: Up to this many entries :func:`all_finite` of a float64 array is a ``math.hypot``.
-_HYPOT_SIZE = 64
+#: Up to this many entries a float64 array's norm is ``math.hypot`` of its entries as Python
+#: floats (no NumPy reduction): :func:`all_finite` here, the fixed-point check's norms in
+#: :mod:`lieflow.solvers.fixed_point`.
+HYPOT_SIZE = 64
 
 
 def all_finite(x: Any) -> bool:
     """Whether every entry of ``x`` is finite (one scalar to the host)."""
-    if type(x) is np.ndarray and x.dtype.char == "d" and x.size <= _HYPOT_SIZE:
+    if type(x) is np.ndarray and x.dtype.char == "d" and x.size <= HYPOT_SIZE:
         # a small float64 array (a state checked after each step): its norm by math.hypot
         # of the entries as Python floats (3×3: 0.3 against 1.5 µs), finite exactly when
         # every entry is (an inf or nan entry makes it inf or nan, and hypot does not
