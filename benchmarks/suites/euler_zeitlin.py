@@ -139,6 +139,10 @@ class ExtraRow:
     levels, spectra : float
         Its two parts: the Hermitian eigenvalue problem (levels and Casimirs) and the
         squares by degree (``matrix_squares_by_degree``).
+    fastest_eigensolver : float
+        The fastest of LAPACK's Hermitian eigenvalue drivers, values only, on ``-iW``
+        (:func:`fastest_eigenvalues`): what the levels cost at least with the eigensolvers
+        NumPy and SciPy offer.
     lean : float
         Seconds of ``extra_diagnostics`` with ``diagnostics_levels=False`` (no levels).
     coefficients : float
@@ -154,11 +158,31 @@ class ExtraRow:
     spectra: float
     lean: float
     coefficients: float
+    fastest_eigensolver: float
 
     @property
     def ratio(self) -> float:
         """Extra diagnostics per saved state / one step."""
         return self.extra / self.step
+
+
+#: LAPACK's Hermitian eigenvalue drivers that SciPy exposes (values only): QR (``heev``),
+#: divide and conquer (``heevd``), relatively robust representations (``heevr``), bisection
+#: (``heevx``). NumPy's ``eigvalsh`` is ``heevd``. (OpenBLAS's two-stage ``heevd_2stage``,
+#: not exposed by SciPy, measured through its C interface on this machine: 1.0–1.5× the time
+#: of ``heevd`` at N = 64–1024.)
+EIGEN_DRIVERS = ("ev", "evd", "evr", "evx")
+
+
+def fastest_eigenvalues(H: np.ndarray, repeats: int) -> float:
+    """Seconds of the fastest of :data:`EIGEN_DRIVERS` (best-of-``repeats`` medians) for the
+    eigenvalues of the Hermitian ``H``."""
+    import scipy.linalg
+
+    def driver(name: str) -> Callable[[], object]:
+        return lambda: scipy.linalg.eigh(H, eigvals_only=True, driver=name, check_finite=False)
+
+    return min(best_of(driver(name), repeats).median for name in EIGEN_DRIVERS)
 
 
 def measure_extra(ctx: BenchContext, system: Any, N: int) -> ExtraRow:
@@ -193,7 +217,10 @@ def measure_extra(ctx: BenchContext, system: Any, N: int) -> ExtraRow:
         for name, fn in calls.items():
             times[name].append(best_of(fn, inner).median)
     median = {name: float(np.median(values)) for name, values in times.items()}
-    return ExtraRow(N=N, iterations=float(np.mean(solution.iterations)), **median)
+    fastest = fastest_eigenvalues(-1j * W, max(3, inner))
+    return ExtraRow(
+        N=N, iterations=float(np.mean(solution.iterations)), fastest_eigensolver=fastest, **median
+    )
 
 
 def run(ctx: BenchContext) -> Section:
@@ -261,9 +288,13 @@ def run(ctx: BenchContext) -> Section:
         "complex128 N×N matmul — the step's cost in product-equivalents.",
         f"The as-published dense baseline runs up to N = {ctx.config.zeitlin_paper_max_n}.",
         "Extra diagnostics: ‘levels’ is the one Hermitian eigenvalue problem of size N that "
-        "gives the vorticity levels and every Casimir (C_2 = ||W||_F²); LAPACK's reduction "
-        "to tridiagonal form costs about two complex N×N products, so it stays near 0.2 "
-        "steps at every N. Sample less often with `EulerZeitlin(diagnostics_every=k)`, or "
+        "gives the vorticity levels and every Casimir (C_2 = ||W||_F²). LAPACK reduces the "
+        "matrix to tridiagonal form with Householder reflections, half of whose work is "
+        "matrix–vector products bound by memory bandwidth, so it costs several complex N×N "
+        "products (more at small N, where the products are short) against the few of a "
+        "warm-started midpoint step; ‘fastest LAPACK eigensolver’ is the best of QR, divide "
+        "and conquer, RRR and bisection (scipy.linalg.eigh drivers ev, evd, evr, evx). "
+        "Sample less often with `EulerZeitlin(diagnostics_every=k)`, or "
         "without the levels with `EulerZeitlin(diagnostics_levels=False)` (the spectra "
         "column's cost).",
     ]
@@ -277,6 +308,28 @@ def run(ctx: BenchContext) -> Section:
     )
 
 
+def _extra_limit(rows: list[ExtraRow]) -> str:
+    """Why the extra-diagnostics target is missed: the levels' eigensolver against the rest."""
+    bound = {r.N: (r.fastest_eigensolver + r.lean) / r.step for r in rows}
+    out_of_reach = [N for N, b in bound.items() if b > EXTRA_TARGET]
+    text = (
+        "the levels' eigenvalue problem alone, with the fastest LAPACK driver (of "
+        f"{', '.join(EIGEN_DRIVERS)}): "
+        + ", ".join(f"{r.fastest_eigensolver / r.step:.2f}" for r in rows)
+        + " steps, and the rest (diagnostics_levels=False): "
+        + ", ".join(f"{r.lean / r.step:.2f}" for r in rows)
+        + f" steps at N = {', '.join(str(r.N) for r in rows)}"
+    )
+    if out_of_reach:
+        text += (
+            "; their sum exceeds the target at N = "
+            + ", ".join(map(str, out_of_reach))
+            + ": with the levels it is out of reach of the dense Hermitian eigensolvers "
+            "NumPy and SciPy offer, without them it is met"
+        )
+    return text
+
+
 def extra_report(rows: list[ExtraRow], seed: int) -> tuple[Table, TargetCheck]:
     """The extra-diagnostics table and its target verdict."""
     cells = tuple(
@@ -287,6 +340,7 @@ def extra_report(rows: list[ExtraRow], seed: int) -> tuple[Table, TargetCheck]:
             seconds(r.extra),
             f"{r.ratio:.3f}",
             f"{r.levels / r.step:.3f}",
+            f"{r.fastest_eigensolver / r.step:.3f}",
             f"{r.spectra / r.step:.3f}",
             f"{r.lean / r.step:.3f}",
             ratio(r.coefficients, r.spectra),
@@ -301,6 +355,7 @@ def extra_report(rows: list[ExtraRow], seed: int) -> tuple[Table, TargetCheck]:
             "extra diagnostics s/state",
             "extra diagnostics per saved state / one step",
             "of which levels (eigvalsh) / step",
+            "fastest LAPACK eigensolver / step",
             "of which spectra / step",
             "without levels (diagnostics_levels=False) / step",
             "spectra × vs via coefficients",
@@ -318,8 +373,6 @@ def extra_report(rows: list[ExtraRow], seed: int) -> tuple[Table, TargetCheck]:
         measured=", ".join(f"{r.ratio:.2f} at N = {r.N}" for r in rows),
         met=met,
         gap="" if met else f"{worst.ratio / EXTRA_TARGET:.2f}× the target at N = {worst.N}",
-        limit=f"the eigenvalue problem of the levels: {worst.levels / worst.step:.2f} steps "
-        f"at N = {worst.N}; without it (diagnostics_levels=False) "
-        f"{max(r.lean / r.step for r in rows):.2f} steps at most",
+        limit=_extra_limit(rows),
     )
     return table, target
