@@ -231,6 +231,36 @@ class CompiledPlan:
         warm-start state: the kept solutions ``history`` (most recent first), how many are
         kept (``depth``; 0: no warm starts) and how many the next prediction uses
         (``trusted``), as in :class:`~lieflow.warm_start.WarmStart`."""
+        run, args = self.loop_call(W, h, steps, history, depth, trusted)
+        done = run(*args)
+        states, iters, hist, flags = args[14], args[15], args[11], args[13]
+        if done < steps:
+            states, iters = states[:done], iters[:done]
+        batch, n = W.shape[:-2], self.n
+        shape = (*batch, *self._static[depth][7])
+        return CompiledSteps(
+            states.reshape(done, *batch, n, n),
+            iters,
+            tuple([hist[j].reshape(shape) for j in range(int(flags[0]))]),
+            int(flags[1]),
+            done == steps,
+        )
+
+    def loop_call(
+        self,
+        W: Array,
+        h: float,
+        steps: int,
+        history: Sequence[Array] = (),
+        depth: int = DEFAULT_DEPTH,
+        trusted: int = 1,
+    ) -> tuple[Any, tuple[Any, ...]]:
+        """The compiled loop that :meth:`advance` calls and its arguments, ``(run, args)``:
+        ``run(*args)`` takes the steps (it returns how many it accepted and writes the
+        states into ``args[14]``, the updates per step into ``args[15]``). With
+        ``depth=0`` (cold starts) the call reads nothing it writes, so it may be repeated:
+        what the fixed-cost benchmark times as the bare compiled step
+        (``benchmarks/suites/call_cost.py``)."""
         batch, n, dtype = W.shape[:-2], self.n, self.dtype
         K = math.prod(batch)
         static = self._static.get(depth)
@@ -247,21 +277,12 @@ class CompiledPlan:
         states = np.empty((steps, K, n, n), dtype=dtype)
         iters = np.zeros(steps, dtype=np.int64)
         buf, fbuf = k.workspace(dtype, K, size, self.b.size, n, keep, max_iter)
-        done = run(
+        args = (
             Wk, h * self.A, h * self.b, self.skew, B, self.params, P, self.pparams,
             self.project is not None, self.rule, irule, hist, weights, flags, states, iters,
             gemm, buf, fbuf,
         )  # fmt: skip
-        if done < steps:
-            states, iters = states[:done], iters[:done]
-        shape = (*batch, *core)
-        return CompiledSteps(
-            states.reshape(done, *batch, n, n),
-            iters,
-            tuple([hist[j].reshape(shape) for j in range(int(flags[0]))]),
-            int(flags[1]),
-            done == steps,
-        )
+        return run, args
 
     def _arguments(self, depth: int) -> tuple[Any, ...]:
         """The loops' module and entry point, and the arguments that depend on the
