@@ -266,7 +266,7 @@ class CompiledPlan:
         static = self._static.get(depth)
         if static is None:
             static = self._static[depth] = self._arguments(depth)
-        k, run, irule, weights, B, P, gemm, core, size, max_iter = static
+        k, run, irule, weights, B, P, gemm, _, size, max_iter = static
         Wk = np.ascontiguousarray(W, dtype=dtype).reshape(K, n, n)
         keep = max(depth, 1)
         hist = np.zeros((keep, K, size), dtype=dtype)

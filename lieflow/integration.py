@@ -18,7 +18,7 @@ from numpy.typing import ArrayLike
 from . import driver
 from .algebras import Array
 from .backends import from_host, is_foreign_array, is_numpy, to_numpy
-from .driver import Diagnostics, Monitor
+from .driver import DeferredDiagnostics, Diagnostics, Monitor
 from .errors import InputError
 from .flows import Flow, SchemeFlow, StepStats, WarmStart
 from .schemes.base import Scheme
@@ -524,10 +524,12 @@ def integrate(
     W0_device, W0a = W0a, to_numpy(W0a)  # states reach the host at the sinks, a chunk at a time
     cadence = driver.Cadence(seconds=checkpoint_seconds)
     start, state = 0, None
+    diag: Diagnostics | DeferredDiagnostics | None
     if out is None:
         _check_memory(MemorySink.saved_states(n_steps, save_every) * W0a.nbytes, n_steps,
                       save_every)  # fmt: skip
-        diag = Diagnostics.of(system, W0a, save_every=save_every) if diagnostics else None
+        # W0's diagnostics are computed with the first chunk's, in one batch
+        diag = Diagnostics.deferred(system, W0a, save_every=save_every) if diagnostics else None
         sink: Sink = MemorySink(system, flow.name, h, W0a, n_steps, save_every, diag)
     else:
         # a file records every step's diagnostics, whatever ``diagnostics`` says

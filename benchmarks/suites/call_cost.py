@@ -22,7 +22,6 @@ has no cost to report.
 from __future__ import annotations
 
 import time
-
 from collections.abc import Callable
 
 import attrs
@@ -30,6 +29,7 @@ import numpy as np
 
 import lieflow as lf
 from lieflow.app.reproduce import Case
+from lieflow.compiled import CompiledSchemeFlow
 from lieflow.integration import DEFAULT_SOLVER, scheme_flow
 
 from ..config import BenchContext
@@ -50,7 +50,10 @@ HEADER = ("system", "engine", "diagnostics", "T(1 step)", "bare first step",
           "T(2) − 2·steps")  # fmt: skip
 
 #: What the call overhead consists of (measured: see the module docstring).
-LIMIT = "argument validation, the diagnostics of W0 and of the first chunk, the sink and the Solution, the driver's set-up and teardown, and on the compiled engine the plan"
+LIMIT = (
+    "argument validation, the diagnostics of W0 and of the first chunk, the sink and the "
+    "Solution, the driver's set-up and teardown, and on the compiled engine the plan"
+)
 
 #: Steps of the long run that gives the per-step cost, per engine.
 LONG = {"numpy": 100, "compiled": 2000}
@@ -147,7 +150,9 @@ def bare_step(
         took = scheme.step(W, h, system, solver, None).stats.iterations
         step: Callable[[], object] = numpy_step
     else:
-        plan = scheme_flow(system, scheme, solver, W, 1, engine="compiled").plan  # type: ignore[attr-defined]
+        flow = scheme_flow(system, scheme, solver, W, 1, engine="compiled")
+        assert isinstance(flow, CompiledSchemeFlow)
+        plan = flow.plan
         run, args = plan.loop_call(W, h, 1, depth=0)
         states, iters = args[14], args[15]
         project = plan.project is None
