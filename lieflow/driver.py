@@ -401,10 +401,12 @@ class Diagnostics:
     def energy_error(self, H: Array) -> Array:
         """Relative energy error of energies ``H``."""
         H0 = self.H0
-        if H0.dtype.char != "d":
-            H0 = H0.astype(float)
         if not (type(H) is np.ndarray and H.dtype.char == "d"):
             H = np.asarray(H, dtype=float)
+        if H0.ndim == 0:  # one trajectory: the denominator a Python float (the same value)
+            h0 = float(H0)
+            return np.abs(H - h0) / max(abs(h0), _TINY)
+        H0 = H0.astype(float, copy=False)
         return np.abs(H - H0) / np.maximum(np.abs(H0), _TINY)
 
     def casimir_drift(self, C: Array) -> Array:

@@ -29,6 +29,10 @@ from .solvers.fixed_point import FixedPoint
 from .systems.base import IsospectralSystem
 from .systems.shifted import CasimirShifted, shifted
 
+#: The checkpoint cadence of ``checkpoint_seconds=1.0`` (the default), built once (a frozen
+#: value: its validators cost ~1 µs a call).
+DEFAULT_CADENCE = driver.Cadence(seconds=1.0)
+
 #: The solver of a run that names none: ``FixedPoint()`` (a frozen value, built once: its
 #: stopping rule's validators cost 6 µs a call).
 DEFAULT_SOLVER = FixedPoint()
@@ -522,7 +526,11 @@ def integrate(
         )
     monitor = _progress_monitor(progress)
     W0_device, W0a = W0a, to_numpy(W0a)  # states reach the host at the sinks, a chunk at a time
-    cadence = driver.Cadence(seconds=checkpoint_seconds)
+    cadence = (
+        DEFAULT_CADENCE
+        if type(checkpoint_seconds) is float and checkpoint_seconds == 1.0
+        else driver.Cadence(seconds=checkpoint_seconds)
+    )
     start, state = 0, None
     diag: Diagnostics | DeferredDiagnostics | None
     if out is None:

@@ -258,8 +258,12 @@ class IsospectralSystem(ABC):
     def casimir_scale(self, W0: Array) -> Array:
         """``||W0||_F^k`` for each Casimir ``tr W^k``: divides Casimir drift to make it
         dimensionless (``tr W^3`` of an so(n) matrix is zero, so no relative error exists)."""
-        powers = np.array([k for k in self.casimir_powers if k <= self.algebra.n])
-        return np.maximum(frobenius_norm(W0)[..., None] ** powers, 1e-300)
+        powers = [k for k in self.casimir_powers if k <= self.algebra.n]
+        norm = frobenius_norm(W0)
+        if isinstance(norm, np.ndarray) and norm.ndim == 0:  # one state: its powers in Python
+            f = float(norm)  # (the same pow() as numpy's, 3 µs less than the array ops)
+            return np.array([max(f**k, 1e-300) for k in powers], dtype=float)
+        return np.maximum(norm[..., None] ** np.array(powers), 1e-300)
 
     def __repr__(self) -> str:
         return f"{self.name}(algebra={self.algebra})"
