@@ -236,7 +236,7 @@ def advance(
     many = getattr(flow, "step_many", None)
     many = many if callable(many) else None
     size = chunk_steps(W0)
-    if many is None and batch > 1 and is_numpy(W0):
+    if many is None and batch > 1 and steps - start > 1 and is_numpy(W0):
         yield from _batched(flow, W0, h, steps, start, state, batch)
         return
     while k < steps:
