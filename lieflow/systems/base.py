@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import math
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
@@ -259,11 +260,13 @@ class IsospectralSystem(ABC):
         """``||W0||_F^k`` for each Casimir ``tr W^k``: divides Casimir drift to make it
         dimensionless (``tr W^3`` of an so(n) matrix is zero, so no relative error exists)."""
         powers = [k for k in self.casimir_powers if k <= self.algebra.n]
-        norm = frobenius_norm(W0)
-        if isinstance(norm, np.ndarray) and norm.ndim == 0:  # one state: its powers in Python
-            f = float(norm)  # (the same pow() as numpy's, 3 µs less than the array ops)
+        if type(W0) is np.ndarray and W0.ndim == 2 and W0.dtype.char == "d":
+            # one real state: the norm by one dot product and its powers in Python floats
+            # (equal to the array formula below to roundoff; a few µs less per run)
+            x = W0.ravel()
+            f = math.sqrt(float(x @ x))
             return np.array([max(f**k, 1e-300) for k in powers], dtype=float)
-        return np.maximum(norm[..., None] ** np.array(powers), 1e-300)
+        return np.maximum(frobenius_norm(W0)[..., None] ** np.array(powers), 1e-300)
 
     def __repr__(self) -> str:
         return f"{self.name}(algebra={self.algebra})"
