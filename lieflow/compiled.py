@@ -212,6 +212,30 @@ class CompiledPlan:
     _static: dict[int, tuple[Any, ...]] = attrs.field(
         init=False, factory=dict, eq=False, repr=False
     )
+    #: The last flow built on this plan (:meth:`flow`) and the step size of the last call
+    #: with its scaled coefficients ``(h, h A, h b)`` (:meth:`loop_call`): values, kept.
+    _kept: dict[str, Any] = attrs.field(init=False, factory=dict, eq=False, repr=False)
+
+    def flow(
+        self, system: IsospectralSystem, scheme: Scheme, solver: Solver, warm_start: bool | int
+    ) -> CompiledSchemeFlow:
+        """The :class:`CompiledSchemeFlow` of this plan for these (the plan's own case, as
+        :func:`plan` returned it for them): the one built last when they are the same
+        objects (a flow is an immutable value; ~1 µs a call saved), else a new one."""
+        last = self._kept.get("flow")
+        if (
+            last is not None
+            and last.system is system
+            and last.scheme is scheme
+            and last.solver is solver
+            and type(last.warm_start) is type(warm_start)
+            and last.warm_start == warm_start
+        ):
+            kept: CompiledSchemeFlow = last
+            return kept
+        made = CompiledSchemeFlow(system, scheme, solver, warm_start, plan=self)
+        self._kept["flow"] = made
+        return made
 
     def warm_shape(self) -> tuple[int, ...]:
         """Core shape of the warm-start offsets of one trajectory."""
@@ -273,12 +297,16 @@ class CompiledPlan:
         filled = min(len(history), keep) if depth else 0
         for j in range(filled):
             hist[j] = np.asarray(history[j], dtype=dtype).reshape(K, size)
-        flags = np.array([filled, int(trusted)], dtype=np.int64)
+        counts = np.zeros(2 + steps, dtype=np.int64)  # the flags, then the updates per step
+        flags, iters = counts[:2], counts[2:]
+        flags[0], flags[1] = filled, int(trusted)
         states = np.empty((steps, K, n, n), dtype=dtype)
-        iters = np.zeros(steps, dtype=np.int64)
         buf, fbuf = k.workspace(dtype, K, size, self.b.size, n, keep, max_iter)
+        scaled = self._kept.get("h")
+        if scaled is None or scaled[0] != h:  # h A, h b of the last step size, kept
+            scaled = self._kept["h"] = (h, h * self.A, h * self.b)
         args = (
-            Wk, h * self.A, h * self.b, self.skew, B, self.params, P, self.pparams,
+            Wk, scaled[1], scaled[2], self.skew, B, self.params, P, self.pparams,
             self.project is not None, self.rule, irule, hist, weights, flags, states, iters,
             gemm, buf, fbuf,
         )  # fmt: skip

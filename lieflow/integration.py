@@ -227,7 +227,7 @@ def scheme_flow(
         if engine == "compiled":
             raise InputError(f"engine='compiled' cannot run this case: {plan}; use engine='auto'")
         return SchemeFlow(system, scheme, solver, warm_start)
-    return compiled.CompiledSchemeFlow(system, scheme, solver, warm_start, plan=plan)
+    return plan.flow(system, scheme, solver, warm_start)
 
 
 def _available_memory() -> int | None:

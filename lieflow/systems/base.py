@@ -138,6 +138,8 @@ class IsospectralSystem(ABC):
 
         k = compiled.kernels()  # the maps themselves (the module's __getattr__: 0.5 µs more)
         fn = k.hadamard_B_skew if kind is SO else k.hadamard_B
+        if shift == 0.0:  # S itself, copied (x - 0.0 is x: the same params, one pass less)
+            return fn, np.array(S, dtype=np.float64, order="C").ravel()
         return fn, np.ascontiguousarray(np.asarray(S) - shift, dtype=np.float64).ravel()
 
     def compiled_project(self) -> tuple[Any, Array] | None:
