@@ -62,6 +62,13 @@ def _hadamard_stage_B(system: IsospectralSystem, cls: type[IsospectralSystem], W
     return system.B(system.project_stage(W))
 
 
+def _energy(system: GeneralizedRigidBody | RigidBody, W: Array) -> Array:
+    r""":math:`\eta(W) = \tfrac12 \sum_{ij} w_{ij} W_{ij}^2` as
+    :math:`\sum_{ij} (w_{ij}/2) W_{ij}^2`: bit for bit the same (halving one factor of each
+    product halves it exactly), one pass less."""
+    return np.einsum("...ij,...ij,ij->...", W, W, _like(system._half_weights, W))
+
+
 def _principal_moments(values: Sequence[float] | np.ndarray) -> np.ndarray:
     arr = _moments(values)
     if arr.size != 3:
@@ -91,6 +98,10 @@ class GeneralizedRigidBody(IsospectralSystem):
     _half_factor: np.ndarray = attrs.field(
         init=False, repr=False, default=attrs.Factory(lambda s: 0.5 * s._factor, takes_self=True)
     )
+    #: ``weights / 2`` (exact): the Hamiltonian's weights (:func:`_energy`).
+    _half_weights: np.ndarray = attrs.field(
+        init=False, repr=False, default=attrs.Factory(lambda s: 0.5 * s.weights, takes_self=True)
+    )
     linear_B = True
     casimir_powers = (2, 4, 6)
 
@@ -119,7 +130,7 @@ class GeneralizedRigidBody(IsospectralSystem):
         return -self.weights
 
     def hamiltonian(self, W: Array) -> Array:
-        return 0.5 * np.einsum("...ij,...ij,ij->...", W, W, _like(self.weights, W))
+        return _energy(self, W)
 
     def casimirs(self, W: Array) -> Array:
         """``tr W^2``, ``tr W^4``, ``tr W^6`` (those of degree up to ``n``), from two
@@ -127,14 +138,16 @@ class GeneralizedRigidBody(IsospectralSystem):
         same of ``W^3`` (the diagnostics evaluate them on every chunk of a run)."""
         if not isinstance(W, np.ndarray):
             return super().casimirs(W)
+        n = self.J.size
         W2 = W @ W
-        out = [W2.trace(axis1=-2, axis2=-1)]
-        if self.J.size >= 4:
-            out.append(np.einsum("...ij,...ji->...", W2, W2))
-        if self.J.size >= 6:
+        out = np.empty((*W.shape[:-2], 1 if n < 4 else 2 if n < 6 else 3), W2.dtype)
+        out[..., 0] = W2.trace(axis1=-2, axis2=-1)  # (filled in place: np.stack costs 3 µs)
+        if n >= 4:
+            out[..., 1] = np.einsum("...ij,...ji->...", W2, W2)
+        if n >= 6:
             W3 = W2 @ W
-            out.append(np.einsum("...ij,...ji->...", W3, W3))
-        return np.stack(out, axis=-1)
+            out[..., 2] = np.einsum("...ij,...ji->...", W3, W3)
+        return out
 
     @classmethod
     def random_inertia(cls, n: int, seed: int | None = None) -> GeneralizedRigidBody:
@@ -161,6 +174,10 @@ class RigidBody(IsospectralSystem):
     #: ``factor / 2`` (exact): ``B`` of the stage projection (:func:`_hadamard_stage_B`).
     _half_factor: np.ndarray = attrs.field(
         init=False, repr=False, default=attrs.Factory(lambda s: 0.5 * s._factor, takes_self=True)
+    )
+    #: ``weights / 2`` (exact): the Hamiltonian's weights (:func:`_energy`).
+    _half_weights: np.ndarray = attrs.field(
+        init=False, repr=False, default=attrs.Factory(lambda s: 0.5 * s.weights, takes_self=True)
     )
     linear_B = True
     casimir_powers = (2,)
@@ -190,7 +207,7 @@ class RigidBody(IsospectralSystem):
         return -self.weights
 
     def hamiltonian(self, W: Array) -> Array:
-        return 0.5 * np.einsum("...ij,...ij,ij->...", W, W, _like(self.weights, W))
+        return _energy(self, W)
 
     def casimirs(self, W: Array) -> Array:
         """``tr W^2 = sum_ij W_ij W_ji`` (``-2 |m|^2``), without a matrix product."""
