@@ -185,6 +185,7 @@ class LieAlgebra(ABC):
         if (
             type(X) is np.ndarray
             and X.dtype.char == "d"
+            and X.dtype.isnative
             and X.shape[-2:] == (self.n, self.n)
             and self.dtype.kind == "f"
         ):  # the common case (float64 data of a real algebra) in fewer passes: the checks

@@ -588,9 +588,11 @@ def plan(
     return the same maps (:func:`_system_maps`).
     """
     dtype = np.dtype(W0.dtype)
-    if dtype == np.complex128 and not system.algebra.skew:
+    # by the dtype's character code: float64 "d", complex128 "D" (comparisons with dtype
+    # objects build them on every call)
+    if dtype.char == "D" and not system.algebra.skew:
         return "complex128 data are compiled on skew-Hermitian algebras only (u(n), su(N))"
-    if dtype not in (np.dtype(np.float64), np.dtype(np.complex128)):
+    if dtype.char not in ("d", "D") or not dtype.isnative:
         return f"only float64 and complex128 data are compiled, got {dtype}"
     form = scheme.compiled_form()
     if form is None:
