@@ -41,7 +41,7 @@ finiteness, the algebra check); the engine's set-up 1.5 on numpy, 9 on the compi
 (the system's compiled maps checked to be the ones checked before, ~5: each call asks the
 system for them again; the plan's and the flow's lookups); the sink's set-up 3; the
 driver's set-up 2; the step's bookkeeping beyond the bare step ~5 on numpy (the warm start,
-the chunk), ~8 on the compiled engine (the loops' arguments and results, the chunk);
+the chunk), ~10 on the compiled engine (the loops' arguments and results, the chunk);
 recording the chunk 5; closing the sink, the :class:`~lieflow.Solution` and the outcome 6.
 Diagnostics on add 20 (so(3)) / 31–35 (so(10)) for the energy, Casimirs and Casimir scale of
 ``W0`` and the step's state (one batch: :meth:`lieflow.driver.Diagnostics.deferred`) and
@@ -90,7 +90,7 @@ LIMIT = (
     "no single large cost: ~100 NumPy calls of 0.5–2 µs each — the diagnostics of W0 and the "
     "step (diagnostics on: 20 µs on so(3), 31–35 on so(10), in one batch), validating W0 "
     "(6–7), on the compiled engine its set-up (9: the system's compiled maps are asked for "
-    "and compared on every call) and the loops' arguments and results (~8), the sink, "
+    "and compared on every call) and the loops' arguments and results (~10), the sink, "
     "its chunk and the Solution (~14), the argument checks and the driver (~4)"
 )
 
