@@ -22,8 +22,9 @@ arguments and results), the diagnostics of ``W0`` and of the step, and the
 ``T(L) / L`` the per-step cost of a long run of the same case (``L = 100`` steps on the
 numpy engine, ``2000`` on the compiled one, so that its own fixed cost adds under 1 % to that
 figure). It also counts what the first, cold solve costs beyond a long run's average step
-(no warm start before the second step: 7 updates against a mean of 4.07 on so(3), 5
-against 1.11 on so(10)) — the algorithm's cost, not overhead; hence the first definition.
+(no warm start before the second step: on the numpy engine 7 updates against a mean of
+4.07 on so(3), 5 against 1.11 on so(10)) — the algorithm's cost, not overhead; hence the
+first definition.
 
 ``T(L)``, ``T(1)``, ``T(2)`` and ``bare`` are timed interleaved, round by round in this
 process (median round of each), in process CPU time (:func:`time.process_time`: on a
