@@ -212,6 +212,30 @@ class CompiledPlan:
     _static: dict[int, tuple[Any, ...]] = attrs.field(
         init=False, factory=dict, eq=False, repr=False
     )
+    #: The last flow built on this plan (:meth:`flow`) and the step size of the last call
+    #: with its scaled coefficients ``(h, h A, h b)`` (:meth:`loop_call`): values, kept.
+    _kept: dict[str, Any] = attrs.field(init=False, factory=dict, eq=False, repr=False)
+
+    def flow(
+        self, system: IsospectralSystem, scheme: Scheme, solver: Solver, warm_start: bool | int
+    ) -> CompiledSchemeFlow:
+        """The :class:`CompiledSchemeFlow` of this plan for these (the plan's own case, as
+        :func:`plan` returned it for them): the one built last when they are the same
+        objects (a flow is an immutable value; ~1 µs a call saved), else a new one."""
+        last = self._kept.get("flow")
+        if (
+            last is not None
+            and last.system is system
+            and last.scheme is scheme
+            and last.solver is solver
+            and type(last.warm_start) is type(warm_start)
+            and last.warm_start == warm_start
+        ):
+            kept: CompiledSchemeFlow = last
+            return kept
+        made = CompiledSchemeFlow(system, scheme, solver, warm_start, plan=self)
+        self._kept["flow"] = made
+        return made
 
     def warm_shape(self) -> tuple[int, ...]:
         """Core shape of the warm-start offsets of one trajectory."""
@@ -231,30 +255,13 @@ class CompiledPlan:
         warm-start state: the kept solutions ``history`` (most recent first), how many are
         kept (``depth``; 0: no warm starts) and how many the next prediction uses
         (``trusted``), as in :class:`~lieflow.warm_start.WarmStart`."""
-        batch, n, dtype = W.shape[:-2], self.n, self.dtype
-        K = math.prod(batch)
-        static = self._static.get(depth)
-        if static is None:
-            static = self._static[depth] = self._arguments(depth)
-        k, run, irule, weights, B, P, gemm, core, size, max_iter = static
-        Wk = np.ascontiguousarray(W, dtype=dtype).reshape(K, n, n)
-        keep = max(depth, 1)
-        hist = np.zeros((keep, K, size), dtype=dtype)
-        filled = min(len(history), keep) if depth else 0
-        for j in range(filled):
-            hist[j] = np.asarray(history[j], dtype=dtype).reshape(K, size)
-        flags = np.array([filled, int(trusted)], dtype=np.int64)
-        states = np.empty((steps, K, n, n), dtype=dtype)
-        iters = np.zeros(steps, dtype=np.int64)
-        buf, fbuf = k.workspace(dtype, K, size, self.b.size, n, keep, max_iter)
-        done = run(
-            Wk, h * self.A, h * self.b, self.skew, B, self.params, P, self.pparams,
-            self.project is not None, self.rule, irule, hist, weights, flags, states, iters,
-            gemm, buf, fbuf,
-        )  # fmt: skip
+        run, args = self.loop_call(W, h, steps, history, depth, trusted)
+        done = run(*args)
+        states, iters, hist, flags = args[14], args[15], args[11], args[13]
         if done < steps:
             states, iters = states[:done], iters[:done]
-        shape = (*batch, *core)
+        batch, n = W.shape[:-2], self.n
+        shape = (*batch, *self._static[depth][7])
         return CompiledSteps(
             states.reshape(done, *batch, n, n),
             iters,
@@ -262,6 +269,48 @@ class CompiledPlan:
             int(flags[1]),
             done == steps,
         )
+
+    def loop_call(
+        self,
+        W: Array,
+        h: float,
+        steps: int,
+        history: Sequence[Array] = (),
+        depth: int = DEFAULT_DEPTH,
+        trusted: int = 1,
+    ) -> tuple[Any, tuple[Any, ...]]:
+        """The compiled loop that :meth:`advance` calls and its arguments, ``(run, args)``:
+        ``run(*args)`` takes the steps (it returns how many it accepted and writes the
+        states into ``args[14]``, the updates per step into ``args[15]``). With
+        ``depth=0`` (cold starts) the call reads nothing it writes, so it may be repeated:
+        what the fixed-cost benchmark times as the bare compiled step
+        (``benchmarks/suites/call_cost.py``)."""
+        batch, n, dtype = W.shape[:-2], self.n, self.dtype
+        K = math.prod(batch)
+        static = self._static.get(depth)
+        if static is None:
+            static = self._static[depth] = self._arguments(depth)
+        k, run, irule, weights, B, P, gemm, _, size, max_iter = static
+        Wk = np.ascontiguousarray(W, dtype=dtype).reshape(K, n, n)
+        keep = max(depth, 1)
+        hist = np.zeros((keep, K, size), dtype=dtype)
+        filled = min(len(history), keep) if depth else 0
+        for j in range(filled):
+            hist[j] = np.asarray(history[j], dtype=dtype).reshape(K, size)
+        counts = np.zeros(2 + steps, dtype=np.int64)  # the flags, then the updates per step
+        flags, iters = counts[:2], counts[2:]
+        flags[0], flags[1] = filled, int(trusted)
+        states = np.empty((steps, K, n, n), dtype=dtype)
+        buf, fbuf = k.workspace(dtype, K, size, self.b.size, n, keep, max_iter)
+        scaled = self._kept.get("h")
+        if scaled is None or scaled[0] != h:  # h A, h b of the last step size, kept
+            scaled = self._kept["h"] = (h, h * self.A, h * self.b)
+        args = (
+            Wk, scaled[1], scaled[2], self.skew, B, self.params, P, self.pparams,
+            self.project is not None, self.rule, irule, hist, weights, flags, states, iters,
+            gemm, buf, fbuf,
+        )  # fmt: skip
+        return run, args
 
     def _arguments(self, depth: int) -> tuple[Any, ...]:
         """The loops' module and entry point, and the arguments that depend on the
@@ -539,9 +588,11 @@ def plan(
     return the same maps (:func:`_system_maps`).
     """
     dtype = np.dtype(W0.dtype)
-    if dtype == np.complex128 and not system.algebra.skew:
+    # by the dtype's character code: float64 "d", complex128 "D" (comparisons with dtype
+    # objects build them on every call)
+    if dtype.char == "D" and not system.algebra.skew:
         return "complex128 data are compiled on skew-Hermitian algebras only (u(n), su(N))"
-    if dtype not in (np.dtype(np.float64), np.dtype(np.complex128)):
+    if dtype.char not in ("d", "D") or not dtype.isnative:
         return f"only float64 and complex128 data are compiled, got {dtype}"
     form = scheme.compiled_form()
     if form is None:

@@ -38,6 +38,7 @@ __all__ = [
     "Cadence",
     "Chunk",
     "ChunkDiagnostics",
+    "DeferredDiagnostics",
     "Diagnostics",
     "Monitor",
     "MultiStepFlow",
@@ -235,7 +236,7 @@ def advance(
     many = getattr(flow, "step_many", None)
     many = many if callable(many) else None
     size = chunk_steps(W0)
-    if many is None and batch > 1 and is_numpy(W0):
+    if many is None and batch > 1 and steps - start > 1 and is_numpy(W0):
         yield from _batched(flow, W0, h, steps, start, state, batch)
         return
     while k < steps:
@@ -380,6 +381,15 @@ class Diagnostics:
         return cls(system, np.asarray(system.hamiltonian(W0)), np.asarray(system.casimirs(W0)),
                    np.asarray(system.casimir_scale(W0)), extra, every)  # fmt: skip
 
+    @classmethod
+    def deferred(
+        cls, system: IsospectralSystem, W0: Array, *, save_every: int = 1
+    ) -> DeferredDiagnostics:
+        """What :meth:`of` gives, computed by :func:`run` together with the diagnostics of
+        the first chunk (:class:`DeferredDiagnostics`)."""
+        extra, every = extra_hook(system, save_every)
+        return DeferredDiagnostics(system, W0, save_every, extra, every)
+
     def energy(self, W: Array) -> Array:
         """``η`` of each state of a stack ``(m, *batch, n, n)``."""
         return _per_state(self.system.hamiltonian, W)
@@ -390,8 +400,14 @@ class Diagnostics:
 
     def energy_error(self, H: Array) -> Array:
         """Relative energy error of energies ``H``."""
-        H0 = self.H0.astype(float, copy=False)
-        return np.abs(np.asarray(H, dtype=float) - H0) / np.maximum(np.abs(H0), _TINY)
+        H0 = self.H0
+        if not (type(H) is np.ndarray and H.dtype.char == "d"):
+            H = np.asarray(H, dtype=float)
+        if H0.ndim == 0:  # one trajectory: the denominator a Python float (the same value)
+            h0 = float(H0)
+            return np.abs(H - h0) / max(abs(h0), _TINY)
+        H0 = H0.astype(float, copy=False)
+        return np.abs(H - H0) / np.maximum(np.abs(H0), _TINY)
 
     def casimir_drift(self, C: Array) -> Array:
         """Casimir drift of Casimirs ``C``."""
@@ -399,12 +415,45 @@ class Diagnostics:
 
     def of_chunk(self, chunk: Chunk) -> ChunkDiagnostics:
         """The diagnostics of ``chunk``'s steps."""
-        H, C = self.energy(chunk.W), self.casimirs(chunk.W)
+        return self._of(chunk, self.energy(chunk.W), self.casimirs(chunk.W))
+
+    def _of(self, chunk: Chunk, H: Array, C: Array) -> ChunkDiagnostics:
+        """:meth:`of_chunk` given the energies ``H`` and Casimirs ``C`` of its states."""
         rows: tuple[ExtraRow, ...] = ()
         if self.extra is not None:
             rows = tuple((int(chunk.index[j]), float(chunk.t[j]), self.extra(chunk.W[j]))
                          for j in np.flatnonzero(chunk.index % self.extra_every == 0))  # fmt: skip
         return ChunkDiagnostics(H, C, self.energy_error(H), self.casimir_drift(C), rows)
+
+
+@attrs.frozen(eq=False)
+class DeferredDiagnostics:
+    """:class:`Diagnostics` relative to ``W0``, computed together with the first chunk's
+    (:meth:`start`): the energy and Casimirs of ``W0`` and of the chunk's states in one
+    call each on the stack of them, instead of one call for ``W0`` before the run and one
+    for the chunk (half the calls of a short run, whose cost is these calls' overhead).
+    :func:`run` starts them at its first chunk; :class:`~lieflow.sinks.MemorySink` takes
+    them as it takes :class:`Diagnostics`. Build it with :meth:`Diagnostics.deferred`.
+    """
+
+    system: IsospectralSystem
+    W0: Array = attrs.field(repr=False)
+    save_every: int = 1
+    extra: Callable[[Array], Any] | None = attrs.field(default=None, repr=False)
+    extra_every: int = 0
+
+    def start(self, chunk: Chunk) -> tuple[Diagnostics, ChunkDiagnostics]:
+        """The run's :class:`Diagnostics` and those of its first ``chunk``."""
+        system, W0 = self.system, self.W0
+        X = np.concatenate((W0[None], chunk.W))
+        H, C = np.asarray(system.hamiltonian(X)), np.asarray(system.casimirs(X))
+        diag = Diagnostics(system, np.asarray(H[0]), C[0], np.asarray(system.casimir_scale(W0)),
+                           self.extra, self.extra_every)  # fmt: skip
+        return diag, diag._of(chunk, H[1:], C[1:])
+
+    def initial(self) -> Diagnostics:
+        """The run's :class:`Diagnostics` before any chunk (a run whose first step failed)."""
+        return Diagnostics.of(self.system, self.W0, save_every=self.save_every)
 
 
 @attrs.frozen
@@ -468,7 +517,7 @@ def run(
     steps: int,
     *,
     sinks: Sequence[Sink],
-    diagnostics: Diagnostics | None = None,
+    diagnostics: Diagnostics | DeferredDiagnostics | None = None,
     save_every: int = 1,
     start: int = 0,
     state: Any = None,
@@ -492,8 +541,9 @@ def run(
         As :func:`advance`.
     sinks : sequence of Sink
         Where the steps go.
-    diagnostics : Diagnostics, optional
-        Energy, Casimirs and extra diagnostics relative to the run's initial state.
+    diagnostics : Diagnostics or DeferredDiagnostics, optional
+        Energy, Casimirs and extra diagnostics relative to the run's initial state
+        (deferred: those of the initial state are computed with the first chunk's).
     save_every : int
         Save every ``save_every``-th state (and the last).
     monitor : Monitor, optional
@@ -543,7 +593,12 @@ def run(
                 index = chunk.index
                 keep = (index % save_every == 0) | (index == steps)
                 kept = bool(keep.any())
-            diag = diagnostics.of_chunk(chunk) if diagnostics is not None else None
+            if diagnostics is None:
+                diag = None
+            elif isinstance(diagnostics, DeferredDiagnostics):
+                diagnostics, diag = diagnostics.start(chunk)
+            else:
+                diag = diagnostics.of_chunk(chunk)
             for sink in sinks:
                 sink.record(chunk, keep, diag)
             done = chunk.stop

@@ -18,7 +18,7 @@ from numpy.typing import ArrayLike
 from . import driver
 from .algebras import Array
 from .backends import from_host, is_foreign_array, is_numpy, to_numpy
-from .driver import Diagnostics, Monitor
+from .driver import DeferredDiagnostics, Diagnostics, Monitor
 from .errors import InputError
 from .flows import Flow, SchemeFlow, StepStats, WarmStart
 from .schemes.base import Scheme
@@ -28,6 +28,10 @@ from .solvers.base import Solver
 from .solvers.fixed_point import FixedPoint
 from .systems.base import IsospectralSystem
 from .systems.shifted import CasimirShifted, shifted
+
+#: The checkpoint cadence of ``checkpoint_seconds=1.0`` (the default), built once (a frozen
+#: value: its validators cost ~1 µs a call).
+DEFAULT_CADENCE = driver.Cadence(seconds=1.0)
 
 #: The solver of a run that names none: ``FixedPoint()`` (a frozen value, built once: its
 #: stopping rule's validators cost 6 µs a call).
@@ -223,7 +227,7 @@ def scheme_flow(
         if engine == "compiled":
             raise InputError(f"engine='compiled' cannot run this case: {plan}; use engine='auto'")
         return SchemeFlow(system, scheme, solver, warm_start)
-    return compiled.CompiledSchemeFlow(system, scheme, solver, warm_start, plan=plan)
+    return plan.flow(system, scheme, solver, warm_start)
 
 
 def _available_memory() -> int | None:
@@ -522,12 +526,18 @@ def integrate(
         )
     monitor = _progress_monitor(progress)
     W0_device, W0a = W0a, to_numpy(W0a)  # states reach the host at the sinks, a chunk at a time
-    cadence = driver.Cadence(seconds=checkpoint_seconds)
+    cadence = (
+        DEFAULT_CADENCE
+        if type(checkpoint_seconds) is float and checkpoint_seconds == 1.0
+        else driver.Cadence(seconds=checkpoint_seconds)
+    )
     start, state = 0, None
+    diag: Diagnostics | DeferredDiagnostics | None
     if out is None:
         _check_memory(MemorySink.saved_states(n_steps, save_every) * W0a.nbytes, n_steps,
                       save_every)  # fmt: skip
-        diag = Diagnostics.of(system, W0a, save_every=save_every) if diagnostics else None
+        # W0's diagnostics are computed with the first chunk's, in one batch
+        diag = Diagnostics.deferred(system, W0a, save_every=save_every) if diagnostics else None
         sink: Sink = MemorySink(system, flow.name, h, W0a, n_steps, save_every, diag)
     else:
         # a file records every step's diagnostics, whatever ``diagnostics`` says

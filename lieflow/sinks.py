@@ -34,7 +34,7 @@ from .errors import ConvergenceError, InputError
 from .solution import Solution, Status
 
 if TYPE_CHECKING:
-    from .driver import Chunk, ChunkDiagnostics, Diagnostics
+    from .driver import Chunk, ChunkDiagnostics, DeferredDiagnostics, Diagnostics
 
 __all__ = [
     "DEFAULT_SUFFIX",
@@ -270,9 +270,10 @@ class MemorySink:
         Steps asked for.
     save_every : int
         Every ``save_every``-th state is saved (and the last): sizes the saved-state array.
-    diagnostics : Diagnostics, optional
-        The run's diagnostics (their step-0 values start the per-step arrays); ``None``: the
-        solution has none.
+    diagnostics : Diagnostics or DeferredDiagnostics, optional
+        The run's diagnostics (:func:`lieflow.driver.run` passes each chunk's to
+        :meth:`record`; the per-step arrays, zero at step 0, are allocated at the first);
+        ``None``: the solution has none.
     """
 
     #: Keeps nothing outside the process: no interrupts held while it closes (:class:`Sink`).
@@ -283,7 +284,7 @@ class MemorySink:
     W0: Array
     steps: int
     save_every: int = 1
-    diagnostics: Diagnostics | None = None
+    diagnostics: Diagnostics | DeferredDiagnostics | None = None
     _W: Array = attrs.field(init=False, repr=False)
     _k: Array = attrs.field(init=False, repr=False)
     _kept: int = attrs.field(init=False, default=1)
@@ -309,19 +310,24 @@ class MemorySink:
         self._W[0] = W0
         self._iterations = np.zeros(self.steps, dtype=np.int64)
         diag = self.diagnostics
-        if diag is not None:
-            H0, C0 = np.shape(diag.H0), np.shape(diag.C0)
-            self._err = np.zeros((self.steps + 1, *H0))
-            self._drift = np.zeros((self.steps + 1, *C0))
-            if diag.extra is not None:
-                self._extra.append((0, 0.0, diag.extra(W0)))
+        if diag is not None and diag.extra is not None:
+            self._extra.append((0, 0.0, diag.extra(W0)))
+
+    def _allocate(self, H0: tuple[int, ...], C0: tuple[int, ...]) -> None:
+        """The per-step energy errors and Casimir drifts (zero at step 0), for energies of
+        shape ``H0`` and Casimirs of shape ``C0``."""
+        self._err = np.zeros((self.steps + 1, *H0))
+        self._drift = np.zeros((self.steps + 1, *C0))
 
     def record(self, chunk: Chunk, keep: Array, diagnostics: ChunkDiagnostics | None) -> None:
         """Keep the chunk's saved states, iterations, solvers and diagnostics."""
         a, b = chunk.start, chunk.stop
         self._iterations[a:b] = to_host(chunk.iterations)
         self._solvers.extend(chunk.solvers)
-        if diagnostics is not None and self._err is not None and self._drift is not None:
+        if diagnostics is not None and self.diagnostics is not None:
+            if self._err is None or self._drift is None:
+                self._allocate(diagnostics.energy.shape[1:], diagnostics.casimirs.shape[1:])
+                assert self._err is not None and self._drift is not None
             self._err[a + 1 : b + 1] = diagnostics.energy_error
             self._drift[a + 1 : b + 1] = diagnostics.casimir_drift
             self._extra.extend(diagnostics.extra)
@@ -349,6 +355,12 @@ class MemorySink:
         """Build the :class:`~lieflow.Solution` (the last state is always saved)."""
         self.checkpoint(keep_last=True)
         done, n = self._done, self._kept
+        diag = self.diagnostics
+        if diag is not None and self._err is None:  # no chunk was recorded
+            from .driver import DeferredDiagnostics
+
+            initial = diag.initial() if isinstance(diag, DeferredDiagnostics) else diag
+            self._allocate(np.shape(initial.H0), np.shape(initial.C0))
         extra: dict[str, Array] = {}
         if self._extra:
             extra["step"] = np.array([e[0] for e in self._extra], dtype=np.int64)

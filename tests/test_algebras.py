@@ -124,3 +124,14 @@ def test_minus_dagger_is_x_minus_its_conjugate_transpose_bit_for_bit(n: int, kin
     got = minus_dagger(X)
     assert got.shape == X.shape and got.dtype == X.dtype
     np.testing.assert_array_equal(got, expected)
+
+
+def test_validate_returns_native_float64_for_any_byte_order() -> None:
+    """validate's fast path for float64 data (issue 27 item 5) takes native data only: a
+    big-endian W0 comes back as a native float64 copy, as before, equal to it."""
+    W = lf.SO(4).random(0)
+    for X in (W, W.astype(">f8"), W.astype("<f8")):
+        V = lf.SO(4).validate(X)
+        assert V.dtype == np.float64 and V.dtype.isnative
+        assert V is not X
+        np.testing.assert_array_equal(V, W)

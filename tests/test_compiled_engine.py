@@ -499,3 +499,42 @@ def test_the_loops_load_from_the_disk_cache_in_a_new_process() -> None:
                              check=True, timeout=600)  # fmt: skip
     hits, misses = (int(v) for v in out.stdout.split()[-2:])
     assert (hits, misses) == (1, 0)
+
+
+# ------------------------------------------------------------------ what a plan keeps
+
+
+def test_a_kept_plan_serves_calls_of_other_step_sizes_and_warm_starts() -> None:
+    """A plan is kept on its system with the flow built last and ``h A``, ``h b`` of the
+    last step size (issue 27 item 5): calls that change ``h`` or ``warm_start`` between
+    them on one system get the runs of a system seen for the first time, bit for bit."""
+    J = (1.0, 1.3, 1.7, 2.2, 2.8, 3.1)
+    body = lf.systems.get("generalized_rigid_body", J=J)
+    scheme, W0 = lf.schemes.get("gauss2"), body.random_state(4)
+    calls = [(0.1, True), (0.05, True), (0.1, 2), (0.1, False), (0.05, True), (0.1, True)]
+    for h, warm in calls:
+        kept = lf.integrate(body, scheme, W0, h, steps=6, engine="compiled", warm_start=warm)
+        fresh_body = lf.systems.get("generalized_rigid_body", J=J)
+        fresh = lf.integrate(fresh_body, scheme, W0, h, steps=6, engine="compiled",
+                             warm_start=warm)  # fmt: skip
+        np.testing.assert_array_equal(kept.W, fresh.W)
+        np.testing.assert_array_equal(kept.iterations, fresh.iterations)
+    # the warm starts matter here: a cold run takes more updates than a warm one
+    cold = lf.integrate(body, scheme, W0, 0.1, steps=6, engine="compiled", warm_start=False)
+    warm_run = lf.integrate(body, scheme, W0, 0.1, steps=6, engine="compiled")
+    assert cold.iterations[1:].sum() > warm_run.iterations[1:].sum()
+
+
+def test_the_bare_loop_call_is_the_engines_first_step() -> None:
+    """``CompiledPlan.loop_call`` (what the call-cost benchmark times as the bare step):
+    called on its own from the cold start, repeatably, it takes the engine's first step."""
+    body = lf.systems.get("generalized_rigid_body", J=(1.0, 1.3, 1.7, 2.2, 2.8))
+    scheme, W0, h = lf.schemes.get("midpoint"), body.random_state(2), 0.05
+    plan = compiled.plan(body, scheme, lf.solvers.FixedPoint(), W0)
+    assert isinstance(plan, compiled.CompiledPlan)
+    run, args = plan.loop_call(W0, h, 1, depth=0)
+    sol = lf.integrate(body, scheme, W0, h, steps=1, engine="compiled")
+    for _ in range(2):
+        assert run(*args) == 1
+        np.testing.assert_array_equal(body.project(args[14][0, 0]), sol.W[-1])
+        assert int(args[15][0]) == sol.iterations[0]

@@ -357,3 +357,40 @@ def test_a_chunk_cut_by_a_failure_or_ctrl_c_yields_its_steps_first(exc: BaseExce
     sink = Recorder()
     lf.integrate(RB, MID, W0, 0.1, steps=100, out=sink, engine="numpy")  # batched chunks
     assert sink.kept[-1] == 100 and len([c for c in sink.calls if c[0] == "record"]) < 10
+
+
+def test_a_run_whose_first_step_fails_has_its_step_0_diagnostics() -> None:
+    """A memory run computes W0's diagnostics with the first chunk's
+    (``Diagnostics.deferred``): with no chunk, the solution still has step 0's, zero, in
+    the shapes of the energies and Casimirs of the (here batched) state."""
+    solver = lf.solvers.FixedPoint(max_iter=2)
+    batch = np.stack([50 * W0, 40 * W0])
+    sol = lf.integrate(RB, lf.schemes.get("gauss2"), batch, 0.5, steps=5, solver=solver,
+                       on_failure="truncate")  # fmt: skip
+    assert not sol.success and sol.n_steps == 0
+    assert sol.energy_error is not None and sol.casimir_drift is not None
+    np.testing.assert_array_equal(sol.energy_error, np.zeros((1, 2)))
+    np.testing.assert_array_equal(sol.casimir_drift, np.zeros((1, 2, 1)))
+
+
+def test_deferred_diagnostics_are_the_eager_ones() -> None:
+    """W0's energy and Casimirs computed in one batch with the first chunk's states equal
+    those computed alone (to roundoff), and so do the chunk's errors."""
+    body = lf.systems.get("generalized_rigid_body", J=(1.0, 1.3, 1.7, 2.2, 2.8, 3.1))
+    X0 = body.random_state(3)
+    flow = lf.SchemeFlow(body, MID)
+    chunk = next(lf.driver.advance(flow, X0, 0.05, 3, batch=3))
+    assert chunk.size == 3
+    eager = lf.driver.Diagnostics.of(body, X0)
+    diag, first = lf.driver.Diagnostics.deferred(body, X0).start(chunk)
+    np.testing.assert_allclose(diag.H0, eager.H0, rtol=1e-15, atol=0)
+    np.testing.assert_allclose(diag.C0, eager.C0, rtol=1e-14, atol=0)
+    np.testing.assert_array_equal(diag.scale, eager.scale)
+    want = eager.of_chunk(chunk)
+    np.testing.assert_allclose(first.energy, want.energy, rtol=1e-15, atol=0)
+    np.testing.assert_allclose(first.energy_error, want.energy_error, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(first.casimir_drift, want.casimir_drift, rtol=0, atol=1e-15)
+    # the chunk's errors are the definition's, recomputed state by state
+    H = np.array([body.hamiltonian(W) for W in chunk.W])
+    np.testing.assert_allclose(first.energy_error, np.abs(H - eager.H0) / abs(eager.H0),
+                               rtol=1e-12, atol=0)  # fmt: skip

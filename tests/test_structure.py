@@ -108,6 +108,8 @@ def test_default_casimirs_are_traces_of_powers(batch: tuple[int, ...]) -> None:
     stacks, real (so(n), gl(n)) and complex (u(n)) data."""
     rng = np.random.default_rng(5)
     for system in (lf.systems.GeneralizedRigidBody.random_inertia(6, seed=2),
+                   lf.systems.GeneralizedRigidBody.random_inertia(5, seed=2),
+                   lf.systems.GeneralizedRigidBody.random_inertia(3, seed=2),
                    lf.systems.PeriodicToda(5), HermitianBody(4)):  # fmt: skip
         alg = system.algebra
         X = rng.standard_normal((*batch, alg.n, alg.n))

@@ -62,6 +62,13 @@ def _hadamard_stage_B(system: IsospectralSystem, cls: type[IsospectralSystem], W
     return system.B(system.project_stage(W))
 
 
+def _energy(system: GeneralizedRigidBody | RigidBody, W: Array) -> Array:
+    r""":math:`\eta(W) = \tfrac12 \sum_{ij} w_{ij} W_{ij}^2` as
+    :math:`\sum_{ij} (w_{ij}/2) W_{ij}^2`: bit for bit the same (halving one factor of each
+    product halves it exactly), one pass less."""
+    return np.einsum("...ij,...ij,ij->...", W, W, _like(system._half_weights, W))
+
+
 def _principal_moments(values: Sequence[float] | np.ndarray) -> np.ndarray:
     arr = _moments(values)
     if arr.size != 3:
@@ -91,6 +98,10 @@ class GeneralizedRigidBody(IsospectralSystem):
     _half_factor: np.ndarray = attrs.field(
         init=False, repr=False, default=attrs.Factory(lambda s: 0.5 * s._factor, takes_self=True)
     )
+    #: ``weights / 2`` (exact): the Hamiltonian's weights (:func:`_energy`).
+    _half_weights: np.ndarray = attrs.field(
+        init=False, repr=False, default=attrs.Factory(lambda s: 0.5 * s.weights, takes_self=True)
+    )
     linear_B = True
     casimir_powers = (2, 4, 6)
 
@@ -119,7 +130,24 @@ class GeneralizedRigidBody(IsospectralSystem):
         return -self.weights
 
     def hamiltonian(self, W: Array) -> Array:
-        return 0.5 * np.einsum("...ij,...ij,ij->...", W, W, _like(self.weights, W))
+        return _energy(self, W)
+
+    def casimirs(self, W: Array) -> Array:
+        """``tr W^2``, ``tr W^4``, ``tr W^6`` (those of degree up to ``n``), from two
+        products instead of five: ``tr W^{2k} = sum_ij (W^k)_ij (W^k)_ji``, the three sums
+        in one ``einsum`` over ``W``, ``W^2``, ``W^3`` stacked (the diagnostics evaluate
+        them on every chunk of a run)."""
+        if not isinstance(W, np.ndarray):
+            return super().casimirs(W)
+        n = self.J.size
+        factors = [W[..., None, :, :]]
+        if n >= 4:
+            W2 = W @ W
+            factors.append(W2[..., None, :, :])
+            if n >= 6:
+                factors.append((W2 @ W)[..., None, :, :])
+        L = np.concatenate(factors, axis=-3) if len(factors) > 1 else factors[0]
+        return np.einsum("...kij,...kji->...k", L, L)
 
     @classmethod
     def random_inertia(cls, n: int, seed: int | None = None) -> GeneralizedRigidBody:
@@ -146,6 +174,10 @@ class RigidBody(IsospectralSystem):
     #: ``factor / 2`` (exact): ``B`` of the stage projection (:func:`_hadamard_stage_B`).
     _half_factor: np.ndarray = attrs.field(
         init=False, repr=False, default=attrs.Factory(lambda s: 0.5 * s._factor, takes_self=True)
+    )
+    #: ``weights / 2`` (exact): the Hamiltonian's weights (:func:`_energy`).
+    _half_weights: np.ndarray = attrs.field(
+        init=False, repr=False, default=attrs.Factory(lambda s: 0.5 * s.weights, takes_self=True)
     )
     linear_B = True
     casimir_powers = (2,)
@@ -175,7 +207,7 @@ class RigidBody(IsospectralSystem):
         return -self.weights
 
     def hamiltonian(self, W: Array) -> Array:
-        return 0.5 * np.einsum("...ij,...ij,ij->...", W, W, _like(self.weights, W))
+        return _energy(self, W)
 
     def casimirs(self, W: Array) -> Array:
         """``tr W^2 = sum_ij W_ij W_ji`` (``-2 |m|^2``), without a matrix product."""
