@@ -167,17 +167,18 @@ class StageProblem:
     def __init__(self, system: IsospectralSystem, W0: Array) -> None:
         self.system = system
         self.W0 = W0
-        self.skew = system.algebra.skew
+        algebra = system.algebra
+        self.skew = algebra.skew
         # how the maps compute, decided once per problem rather than per call: on NumPy
         # arrays (else another library, lieflow.backends), and on one small matrix (no
         # batch axes, at most SMALL x SMALL: products by ndarray.dot, no scratch)
-        self._host = is_numpy(W0)
-        self._small = self._host and W0.ndim == 2 and W0.shape[-1] <= SMALL
+        self._host = host = type(W0) is np.ndarray or is_numpy(W0)
+        self._small = host and W0.ndim == 2 and W0.shape[-1] <= SMALL
         # the system's maps, looked up once per problem rather than per iteration (the
         # default stage projection is the algebra's: called directly, one frame less)
         self._B = system.B
         default = type(system).project_stage is IsospectralSystem.project_stage
-        self._project_stage = system.algebra.project if default else system.project_stage
+        self._project_stage = algebra.project if default else system.project_stage
         self._stage_B = system.stage_B
 
     def B(self, stages: Array) -> Array:

@@ -43,12 +43,15 @@ class MidpointProblem(StageProblem):
         self, system: IsospectralSystem, W0: Array, h: float, warm: Array | None = None
     ) -> None:
         super().__init__(system, W0)
-        self.half = 0.5 * float(h)
+        self.half = q = 0.5 * float(h)
         self.warm = warm
         # q and q^2 as 0-d arrays of W0's real precision: the values a Python float gives
         # (NumPy rounds it to that precision too) at half the cost of a multiplication
-        q = self.half
-        self._q, self._qq = real_scalar(q, W0), real_scalar(q * q, W0)
+        # (float64 NumPy, once per step: real_scalar's own first case, inline)
+        if self._host and W0.dtype.char == "d":
+            self._q, self._qq = np.array(q), np.array(q * q)
+        else:
+            self._q, self._qq = real_scalar(q, W0), real_scalar(q * q, W0)
         self._scratch: Array | None = None
 
     @property
@@ -144,6 +147,12 @@ class SyDIRK(Scheme):
     update: str = attrs.field(
         default="commutator", validator=one_of(*conjugation.UPDATES), kw_only=True
     )
+    #: The sub-steps' weights ``b_i`` as Python floats (read once, not on every step).
+    _weights: tuple[float, ...] = attrs.field(init=False, eq=False, repr=False)
+
+    @_weights.default
+    def _tableau_weights(self) -> tuple[float, ...]:
+        return tuple(self.tableau.b.tolist())
 
     def compiled_form(self) -> tuple[str, Array, Array] | None:
         """``("sydirk", A, b)``: the compiled engine runs this composition (with the
@@ -159,7 +168,7 @@ class SyDIRK(Scheme):
         warm: Array | None = None,
     ) -> StepResult:
         W = W0
-        weights = self.tableau.b.tolist()
+        weights = self._weights
         host = type(W0) is np.ndarray or is_numpy(W0)
         shape = W0.shape
         offsets: Any = (
@@ -168,9 +177,11 @@ class SyDIRK(Scheme):
         parts: list[Any] = []  # the offsets of another array library, stacked at the end
         iterations = 0
         commutator = self.update == "commutator"
+        one = host and W0.ndim == 2  # one NumPy matrix: sub-step i of the offsets is [i]
         for i, bi in enumerate(weights):
             hi = bi * h
-            guess = None if warm is None else warm[..., i, :, :]
+            at: Any = i if one else (..., i, slice(None), slice(None))
+            guess = None if warm is None else warm[at]
             problem = MidpointProblem(system, W, hi, guess)
             res = solver.solve(problem)
             if not res.converged:  # retried cold (or raised): the one rule of schemes.solve
@@ -182,7 +193,7 @@ class SyDIRK(Scheme):
             iterations += res.iterations
             x = res.x
             if host:
-                np.subtract(x, W, out=offsets[..., i, :, :])
+                np.subtract(x, W, out=offsets[at])
             else:
                 parts.append(x - W)
             W = problem.update(x) if commutator else problem.conjugation_update(x)
