@@ -273,6 +273,10 @@ def _batched(
     """:func:`advance` of a flow in chunks of up to ``batch`` steps (numpy states)."""
     clock = time.perf_counter
     shape, dtype = W.shape, W.dtype
+    # after the first step, W is the flow's own last result, on its phase space: a flow
+    # that can use that (SchemeFlow.step_from_phase_space: the same result, the final
+    # projection skipped where it is the identity) is stepped by it from then on
+    step, again = flow.step, getattr(flow, "step_from_phase_space", None)
     while k < steps:
         m = min(batch, steps - k)
         Ws = np.empty((m, *shape), dtype)
@@ -282,9 +286,11 @@ def _batched(
             while j < m:
                 t = (k + j) * h
                 try:
-                    W, state, stats = flow.step(W, t, h, state)
+                    W, state, stats = step(W, t, h, state)
                 except ConvergenceError as exc:
                     raise exc.at(k + j + 1, t) from exc
+                if again is not None:
+                    step = again
                 if not all_finite(W):
                     _check_finite(W, stats.iterations, stats.solver, stats.residual, k + j, h)
                 Ws[j] = W

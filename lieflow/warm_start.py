@@ -324,8 +324,8 @@ def _advanced(state: WarmStart, solved: Any, history: list[Any], stack: Any) -> 
             # squared_norm's own sums inline, two calls less per step)
             miss = solved - last
             if solved.dtype.kind == "f" and solved.size <= DOT_SIZE:
-                m, s = miss.ravel(), solved.ravel()
-                closer = m.dot(m) < s.dot(s)
+                a, b = miss.ravel(), solved.ravel()
+                closer = a.dot(a) < b.dot(b)
             else:
                 closer = squared_norm(miss) < squared_norm(solved)
             return WarmStart(solved, (), int(closer))

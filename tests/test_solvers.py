@@ -303,3 +303,25 @@ def test_lean_single_check_agrees_with_the_batched_one(n: int) -> None:
     assert one.iterations == batch.iterations >= 4
     np.testing.assert_allclose(one.residuals, batch.residuals, rtol=1e-12, atol=0)
     assert np.array_equal(one.x, batch.x[0])
+
+
+def test_lean_check_step_is_the_norm_of_the_difference_bit_for_bit() -> None:
+    """The tiny-array check measures ``||new - old||`` as ``math.dist`` of the entries,
+    reusing ``old``'s entries when ``old`` is the iterate it judged last (FixedPoint's
+    plain iteration) and reading them afresh otherwise (Anderson, Newton): either way the
+    relative update is exactly ``hypot(new - old) / hypot(new)``."""
+    import math
+
+    from lieflow.solvers.fixed_point import IterationMonitor, StoppingRule
+
+    rng = np.random.default_rng(5)
+    x0 = rng.standard_normal((3, 3))
+    iterates = [x0 + 10.0 ** -(k + 1) * rng.standard_normal((3, 3)) for k in range(5)]
+    other = x0 + 1e-3  # an ``old`` that is not the last iterate
+    monitor = IterationMonitor(StoppingRule(rtol=1e-30, patience=50), 2, x0)
+    pairs = [(iterates[0], x0), (iterates[1], iterates[0]), (iterates[2], other),
+             (iterates[3], iterates[2]), (iterates[4], iterates[4].copy())]  # fmt: skip
+    verdicts = [monitor.check(new, old) for new, old in pairs]
+    assert verdicts == [None] * 4 + ["converged"]  # the last update is 0
+    expected = [math.hypot(*(new - old).ravel()) / math.hypot(*new.ravel()) for new, old in pairs]
+    assert monitor.residuals == expected

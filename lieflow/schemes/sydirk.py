@@ -154,6 +154,14 @@ class SyDIRK(Scheme):
     def _tableau_weights(self) -> tuple[float, ...]:
         return tuple(self.tableau.b.tolist())
 
+    @property
+    def keeps_skew(self) -> bool:
+        """``True`` for the commutator update: each sub-step's ``W + h_i (C - C^T)`` is
+        exactly skew for an exactly skew ``W`` (the proof is in
+        :meth:`~lieflow.schemes.base.StageProblem.commutator_update`); the Cayley form is
+        skew only to roundoff."""
+        return self.update == "commutator"
+
     def compiled_form(self) -> tuple[str, Array, Array] | None:
         """``("sydirk", A, b)``: the compiled engine runs this composition (with the
         scheme's ``update``)."""

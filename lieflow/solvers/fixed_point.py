@@ -199,17 +199,31 @@ def lean_check(
     # first update on
     norm2 = sum_of_squares(x0)
     size0 = math.sqrt(norm2) if eps == _EPS else float(np.sqrt(norm2))
+    # hypot mode: the last iterate judged and its entries, which the next update's step
+    # reuses when that update starts from it (``old is last``, as in FixedPoint.solve)
+    last: Array | None = None
+    last_entries: list[float] = []
 
     def check(new: Array, old: Array) -> str | None:
-        nonlocal size0
+        nonlocal size0, last, last_entries
         # ||new|| first: when it is finite, ``new - old`` raises no floating-point warning
         # (``old`` is the last finite iterate or the guess; inf or nan there propagate
         # quietly), so no ``np.errstate`` (a context switch per update) is needed.
         if hypot:
             # (a norm whose square overflows counts as infinite, as the sums below)
-            size = math.hypot(*new.ravel().tolist())
+            entries = new.ravel().tolist()
+            size = math.hypot(*entries)
             size2 = size * size
-            step = math.hypot(*(new - old).ravel().tolist()) if size2 < _INF else _NAN
+            if size2 < _INF:
+                # ||new - old|| by math.dist of the entries: the differences rounded as
+                # NumPy's, the norm by hypot's own algorithm (CPython's vector_norm, the
+                # same bits as math.hypot of new - old), without a NumPy subtraction;
+                # old's entries from the last update when old is its iterate
+                before = last_entries if old is last else old.ravel().tolist()
+                step = math.dist(entries, before)
+            else:
+                step = _NAN
+            last, last_entries = new, entries
             if step * step == _INF:
                 step = _INF
         elif dot:
@@ -234,7 +248,7 @@ def lean_check(
             return "non_finite"
         if not residuals:
             size0 = max(size0, size, _TINY)
-        r = step / max(size, _TINY)
+        r = step / (size if size > _TINY else _TINY)  # max(size, tiny): size is finite here
         residuals.append(r)
         met = step <= atol + rtol * size
         growth = size / size0
