@@ -265,8 +265,9 @@ def test_compiled_rule_agrees_at_the_cap() -> None:
             assert REASONS[code] == expected
 
 
+@pytest.mark.parametrize("n", [3, 10])  # norms by math.hypot; by vdot
 @pytest.mark.parametrize("bad", [np.inf, -np.inf, np.nan, 1e200])
-def test_lean_check_reports_non_finite_without_warnings(bad: float) -> None:
+def test_lean_check_reports_non_finite_without_warnings(bad: float, n: int) -> None:
     """The single-problem check measures ``||new||`` first and forms ``new - old`` only
     when it is finite: a blown-up update is ``non_finite`` and raises no floating-point
     warning (and no ``np.errstate`` per update is needed)."""
@@ -274,8 +275,8 @@ def test_lean_check_reports_non_finite_without_warnings(bad: float) -> None:
 
     from lieflow.solvers.fixed_point import IterationMonitor, StoppingRule
 
-    x0 = np.ones((3, 3))
-    for old in (x0, np.full((3, 3), bad)):
+    x0 = np.ones((n, n))
+    for old in (x0, np.full((n, n), bad)):
         monitor = IterationMonitor(StoppingRule(), 2, x0)
         new = x0.copy()
         new[0, 1] = bad
@@ -286,7 +287,28 @@ def test_lean_check_reports_non_finite_without_warnings(bad: float) -> None:
     monitor = IterationMonitor(StoppingRule(), 2, x0)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert monitor.check(x0, np.full((3, 3), np.inf)) == "non_finite"
+        assert monitor.check(x0, np.full((n, n), np.inf)) == "non_finite"
+
+
+@pytest.mark.parametrize("n", [3, 10, 100])
+@pytest.mark.parametrize("bad", [np.inf, -np.inf, np.nan, 1e300])
+def test_all_finite_is_exact_and_quiet(bad: float, n: int) -> None:
+    """``backends.all_finite`` (by a norm for float64 states: hypot, vdot) is ``False``
+    exactly when an entry is inf or nan — a huge finite entry, whose square overflows the
+    norm, is finite — and raises no floating-point warning."""
+    import warnings
+
+    from lieflow.backends import all_finite
+
+    x = np.ones((n, n))
+    x[-1, 0] = bad
+    with np.errstate(over="ignore"):
+        single = x.astype(np.float32)  # 1e300 becomes inf
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert all_finite(x) == bool(np.isfinite(bad))
+        assert all_finite(np.full((n, n), 1e300))
+        assert not all_finite(single) and all_finite(np.ones((n, n), np.float32))
 
 
 @pytest.mark.parametrize("n", [3, 10, 70])

@@ -18,6 +18,7 @@ from ..backends import (
     machine_epsilon,
     namespace,
     to_numpy,
+    vdot,
 )
 from ..errors import InputError
 from . import arguments
@@ -26,7 +27,6 @@ from .base import (
     ImplicitProblem,
     SolveResult,
     batch_norm,
-    einsum,
     squared_norm,
     sum_of_squares,
 )
@@ -227,15 +227,14 @@ def lean_check(
             if step * step == _INF:
                 step = _INF
         elif dot:
-            # ||new||^2 by einsum, which never warns (a dot product warns when squares of
-            # finite entries overflow, the blow-up this check reports); ||new - old||^2 by
-            # a dot product, which could overflow only with entries of both iterates
-            # beyond 6e153
+            # both squared norms by vdot: BLAS ddot (ndarray.dot's bits) that never warns
+            # (ndarray.dot warns when squares of finite entries overflow, the blow-up this
+            # check reports; so(10): 0.3 against 1.1 µs for einsum)
             flat = new.ravel()
-            size2 = float(einsum("i,i->", flat, flat))
+            size2 = float(vdot(flat, flat))
             if size2 < _INF:
                 flat = (new - old).ravel()
-                step = math.sqrt(float(flat.dot(flat)))
+                step = math.sqrt(float(vdot(flat, flat)))
             else:
                 step = _NAN
             size = math.sqrt(size2)
