@@ -28,7 +28,6 @@ from .base import (
     SolveResult,
     batch_norm,
     squared_norm,
-    sum_of_squares,
 )
 
 _EPS = float(np.finfo(float).eps)
@@ -178,9 +177,10 @@ def lean_check(
     a few NumPy calls instead of a dozen array reductions per update, and the rule's
     constants (:attr:`StoppingRule._lean`) and the reference size held in the function's
     closure rather than read from an object on every update (so(3): 1.3 µs less per solve
-    of 5 updates). Growth is measured against ``max(||x0||, ||F(x0)||)``, so a zero initial
-    guess works; the roundoff floor of single-precision iterates is scaled by the ratio of
-    machine epsilons (:class:`StoppingRule`).
+    of 5 updates). Growth is measured against ``max(||x0||, ||F(x0)||)`` (the first update
+    is from ``x0``: its ``old``), so a zero initial guess works; the roundoff floor of
+    single-precision iterates is scaled by the ratio of machine epsilons
+    (:class:`StoppingRule`).
     """
     if not (type(x0) is np.ndarray or is_numpy(x0)) or x0.ndim != core_ndim:
         return None
@@ -195,10 +195,8 @@ def lean_check(
     # never overflowing
     hypot = dtype.kind == "f" and x0.size <= HYPOT_SIZE
     dot = dtype.kind == "f" and x0.size <= DOT_SIZE
-    # ||x0|| (a square root in x0's precision) as a float; the reference size from the
-    # first update on
-    norm2 = sum_of_squares(x0)
-    size0 = math.sqrt(norm2) if eps == _EPS else float(np.sqrt(norm2))
+    # the reference size of the growth test, max(||x0||, ||F(x0)||), set by the first update
+    size0 = _TINY
     # hypot mode: the last iterate judged and its entries, which the next update's step
     # reuses when that update starts from it (``old is last``, as in FixedPoint.solve)
     last: Array | None = None
@@ -245,8 +243,15 @@ def lean_check(
         if not (step < _INF and size2 < _INF):
             residuals.append(_NAN)
             return "non_finite"
-        if not residuals:
-            size0 = max(size0, size, _TINY)
+        if not residuals:  # the first update, from x0: ||x0|| as the iterates' norms
+            if hypot:  # (its entries, read for the step above)
+                norm0 = math.hypot(*before)
+            elif dot:
+                flat = old.ravel()
+                norm0 = math.sqrt(float(vdot(flat, flat)))
+            else:
+                norm0 = math.sqrt(squared_norm(old))
+            size0 = max(norm0, size, _TINY)
         r = step / (size if size > _TINY else _TINY)  # max(size, tiny): size is finite here
         residuals.append(r)
         met = step <= atol + rtol * size
