@@ -179,13 +179,16 @@ class SyDIRK(Scheme):
         weights = self._weights
         host = type(W0) is np.ndarray or is_numpy(W0)
         shape = W0.shape
+        one = host and W0.ndim == 2  # one NumPy matrix: sub-step i of the offsets is [i]
+        alone = one and len(weights) == 1  # the midpoint rule on one matrix
         offsets: Any = (
-            np.empty((*shape[:-2], len(weights), *shape[-2:]), dtype=W0.dtype) if host else None
+            np.empty((*shape[:-2], len(weights), *shape[-2:]), dtype=W0.dtype)
+            if host and not alone
+            else None
         )
         parts: list[Any] = []  # the offsets of another array library, stacked at the end
         iterations = 0
         commutator = self.update == "commutator"
-        one = host and W0.ndim == 2  # one NumPy matrix: sub-step i of the offsets is [i]
         for i, bi in enumerate(weights):
             hi = bi * h
             at: Any = i if one else (..., i, slice(None), slice(None))
@@ -200,7 +203,9 @@ class SyDIRK(Scheme):
                 problem, res = retry(solver, build, guess, problem, res)
             iterations += res.iterations
             x = res.x
-            if host:
+            if alone:  # its offset itself, with the stage axis (a view)
+                offsets = (x - W)[None]
+            elif host:
                 np.subtract(x, W, out=offsets[at])
             else:
                 parts.append(x - W)
