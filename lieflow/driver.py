@@ -238,6 +238,10 @@ def advance(
     if many is None and batch > 1 and is_numpy(W0):
         yield from _batched(flow, W0, h, steps, start, state, batch)
         return
+    # as in _batched: after the first step, step_from_phase_space (not after a chunk of
+    # step_many, whose states the flow's own projection did not make)
+    step = flow.step
+    again = getattr(flow, "step_from_phase_space", None) if many is None else None
     while k < steps:
         if many is not None:
             # Chunks end at multiples of ``size`` counted from step 0, wherever the run
@@ -251,9 +255,11 @@ def advance(
             if chunk.size == asked:
                 continue
         try:
-            W, state, stats = flow.step(W, k * h, h, state)
+            W, state, stats = step(W, k * h, h, state)
         except ConvergenceError as exc:
             raise exc.at(k + 1, k * h) from exc
+        if again is not None:
+            step = again
         _check_finite(W, stats.iterations, stats.solver, stats.residual, k, h)
         yield Chunk(
             k,

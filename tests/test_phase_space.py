@@ -21,6 +21,7 @@ from hypothesis import strategies as st
 from lieflow_vortices import PointVortices
 
 import lieflow as lf
+from lieflow.driver import advance
 from lieflow.schemes import MidpointProblem
 
 EPS = float(np.finfo(float).eps)
@@ -264,3 +265,6 @@ def test_a_run_skips_only_projections_that_return_the_state_unchanged(
     for k in range(steps):
         W, state, _ = flow.step(W, k * h, h, state)
         assert W.tobytes() == sol.W[k + 1].tobytes(), k
+    # the driver's step-by-step loop (a monitor or Ctrl-C handler watching) does the same
+    one_by_one = np.concatenate([c.W for c in advance(flow, W0, h, steps, batch=1)])
+    assert one_by_one.tobytes() == sol.W[1:].tobytes()
