@@ -216,7 +216,7 @@ def test_toda_gradient_extension_has_all_of_gl_n_as_phase_space() -> None:
 
 @settings(max_examples=150, deadline=None)
 @given(
-    n=st.integers(2, 12),
+    n=st.one_of(st.integers(2, 12), st.just(70)),  # 70: minus_dagger in 64 x 64 blocks
     seed=st.integers(0, 2**32 - 1),
     h=st.floats(-4.0, 4.0, allow_subnormal=False).filter(lambda h: h != 0),
     scale=st.integers(-100, 100),
