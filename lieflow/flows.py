@@ -99,10 +99,12 @@ class SchemeFlow:
 
     @_exact.default
     def _keeps_phase_space(self) -> bool:
+        # (a scheme of one's own that is not a lieflow Scheme need not say: False)
+        keeps = getattr(self.scheme, "keeps_skew", False) is True
         return (
             type(self.system).project is IsospectralSystem.project
             and type(self.system.algebra) is SO
-            and self.scheme.keeps_skew
+            and keeps
         )
 
     def __attrs_post_init__(self) -> None:
