@@ -239,6 +239,10 @@ def advance(
     if many is None and batch > 1 and steps - start > 1 and is_numpy(W0):
         yield from _batched(flow, W0, h, steps, start, state, batch)
         return
+    # as in _batched: after the first step, step_from_phase_space (not after a chunk of
+    # step_many, whose states the flow's own projection did not make)
+    step = flow.step
+    again = getattr(flow, "step_from_phase_space", None) if many is None else None
     while k < steps:
         if many is not None:
             # Chunks end at multiples of ``size`` counted from step 0, wherever the run
@@ -252,9 +256,11 @@ def advance(
             if chunk.size == asked:
                 continue
         try:
-            W, state, stats = flow.step(W, k * h, h, state)
+            W, state, stats = step(W, k * h, h, state)
         except ConvergenceError as exc:
             raise exc.at(k + 1, k * h) from exc
+        if again is not None:
+            step = again
         _check_finite(W, stats.iterations, stats.solver, stats.residual, k, h)
         yield Chunk(
             k,
@@ -274,6 +280,10 @@ def _batched(
     """:func:`advance` of a flow in chunks of up to ``batch`` steps (numpy states)."""
     clock = time.perf_counter
     shape, dtype = W.shape, W.dtype
+    # after the first step, W is the flow's own last result, on its phase space: a flow
+    # that can use that (SchemeFlow.step_from_phase_space: the same result, the final
+    # projection skipped where it is the identity) is stepped by it from then on
+    step, again = flow.step, getattr(flow, "step_from_phase_space", None)
     while k < steps:
         m = min(batch, steps - k)
         Ws = np.empty((m, *shape), dtype)
@@ -283,9 +293,11 @@ def _batched(
             while j < m:
                 t = (k + j) * h
                 try:
-                    W, state, stats = flow.step(W, t, h, state)
+                    W, state, stats = step(W, t, h, state)
                 except ConvergenceError as exc:
                     raise exc.at(k + j + 1, t) from exc
+                if again is not None:
+                    step = again
                 if not all_finite(W):
                     _check_finite(W, stats.iterations, stats.solver, stats.residual, k + j, h)
                 Ws[j] = W

@@ -31,7 +31,7 @@ from typing import Any, Protocol, runtime_checkable
 import attrs
 import numpy as np
 
-from .algebras import Array
+from .algebras import SO, Array
 from .errors import InputError
 from .schemes.base import Scheme, StepStats
 from .solvers.base import Solver
@@ -91,6 +91,21 @@ class SchemeFlow:
     scheme: Scheme
     solver: Solver = attrs.field(factory=FixedPoint)
     warm_start: bool | int = True
+    #: Whether a step from a state exactly on the phase space lands exactly on it, so that
+    #: :meth:`step_from_phase_space` need not project (derived once): the system's
+    #: projection is so(n)'s ``(W - W^T)/2`` and the scheme keeps exact skew-symmetry
+    #: (:attr:`~lieflow.schemes.Scheme.keeps_skew`).
+    _exact: bool = attrs.field(init=False, repr=False)
+
+    @_exact.default
+    def _keeps_phase_space(self) -> bool:
+        # (a scheme of one's own that is not a lieflow Scheme need not say: False)
+        keeps = getattr(self.scheme, "keeps_skew", False) is True
+        return (
+            type(self.system).project is IsospectralSystem.project
+            and type(self.system.algebra) is SO
+            and keeps
+        )
 
     def __attrs_post_init__(self) -> None:
         warm_depth(self.warm_start)
@@ -125,6 +140,25 @@ class SchemeFlow:
         self, W: Array, t: float, h: float, state: WarmStart | None
     ) -> tuple[Array, WarmStart | None, StepStats]:
         """One step of the scheme (autonomous: ``t`` is not used)."""
+        return self._step(W, h, state, False)
+
+    def step_from_phase_space(
+        self, W: Array, t: float, h: float, state: WarmStart | None
+    ) -> tuple[Array, WarmStart | None, StepStats]:
+        """:meth:`step` from a state exactly on the phase space — ``project(W)`` is ``W``
+        bit for bit, as every state :meth:`step` returns — with the same result: the new
+        state is not projected where that would return it unchanged, a real NumPy state
+        of so(n) after a scheme that keeps exact skew-symmetry
+        (:attr:`~lieflow.schemes.Scheme.keeps_skew`: the midpoint rule and its
+        compositions, commutator update). The driver (:func:`lieflow.driver.advance`)
+        calls it for every step after the first of a run. (The one exception: an entry
+        beyond ``2^1023``, which the projection would overflow to ``inf``.)"""
+        return self._step(W, h, state, self._exact)
+
+    def _step(
+        self, W: Array, h: float, state: WarmStart | None, exact: bool
+    ) -> tuple[Array, WarmStart | None, StepStats]:
+        """A step; ``exact``: ``W`` is on the phase space and the step keeps it there."""
         if state is None:
             res = self.scheme.step(W, h, self.system, self.solver, None)
             new = None
@@ -132,7 +166,10 @@ class SchemeFlow:
             prediction = state.predict()
             res = self.scheme.step(W, h, self.system, self.solver, prediction.guess)
             new = prediction.advance(res.warm)
-        return self.system.project(res.W), new, res.stats
+        W1 = res.W
+        if exact and type(W1) is np.ndarray and W1.dtype.kind == "f":
+            return W1, new, res.stats
+        return self.system.project(W1), new, res.stats
 
 
 def _check_flow(flow: object, what: str) -> None:

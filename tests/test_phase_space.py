@@ -16,9 +16,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import SCHEMES
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from lieflow_vortices import PointVortices
 
 import lieflow as lf
+from lieflow.driver import advance
+from lieflow.schemes import MidpointProblem
 
 EPS = float(np.finfo(float).eps)
 
@@ -208,3 +212,59 @@ def test_toda_gradient_extension_has_all_of_gl_n_as_phase_space() -> None:
     a = lf.integrate(toda, lf.schemes.get("gauss3"), W, 0.1, steps=50, engine="numpy")
     b = lf.integrate(ext, lf.schemes.get("gauss3"), W, 0.1, steps=50, engine="numpy")
     np.testing.assert_allclose(a.W_final, b.W_final, rtol=0, atol=1e-13)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    n=st.one_of(st.integers(2, 12), st.just(70)),  # 70: minus_dagger in 64 x 64 blocks
+    seed=st.integers(0, 2**32 - 1),
+    h=st.floats(-4.0, 4.0, allow_subnormal=False).filter(lambda h: h != 0),
+    scale=st.integers(-100, 100),
+    single=st.booleans(),
+)
+def test_commutator_update_keeps_an_exactly_skew_state_exactly_skew(
+    n: int, seed: int, h: float, scale: int, single: bool
+) -> None:
+    """``W1 = W0 + h (C - C^T)`` (the midpoint rule's update, ``C = B(P M) P M``) of an
+    exactly skew ``W0`` with a +0 diagonal (what the projection returns) is exactly skew
+    with a +0 diagonal for *any* stage value ``M`` and sign of ``h``: the projection
+    returns it bit for bit, so a driver may skip it (``SchemeFlow.step_from_phase_space``;
+    the proof is in ``StageProblem.commutator_update``)."""
+    rng = np.random.default_rng(seed)
+    dtype = np.float32 if single else np.float64
+    X = (rng.standard_normal((n, n)) * 10.0 ** (scale // (8 if single else 1))).astype(dtype)
+    W0 = lf.SO(n).project(X)  # exactly skew, +0 diagonal
+    assert W0.tobytes() == lf.SO(n).project(W0).tobytes()
+    M = rng.standard_normal((n, n)).astype(dtype) * W0.dtype.type(np.abs(W0).max())
+    body = lf.systems.GeneralizedRigidBody.random_inertia(n, seed=seed % 1000)
+    W1 = MidpointProblem(body, W0, h).update(M)
+    assert W1.dtype == W0.dtype
+    if np.isfinite(W1).all():
+        assert body.project(W1).tobytes() == W1.tobytes()
+
+
+@pytest.mark.parametrize("name", ["midpoint", "triple_jump", "gauss2"])
+@pytest.mark.parametrize("update", ["commutator", "conjugation"])
+def test_a_run_skips_only_projections_that_return_the_state_unchanged(
+    name: str, update: str
+) -> None:
+    """After its first step the numpy engine steps a flow by ``step_from_phase_space``,
+    which leaves out the final projection where the scheme keeps exact skew-symmetry
+    (``Scheme.keeps_skew``: SyDIRK with the commutator update); every state equals, bit
+    for bit, the state of ``SchemeFlow.step`` (which always projects) — on so(n), where
+    the skip applies, and elsewhere (the Cayley form, Gauss), where it does not."""
+    scheme = lf.schemes.get(name, update=update)
+    assert scheme.keeps_skew == (name != "gauss2" and update == "commutator")
+    body = lf.systems.GeneralizedRigidBody.random_inertia(6, seed=3)
+    W0, h, steps = body.random_state(4), 0.05, 30
+    solver = lf.solvers.FixedPoint(rtol=1e-12)
+    sol = lf.integrate(body, scheme, W0, h, steps=steps, solver=solver, engine="numpy",
+                       diagnostics=False, warm_start=1)  # fmt: skip
+    flow = lf.SchemeFlow(body, scheme, solver, warm_start=1)
+    W, state = W0, flow.init(W0)
+    for k in range(steps):
+        W, state, _ = flow.step(W, k * h, h, state)
+        assert W.tobytes() == sol.W[k + 1].tobytes(), k
+    # the driver's step-by-step loop (a monitor or Ctrl-C handler watching) does the same
+    one_by_one = np.concatenate([c.W for c in advance(flow, W0, h, steps, batch=1)])
+    assert one_by_one.tobytes() == sol.W[1:].tobytes()

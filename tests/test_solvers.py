@@ -265,8 +265,9 @@ def test_compiled_rule_agrees_at_the_cap() -> None:
             assert REASONS[code] == expected
 
 
+@pytest.mark.parametrize("n", [3, 10])  # norms by math.hypot; by vdot
 @pytest.mark.parametrize("bad", [np.inf, -np.inf, np.nan, 1e200])
-def test_lean_check_reports_non_finite_without_warnings(bad: float) -> None:
+def test_lean_check_reports_non_finite_without_warnings(bad: float, n: int) -> None:
     """The single-problem check measures ``||new||`` first and forms ``new - old`` only
     when it is finite: a blown-up update is ``non_finite`` and raises no floating-point
     warning (and no ``np.errstate`` per update is needed)."""
@@ -274,8 +275,8 @@ def test_lean_check_reports_non_finite_without_warnings(bad: float) -> None:
 
     from lieflow.solvers.fixed_point import IterationMonitor, StoppingRule
 
-    x0 = np.ones((3, 3))
-    for old in (x0, np.full((3, 3), bad)):
+    x0 = np.ones((n, n))
+    for old in (x0, np.full((n, n), bad)):
         monitor = IterationMonitor(StoppingRule(), 2, x0)
         new = x0.copy()
         new[0, 1] = bad
@@ -286,7 +287,28 @@ def test_lean_check_reports_non_finite_without_warnings(bad: float) -> None:
     monitor = IterationMonitor(StoppingRule(), 2, x0)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert monitor.check(x0, np.full((3, 3), np.inf)) == "non_finite"
+        assert monitor.check(x0, np.full((n, n), np.inf)) == "non_finite"
+
+
+@pytest.mark.parametrize("n", [3, 10, 100])
+@pytest.mark.parametrize("bad", [np.inf, -np.inf, np.nan, 1e300])
+def test_all_finite_is_exact_and_quiet(bad: float, n: int) -> None:
+    """``backends.all_finite`` (by a norm for float64 states: hypot, vdot) is ``False``
+    exactly when an entry is inf or nan — a huge finite entry, whose square overflows the
+    norm, is finite — and raises no floating-point warning."""
+    import warnings
+
+    from lieflow.backends import all_finite
+
+    x = np.ones((n, n))
+    x[-1, 0] = bad
+    with np.errstate(over="ignore"):
+        single = x.astype(np.float32)  # 1e300 becomes inf
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert all_finite(x) == bool(np.isfinite(bad))
+        assert all_finite(np.full((n, n), 1e300))
+        assert not all_finite(single) and all_finite(np.ones((n, n), np.float32))
 
 
 @pytest.mark.parametrize("n", [3, 10, 70])
@@ -303,3 +325,25 @@ def test_lean_single_check_agrees_with_the_batched_one(n: int) -> None:
     assert one.iterations == batch.iterations >= 4
     np.testing.assert_allclose(one.residuals, batch.residuals, rtol=1e-12, atol=0)
     assert np.array_equal(one.x, batch.x[0])
+
+
+def test_lean_check_step_is_the_norm_of_the_difference_bit_for_bit() -> None:
+    """The tiny-array check measures ``||new - old||`` as ``math.dist`` of the entries,
+    reusing ``old``'s entries when ``old`` is the iterate it judged last (FixedPoint's
+    plain iteration) and reading them afresh otherwise (Anderson, Newton): either way the
+    relative update is exactly ``hypot(new - old) / hypot(new)``."""
+    import math
+
+    from lieflow.solvers.fixed_point import IterationMonitor, StoppingRule
+
+    rng = np.random.default_rng(5)
+    x0 = rng.standard_normal((3, 3))
+    iterates = [x0 + 10.0 ** -(k + 1) * rng.standard_normal((3, 3)) for k in range(5)]
+    other = x0 + 1e-3  # an ``old`` that is not the last iterate
+    monitor = IterationMonitor(StoppingRule(rtol=1e-30, patience=50), 2, x0)
+    pairs = [(iterates[0], x0), (iterates[1], iterates[0]), (iterates[2], other),
+             (iterates[3], iterates[2]), (iterates[4], iterates[4].copy())]  # fmt: skip
+    verdicts = [monitor.check(new, old) for new, old in pairs]
+    assert verdicts == [None] * 4 + ["converged"]  # the last update is 0
+    expected = [math.hypot(*(new - old).ravel()) / math.hypot(*new.ravel()) for new, old in pairs]
+    assert monitor.residuals == expected

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import importlib
 import math
+from collections.abc import Callable
 from types import ModuleType
 from typing import Any
 
@@ -165,6 +166,35 @@ def machine_epsilon(dtype: Any, like: Any) -> float:
 HYPOT_SIZE = 64
 
 
+def numpy_c_function(name: str, public: Callable[..., Any]) -> Callable[..., Any]:
+    """The C function ``name`` behind the NumPy function ``public`` (``c_einsum`` behind
+    :func:`numpy.einsum`, ``vdot`` behind :func:`numpy.vdot`): the same kernels, hence the
+    same bits, without the Python or dispatch layers in front of it (array-function
+    dispatch; ``einsum``'s ``optimize`` branch): about 1 µs of a 2 µs ``einsum`` call on a
+    3×3 matrix, 0.2 µs of a 0.5 µs ``vdot``. ``public`` itself where a NumPy version lacks
+    it."""
+    for module in (
+        "numpy._core.multiarray",
+        "numpy._core._multiarray_umath",
+        "numpy.core.multiarray",
+        "numpy.core._multiarray_umath",
+    ):
+        try:
+            found = getattr(importlib.import_module(module), name, None)
+        except ImportError:
+            continue
+        if callable(found) and found is not public:
+            return found
+    return public
+
+
+#: ``vdot(a, b)`` of two float64 vectors as :func:`numpy.vdot` computes it (a constant):
+#: BLAS ``ddot``, the bits of ``a.dot(b)``, but without NumPy's floating-point error check:
+#: where squares of finite entries overflow, ``vdot(x, x)`` is ``inf`` and no warning is
+#: raised (``ndarray.dot`` warns).
+vdot: Callable[..., Any] = numpy_c_function("vdot", np.vdot)
+
+
 def all_finite(x: Any) -> bool:
     """Whether every entry of ``x`` is finite (one scalar to the host)."""
     if type(x) is np.ndarray and x.dtype.char == "d" and x.size <= HYPOT_SIZE:
@@ -177,6 +207,13 @@ def all_finite(x: Any) -> bool:
                 return True
         except OverflowError:
             pass
+        return bool(np.isfinite(x).all())
+    if type(x) is np.ndarray and x.dtype.char == "d":
+        # a larger one: the same test on its squared norm by vdot (BLAS, no warning where
+        # the squares overflow; so(10): 0.65 against 1.6 µs for isfinite and all)
+        flat = x.ravel()
+        if vdot(flat, flat) < math.inf:
+            return True
         return bool(np.isfinite(x).all())
     if is_numpy(x):
         return bool(np.isfinite(x).all())  # the method: np.all's Python layers cost 1 µs

@@ -87,6 +87,16 @@ class Scheme(ABC):
         """Classical order of accuracy."""
         return self.tableau.order
 
+    @property
+    def keeps_skew(self) -> bool:
+        """Whether a step of a real skew algebra (so(n)) maps an exactly skew-symmetric
+        ``W0`` (``W0^T = -W0`` bit for bit, a +0 diagonal: what so(n)'s projection returns)
+        to an exactly skew ``W1`` in floating point, not only to roundoff (then a state
+        already on so(n) need not be projected again:
+        :meth:`SchemeFlow.step_from_phase_space
+        <lieflow.flows.SchemeFlow.step_from_phase_space>`). ``False`` by default."""
+        return False
+
     def compiled_form(self) -> tuple[str, Array, Array] | None:
         """How the compiled engine (:mod:`lieflow.compiled`) can run this scheme, or ``None``
         (the default: numpy only).
@@ -167,17 +177,18 @@ class StageProblem:
     def __init__(self, system: IsospectralSystem, W0: Array) -> None:
         self.system = system
         self.W0 = W0
-        self.skew = system.algebra.skew
+        algebra = system.algebra
+        self.skew = algebra.skew
         # how the maps compute, decided once per problem rather than per call: on NumPy
         # arrays (else another library, lieflow.backends), and on one small matrix (no
         # batch axes, at most SMALL x SMALL: products by ndarray.dot, no scratch)
-        self._host = is_numpy(W0)
-        self._small = self._host and W0.ndim == 2 and W0.shape[-1] <= SMALL
+        self._host = host = type(W0) is np.ndarray or is_numpy(W0)
+        self._small = host and W0.ndim == 2 and W0.shape[-1] <= SMALL
         # the system's maps, looked up once per problem rather than per iteration (the
         # default stage projection is the algebra's: called directly, one frame less)
         self._B = system.B
         default = type(system).project_stage is IsospectralSystem.project_stage
-        self._project_stage = system.algebra.project if default else system.project_stage
+        self._project_stage = algebra.project if default else system.project_stage
         self._stage_B = system.stage_B
 
     def B(self, stages: Array) -> Array:
@@ -215,6 +226,15 @@ class StageProblem:
             C = B @ W - W @ B
             del W, B
         if one:
+            # Exactly skew (Scheme.keeps_skew): for real W0 with W0^T = -W0 bit for bit
+            # and a +0 diagonal, W1 = W0 + h (C - C^T) is exactly skew too, for any C and
+            # h. Entry (i, j) of D = C - C^T is fl(c_ij - c_ji), entry (j, i) is
+            # fl(c_ji - c_ij), its negative (round-to-nearest is symmetric:
+            # fl(-x) = -fl(x)); the diagonal is c_ii - c_ii = +0. So entry (j, i) of
+            # fl(h D) is -fl(h d_ij), and of W1 fl(-w_ij - fl(h d_ij)) = -fl(w_ij +
+            # fl(h d_ij)); the diagonal is +0 + (+-0) = +0. The projection (W1 - W1^T)/2
+            # returns W1 bit for bit: (w_ij + w_ij) * 0.5 is exact below 2^1023 (beyond,
+            # it overflows to inf). Not so for the weighted sum of several stages below.
             C *= real_scalar(float(hb), W0)
             C += W0
             return C

@@ -43,12 +43,15 @@ class MidpointProblem(StageProblem):
         self, system: IsospectralSystem, W0: Array, h: float, warm: Array | None = None
     ) -> None:
         super().__init__(system, W0)
-        self.half = 0.5 * float(h)
+        self.half = q = 0.5 * float(h)
         self.warm = warm
         # q and q^2 as 0-d arrays of W0's real precision: the values a Python float gives
         # (NumPy rounds it to that precision too) at half the cost of a multiplication
-        q = self.half
-        self._q, self._qq = real_scalar(q, W0), real_scalar(q * q, W0)
+        # (float64 NumPy, once per step: real_scalar's own first case, inline)
+        if self._host and W0.dtype.char == "d":
+            self._q, self._qq = np.array(q), np.array(q * q)
+        else:
+            self._q, self._qq = real_scalar(q, W0), real_scalar(q * q, W0)
         self._scratch: Array | None = None
 
     @property
@@ -63,8 +66,9 @@ class MidpointProblem(StageProblem):
         # ufunc machinery: 3×3 0.9 -> 0.34 µs); larger ones and stacks write the products
         # into two scratch matrices kept for the step (:func:`scratch`), so an iteration
         # allocates only B and its result. Arrays of another library
-        # (lieflow.backends): the same operations on fresh arrays.
-        B = self.B(M)
+        # (lieflow.backends): the same operations on fresh arrays. B is :meth:`B`, the
+        # system's stage_B called directly (one Python frame less per update).
+        B = self._stage_B(M)
         if self._small:
             BM = B.dot(M)
             BMB = BM.dot(B)
@@ -143,6 +147,20 @@ class SyDIRK(Scheme):
     update: str = attrs.field(
         default="commutator", validator=one_of(*conjugation.UPDATES), kw_only=True
     )
+    #: The sub-steps' weights ``b_i`` as Python floats (read once, not on every step).
+    _weights: tuple[float, ...] = attrs.field(init=False, eq=False, repr=False)
+
+    @_weights.default
+    def _tableau_weights(self) -> tuple[float, ...]:
+        return tuple(self.tableau.b.tolist())
+
+    @property
+    def keeps_skew(self) -> bool:
+        """``True`` for the commutator update: each sub-step's ``W + h_i (C - C^T)`` is
+        exactly skew for an exactly skew ``W`` (the proof is in
+        :meth:`~lieflow.schemes.base.StageProblem.commutator_update`); the Cayley form is
+        skew only to roundoff."""
+        return self.update == "commutator"
 
     def compiled_form(self) -> tuple[str, Array, Array] | None:
         """``("sydirk", A, b)``: the compiled engine runs this composition (with the
@@ -158,18 +176,23 @@ class SyDIRK(Scheme):
         warm: Array | None = None,
     ) -> StepResult:
         W = W0
-        weights = self.tableau.b.tolist()
+        weights = self._weights
         host = type(W0) is np.ndarray or is_numpy(W0)
         shape = W0.shape
+        one = host and W0.ndim == 2  # one NumPy matrix: sub-step i of the offsets is [i]
+        alone = one and len(weights) == 1  # the midpoint rule on one matrix
         offsets: Any = (
-            np.empty((*shape[:-2], len(weights), *shape[-2:]), dtype=W0.dtype) if host else None
+            np.empty((*shape[:-2], len(weights), *shape[-2:]), dtype=W0.dtype)
+            if host and not alone
+            else None
         )
         parts: list[Any] = []  # the offsets of another array library, stacked at the end
         iterations = 0
         commutator = self.update == "commutator"
         for i, bi in enumerate(weights):
             hi = bi * h
-            guess = None if warm is None else warm[..., i, :, :]
+            at: Any = i if one else (..., i, slice(None), slice(None))
+            guess = None if warm is None else warm[at]
             problem = MidpointProblem(system, W, hi, guess)
             res = solver.solve(problem)
             if not res.converged:  # retried cold (or raised): the one rule of schemes.solve
@@ -180,8 +203,10 @@ class SyDIRK(Scheme):
                 problem, res = retry(solver, build, guess, problem, res)
             iterations += res.iterations
             x = res.x
-            if host:
-                np.subtract(x, W, out=offsets[..., i, :, :])
+            if alone:  # its offset itself, with the stage axis (a view)
+                offsets = (x - W)[None]
+            elif host:
+                np.subtract(x, W, out=offsets[at])
             else:
                 parts.append(x - W)
             W = problem.update(x) if commutator else problem.conjugation_update(x)

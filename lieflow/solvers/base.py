@@ -12,7 +12,6 @@ Frobenius norms per problem; a solve has converged when every problem in the bat
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable
 from typing import Any, Protocol, runtime_checkable
 
@@ -20,6 +19,7 @@ import attrs
 import numpy as np
 
 from ..algebras import Array
+from ..backends import numpy_c_function
 
 
 @runtime_checkable
@@ -89,23 +89,9 @@ class Solver(Protocol):
     def solve(self, problem: ImplicitProblem) -> SolveResult: ...
 
 
-def _c_einsum() -> Callable[..., Any]:
-    """The C function behind :func:`numpy.einsum` (``optimize=False``, the default): the
-    same kernels, hence the same bits, without the two Python layers in front of it
-    (array-function dispatch and the ``optimize`` branch), about 1 µs of a 2 µs call on a
-    3×3 matrix. :func:`numpy.einsum` itself where a NumPy version lacks it."""
-    for module in ("numpy._core.multiarray", "numpy.core.multiarray"):
-        try:
-            found = getattr(importlib.import_module(module), "c_einsum", None)
-        except ImportError:
-            continue
-        if callable(found):
-            return found
-    return np.einsum
-
-
-#: ``einsum(subscripts, *operands)`` as :func:`numpy.einsum` computes it (a constant).
-einsum: Callable[..., Any] = _c_einsum()
+#: ``einsum(subscripts, *operands)`` as :func:`numpy.einsum` computes it (a constant:
+#: its C function, ``optimize=False``, the default; :func:`~lieflow.backends.numpy_c_function`).
+einsum: Callable[..., Any] = numpy_c_function("c_einsum", np.einsum)
 
 
 #: Up to this many numbers a sum of squares is a dot product (BLAS ``dot``: 0.45 µs on a

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any, ClassVar
 
 import attrs
 import numpy as np
@@ -43,30 +44,52 @@ def _like(table: np.ndarray, W: Array) -> np.ndarray:
     return table.astype(np.result_type(np.asarray(W).real.dtype, np.float32), copy=False)
 
 
-def _hadamard_stage_B(system: IsospectralSystem, cls: type[IsospectralSystem], W: Array) -> Array:
-    r"""``B(P(W))`` of a body whose ``B(W) = F \odot W`` (``F``: ``system._factor``) at a
-    stage value ``W``, ``P(W) = (W - W^T)/2`` the so(n) stage projection:
-    :math:`(W - W^T) \odot (F/2)`, one pass over ``W`` less than ``B(P(W))`` and the
-    same bits (``x/2`` and ``F/2`` are exact, so both round the product ``(x F)/2`` once;
-    only a subnormal ``x`` could differ). For float64 NumPy stages where ``cls``'s own
-    ``B`` and the default stage projection are in force (a subclass that overrides either
-    gets the composition), else the composition itself."""
-    kind = type(system)
-    if (
-        type(W) is np.ndarray
-        and W.dtype.char == "d"
-        and kind.B is cls.B
-        and kind.project_stage is IsospectralSystem.project_stage
-    ):
-        return minus_dagger(W) * system._half_factor  # type: ignore[attr-defined]
-    return system.B(system.project_stage(W))
+class _Body(IsospectralSystem):
+    r"""What both bodies share: ``B(W) = F \odot W`` with the constant matrix
+    ``F = -weights`` (``self._factor``, and ``self._half_factor = F / 2``), the
+    Hamiltonian :math:`\tfrac12 \sum_{ij} w_{ij} W_{ij}^2` and :meth:`stage_B` in one
+    pass less than the composition."""
 
+    _factor: np.ndarray
+    _half_factor: np.ndarray
+    _half_weights: np.ndarray
+    weights: np.ndarray
 
-def _energy(system: GeneralizedRigidBody | RigidBody, W: Array) -> Array:
-    r""":math:`\eta(W) = \tfrac12 \sum_{ij} w_{ij} W_{ij}^2` as
-    :math:`\sum_{ij} (w_{ij}/2) W_{ij}^2`: bit for bit the same (halving one factor of each
-    product halves it exactly), one pass less."""
-    return np.einsum("...ij,...ij,ij->...", W, W, _like(system._half_weights, W))
+    #: Whether :meth:`stage_B` may take its shortcut: the class keeps this ``B`` and the
+    #: default stage projection (a subclass that overrides either gets the composition);
+    #: set for each subclass when it is created.
+    _stage_shortcut: ClassVar[bool] = False
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        cls._stage_shortcut = (
+            cls.B is _Body.B and cls.project_stage is IsospectralSystem.project_stage
+        )
+
+    def B(self, W: Array) -> Array:
+        return W * _like(self._factor, W)
+
+    def stage_B(self, W: Array) -> Array:
+        r"""``B(P(W))`` at a stage value ``W``, ``P(W) = (W - W^T)/2`` the so(n) stage
+        projection: :math:`(W - W^T) \odot (F/2)`, one pass over ``W`` less than
+        ``B(P(W))`` and the same bits (``x/2`` and ``F/2`` are exact, so both round the
+        product ``(x F)/2`` once; only a subnormal ``x`` could differ). For float64 NumPy
+        stages of a class that keeps this ``B`` and the default stage projection
+        (:attr:`_stage_shortcut`), else the composition itself."""
+        if self._stage_shortcut and type(W) is np.ndarray and W.dtype.char == "d":
+            return minus_dagger(W) * self._half_factor
+        return self.B(self.project_stage(W))
+
+    @property
+    def hadamard_factor(self) -> Array:
+        """``S = -weights``: :math:`B(W) = S \\odot W` (SPEC §3)."""
+        return -self.weights
+
+    def hamiltonian(self, W: Array) -> Array:
+        r""":math:`\eta(W) = \tfrac12 \sum_{ij} w_{ij} W_{ij}^2` as
+        :math:`\sum_{ij} (w_{ij}/2) W_{ij}^2`: bit for bit the same (halving one factor of
+        each product halves it exactly), one pass less."""
+        return np.einsum("...ij,...ij,ij->...", W, W, _like(self._half_weights, W))
 
 
 def _principal_moments(values: Sequence[float] | np.ndarray) -> np.ndarray:
@@ -77,7 +100,7 @@ def _principal_moments(values: Sequence[float] | np.ndarray) -> np.ndarray:
 
 
 @attrs.frozen(eq=False)
-class GeneralizedRigidBody(IsospectralSystem):
+class GeneralizedRigidBody(_Body):
     r"""Manakov's generalized rigid body on so(n) (SPEC §3).
 
     Inertia map :math:`\mathcal I(\Omega) = J\Omega + \Omega J`, ``J = diag(J_1..J_n) > 0``, so
@@ -94,11 +117,11 @@ class GeneralizedRigidBody(IsospectralSystem):
     algebra: SO = attrs.field(init=False, repr=False)
     #: ``-weights``: ``B(W) = W * factor``, bit for bit ``-W * weights``.
     _factor: np.ndarray = attrs.field(init=False, repr=False)
-    #: ``factor / 2`` (exact): ``B`` of the stage projection (:func:`_hadamard_stage_B`).
+    #: ``factor / 2`` (exact): ``B`` of the stage projection (:meth:`_Body.stage_B`).
     _half_factor: np.ndarray = attrs.field(
         init=False, repr=False, default=attrs.Factory(lambda s: 0.5 * s._factor, takes_self=True)
     )
-    #: ``weights / 2`` (exact): the Hamiltonian's weights (:func:`_energy`).
+    #: ``weights / 2`` (exact): the Hamiltonian's weights (:meth:`_Body.hamiltonian`).
     _half_weights: np.ndarray = attrs.field(
         init=False, repr=False, default=attrs.Factory(lambda s: 0.5 * s.weights, takes_self=True)
     )
@@ -116,21 +139,6 @@ class GeneralizedRigidBody(IsospectralSystem):
     @_factor.default
     def _negative_weights(self) -> np.ndarray:
         return read_only(-self.weights)
-
-    def B(self, W: Array) -> Array:
-        return W * _like(self._factor, W)
-
-    def stage_B(self, W: Array) -> Array:
-        """``B`` of the stage projection in one pass less (:func:`_hadamard_stage_B`)."""
-        return _hadamard_stage_B(self, GeneralizedRigidBody, W)
-
-    @property
-    def hadamard_factor(self) -> Array:
-        """``S = -weights``: :math:`B(W) = S \\odot W` (SPEC §3)."""
-        return -self.weights
-
-    def hamiltonian(self, W: Array) -> Array:
-        return _energy(self, W)
 
     def casimirs(self, W: Array) -> Array:
         """``tr W^2``, ``tr W^4``, ``tr W^6`` (those of degree up to ``n``), from two
@@ -156,7 +164,7 @@ class GeneralizedRigidBody(IsospectralSystem):
 
 
 @attrs.frozen(eq=False)
-class RigidBody(IsospectralSystem):
+class RigidBody(_Body):
     r"""The free rigid body on so(3) with principal moments of inertia ``I_1, I_2, I_3``.
 
     ``W = hat(m)``, ``omega_i = m_i / I_i``, ``B(W) = -hat(omega)`` (the paper's
@@ -171,11 +179,11 @@ class RigidBody(IsospectralSystem):
     algebra: SO = attrs.field(init=False, repr=False, factory=lambda: SO(3))
     #: ``-weights``: ``B(W) = W * factor``, bit for bit ``-W * weights``.
     _factor: np.ndarray = attrs.field(init=False, repr=False)
-    #: ``factor / 2`` (exact): ``B`` of the stage projection (:func:`_hadamard_stage_B`).
+    #: ``factor / 2`` (exact): ``B`` of the stage projection (:meth:`_Body.stage_B`).
     _half_factor: np.ndarray = attrs.field(
         init=False, repr=False, default=attrs.Factory(lambda s: 0.5 * s._factor, takes_self=True)
     )
-    #: ``weights / 2`` (exact): the Hamiltonian's weights (:func:`_energy`).
+    #: ``weights / 2`` (exact): the Hamiltonian's weights (:meth:`_Body.hamiltonian`).
     _half_weights: np.ndarray = attrs.field(
         init=False, repr=False, default=attrs.Factory(lambda s: 0.5 * s.weights, takes_self=True)
     )
@@ -193,21 +201,6 @@ class RigidBody(IsospectralSystem):
     @_factor.default
     def _negative_weights(self) -> np.ndarray:
         return read_only(-self.weights)
-
-    def B(self, W: Array) -> Array:
-        return W * _like(self._factor, W)
-
-    def stage_B(self, W: Array) -> Array:
-        """``B`` of the stage projection in one pass less (:func:`_hadamard_stage_B`)."""
-        return _hadamard_stage_B(self, RigidBody, W)
-
-    @property
-    def hadamard_factor(self) -> Array:
-        """``S = -weights``: :math:`B(W) = S \\odot W` (SPEC §3)."""
-        return -self.weights
-
-    def hamiltonian(self, W: Array) -> Array:
-        return _energy(self, W)
 
     def casimirs(self, W: Array) -> Array:
         """``tr W^2 = sum_ij W_ij W_ji`` (``-2 |m|^2``), without a matrix product."""
