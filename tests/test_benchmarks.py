@@ -306,9 +306,11 @@ def test_call_cost_suite_quick_reports_every_case() -> None:
     (table,) = section.tables
     assert len(table.rows) == 8
     assert {row[1] for row in table.rows} == {"numpy", "compiled"}
-    target = section.targets[0]
-    assert target.met is not None and "50 µs" in target.target and "overhead" in target.target
-    assert target.measured.count("T(1) − step") == 8
+    off, on = section.targets
+    assert "without diagnostics" in off.target and "default diagnostics" in on.target
+    for target in (off, on):
+        assert target.met is not None and "50 µs" in target.target
+        assert target.measured.count("T(1) − step") == 4
     first = [row[table.header.index("updates: first step (mean)")] for row in table.rows]
     assert all(cell.split()[0] in ("7", "5") for cell in first)  # the cold first solves
     bare = table.header.index("bare first step")

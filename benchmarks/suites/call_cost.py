@@ -217,6 +217,24 @@ def bare_step(
     return step
 
 
+def _target(rows: list[CallCost], diagnostics: bool, text: str) -> TargetCheck:
+    """The verdict on the call overhead of the rows with (or without) diagnostics."""
+    rows = [r for r in rows if r.diagnostics is diagnostics]
+    worst = max(rows, key=lambda r: r.overhead)
+    met = bool(worst.overhead <= TARGET)
+    return TargetCheck(
+        target=text,
+        measured=", ".join(
+            f"{r.label.split()[0]} {r.engine}: {seconds(r.overhead)} "
+            f"(T(1) − step: {seconds(r.fixed)})"
+            for r in rows
+        ),
+        met=met,
+        gap="" if met else f"worst {seconds(worst.overhead)} ({worst.label}, {worst.engine})",
+        limit=LIMIT,
+    )
+
+
 def run(ctx: BenchContext) -> Section:
     """Every case, engine and diagnostics setting; target: fixed cost ≤ 50 µs."""
     start = time.perf_counter()
@@ -249,28 +267,17 @@ def run(ctx: BenchContext) -> Section:
         caption="One lieflow.integrate call, midpoint rule, default solver: the whole call "
         "for 1 and 2 steps and the per-step cost of a long run, timed interleaved (CPU time).",
     )
-    worst = max(rows, key=lambda r: r.overhead)
-    met = bool(worst.overhead <= TARGET)
-    target = TargetCheck(
-        target=f"call overhead of integrate (issue 27: fixed cost) ≤ {seconds(TARGET)}",
-        measured=", ".join(
-            f"{r.label.split()[0]} {r.engine} diagnostics {'on' if r.diagnostics else 'off'}: "
-            f"{seconds(r.overhead)} (T(1) − step: {seconds(r.fixed)})"
-            for r in rows
-        ),
-        met=met,
-        gap=""
-        if met
-        else f"worst {seconds(worst.overhead)} ({worst.label}, {worst.engine}, "
-        f"diagnostics {'on' if worst.diagnostics else 'off'})",
-        limit=LIMIT,
-    )
+    targets = (
+        _target(rows, False, "call overhead of integrate without diagnostics (issue 27: fixed "
+                f"cost; its so(10) benchmark, scipy_work_precision, runs so) ≤ {seconds(TARGET)}"),
+        _target(rows, True, f"the same with the default diagnostics ≤ {seconds(TARGET)}"),
+    )  # fmt: skip
     notes = (
         "Call overhead = T(1) − the bare first step: the same cold solve (the same updates, "
         "checked) and the projection onto the phase space, taken without the call (numpy: "
         "scheme.step and system.project; compiled: the compiled loop on its prepared "
         "arguments, CompiledPlan.loop_call, and system.project) — what the call adds to "
-        "the algorithm. The target is judged on it.",
+        "the algorithm. The targets are judged on it.",
         f"Fixed cost = T(k) − k·T(L)/L with L = {LONG['numpy']} steps (numpy) or "
         f"{LONG['compiled']} (compiled); medians of {5 if ctx.config.quick else 101} "
         "interleaved rounds of process CPU time (all columns). It includes what the first, "
@@ -286,7 +293,7 @@ def run(ctx: BenchContext) -> Section:
         "overhead: beyond the bare computation of its one step; the fixed cost: beyond "
         "k times a long run's average step).",
         tables=(table,),
-        targets=(target,),
+        targets=targets,
         notes=notes,
         seconds=time.perf_counter() - start,
     )

@@ -312,7 +312,38 @@ def measure_plain(ctx: BenchContext, case: tuple[str, str, int, float, str]) -> 
     )
 
 
-def against_plain(ctx: BenchContext) -> tuple[Table, TargetCheck]:
+#: Why lieflow's numpy engine costs more per update than the plain loop (measured).
+PLAIN_LIMIT = (
+    "per update lieflow's map and stopping test cost what the loop's update and "
+    "its two norms do (CPU time, measured alone: so(3) 4.4 + 1.0 µs against ~6.3; "
+    "so(10) 4.7 + 2.1 against ~6.7); the gap is per step, ~16 µs against the loop's ~3 "
+    "(so(3) 53 against 44 µs a step, so(10) 46 against 30): the commutator update with "
+    "its stage projection (~4.8 µs; the loop skips the projection), the warm start's "
+    "prediction and bookkeeping (~3.3 µs), the solve's guess, stopping test and result "
+    "(~2 µs), the step's problem (~1.3 µs), and the step's, flow's and driver's "
+    "results, chunk and finiteness check (~4 µs). The new state is not projected again "
+    "on so(n) (SchemeFlow.step_from_phase_space: an exactly skew state stays exactly "
+    "skew under the commutator update). so(10), 4 updates a step, needs ~6 µs less per "
+    "step for 1.3×"
+)
+
+
+def _plain_target(rows: list[PlainRow], text: str) -> TargetCheck:
+    """The verdict of :data:`TARGET_PLAIN` on ``rows``."""
+    same = all(r.updates == r.plain_updates for r in rows)
+    worst = max(rows, key=lambda r: r.ratio)
+    met = worst.ratio <= TARGET_PLAIN and same
+    return TargetCheck(
+        target=text,
+        measured=", ".join(f"{r.label}: {r.ratio:.2f}×" for r in rows)
+        + ("" if same else " (the two took different numbers of updates)"),
+        met=met,
+        gap="" if met else f"worst {worst.ratio:.2f}× ({worst.label})",
+        limit=PLAIN_LIMIT,
+    )
+
+
+def against_plain(ctx: BenchContext) -> tuple[Table, tuple[TargetCheck, ...]]:
     """The midpoint rows of :data:`SMALL_CASES` against the plain loop; target (issue 27):
     ≤ 1.3× its seconds per update."""
     rows = [measure_plain(ctx, c) for c in SMALL_CASES if c[4] == "midpoint"]
@@ -340,29 +371,14 @@ def against_plain(ctx: BenchContext) -> tuple[Table, TargetCheck]:
         "against the same algorithm as a plain NumPy loop (plain_midpoint), timed "
         "alternately, median of each.",
     )
-    same = all(r.updates == r.plain_updates for r in rows)
-    worst = max(rows, key=lambda r: r.ratio)
-    met = worst.ratio <= TARGET_PLAIN and same
-    target = TargetCheck(
-        target=f"small n (issue 27): a numpy-engine update ≤ {TARGET_PLAIN}× a plain NumPy "
-        "loop of the same algorithm",
-        measured=", ".join(f"{r.label}: {r.ratio:.2f}×" for r in rows)
-        + ("" if same else " (the two took different numbers of updates)"),
-        met=met,
-        gap="" if met else f"worst {worst.ratio:.2f}× ({worst.label})",
-        limit="per update lieflow's map and stopping test cost what the loop's update and "
-        "its two norms do (CPU time, measured alone: so(3) 4.4 + 1.0 µs against ~6.3; "
-        "so(10) 4.7 + 2.1 against ~6.7); the gap is per step, ~16 µs against the loop's ~3 "
-        "(so(3) 53 against 44 µs a step, so(10) 46 against 30): the commutator update with "
-        "its stage projection (~4.8 µs; the loop skips the projection), the warm start's "
-        "prediction and bookkeeping (~3.3 µs), the solve's guess, stopping test and result "
-        "(~2 µs), the step's problem (~1.3 µs), and the step's, flow's and driver's "
-        "results, chunk and finiteness check (~4 µs). The new state is not projected again "
-        "on so(n) (SchemeFlow.step_from_phase_space: an exactly skew state stays exactly "
-        "skew under the commutator update). so(10), 4 updates a step, needs ~6 µs less per "
-        "step for 1.3×",
-    )
-    return table, target
+    so3 = [r for r in rows if r.label.startswith("so(3)")]
+    rest = [r for r in rows if not r.label.startswith("so(3)")]
+    targets = (
+        _plain_target(so3, "small n (issue 27, stated for so(3)): a numpy-engine update ≤ "
+                      f"{TARGET_PLAIN}× a plain NumPy loop of the same algorithm"),
+        _plain_target(rest, f"the same on so(10) ≤ {TARGET_PLAIN}×"),
+    )  # fmt: skip
+    return table, targets
 
 
 def run(ctx: BenchContext) -> Section:
@@ -444,13 +460,13 @@ def run(ctx: BenchContext) -> Section:
         "the number in brackets is the size of the unknown itself.",
     ]
     small_table, small_target = small_n(ctx)
-    plain_table, plain_target = against_plain(ctx)
+    plain_table, plain_targets = against_plain(ctx)
     return Section(
         title="Large n: cost of one iteration vs its matrix products; small n: overhead",
         intro="Is the fixed-point iteration at the BLAS bound? And at small n, how much "
         "does everything around the products cost?",
         tables=(table, small_table, plain_table),
-        targets=(target, alloc, small_target, plain_target),
+        targets=(target, alloc, small_target, *plain_targets),
         notes=tuple(notes),
         seconds=time.perf_counter() - start,
     )
