@@ -24,9 +24,9 @@ are their power sums ``C_k = Σ λ_j^k (-1)^k = tr((iW)^k)`` (``C_2 = ||W||_F²`
 
 The spectra need the squares ``Σ_m |ζ_lm|²`` by degree, not the coefficients:
 :func:`matrix_squares_by_degree` gets them from the matrix in one compiled pass (the
-harmonic recurrences fused with the products, tables built once per ``N``), 0.01–0.1
+harmonic recurrences fused with the products, tables built once per ``N``), 0.04–0.09
 midpoint steps (h = 1/N) per state at N = 64–512; one sample of :func:`snapshot` costs
-0.1–0.35 steps, most of it the eigenvalue problem of the levels, about two complex N×N
+0.27–0.38 steps, 0.15–0.28 of it the eigenvalue problem of the levels, 2.5–6 complex N×N
 products (``benchmarks/suites/euler_zeitlin.py``).
 
 Everything here takes one state ``(N, N)`` or a stack ``(..., N, N)``.

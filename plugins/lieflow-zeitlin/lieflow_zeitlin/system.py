@@ -193,8 +193,8 @@ class EulerZeitlin(lieflow.IsospectralSystem):
         under ``/diagnostics/extra`` (default: every saved state; ``0``: none).
     diagnostics_levels : bool
         Whether those samples include the vorticity levels and the Casimirs (default
-        ``True``). They cost one Hermitian eigenvalue problem of size N, about 0.1–0.25
-        midpoint steps per sample at N = 64–512, against 0.02–0.1 for the spectra;
+        ``True``). They cost one Hermitian eigenvalue problem of size N, about 0.15–0.28
+        midpoint steps per sample at N = 64–512, against 0.04–0.09 for the spectra;
         ``False`` keeps the spectra, energy and enstrophy only (``lieflow plot`` then takes
         the levels of the saved states, :func:`~lieflow_zeitlin.vorticity_levels` computes
         them for any).
@@ -388,9 +388,9 @@ class EulerZeitlin(lieflow.IsospectralSystem):
         ``W`` is a state of a run of this system (the driver's), so only its shape is
         checked; :func:`~lieflow_zeitlin.diagnostics.snapshot` also checks that a state from
         elsewhere is in su(N). Cost per sample, in midpoint steps (h = 1/N, rtol 1e-14;
-        ``benchmarks/suites/euler_zeitlin.py``): the spectra 0.02–0.1 (one compiled pass of
-        the harmonic recurrences), the levels and Casimirs 0.1–0.25 (one Hermitian
-        eigenvalue problem, about two complex N×N products) at N = 64–512.
+        ``benchmarks/suites/euler_zeitlin.py``): the spectra 0.04–0.09 (one compiled pass of
+        the harmonic recurrences), the levels and Casimirs 0.15–0.28 (one Hermitian
+        eigenvalue problem, 2.5–6 complex N×N products) at N = 64–512.
         """
         from .diagnostics import _snapshot
 
