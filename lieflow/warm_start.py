@@ -18,9 +18,9 @@ import attrs
 import numpy as np
 
 from . import tree
-from .backends import copy, vdot
+from .backends import copy
 from .errors import InputError
-from .solvers.base import DOT_SIZE, einsum, squared_norm
+from .solvers.base import einsum, squared_norm
 
 __all__ = [
     "DEFAULT_DEPTH",
@@ -320,15 +320,8 @@ def _advanced(state: WarmStart, solved: Any, history: list[Any], stack: Any) -> 
         last = history[0]
         if type(solved) is np.ndarray and type(last) is np.ndarray and last.shape == solved.shape:
             # one solution kept (warm_start=1), as below: the last solution is trusted next
-            # when it predicted ``solved`` better than the cold guess (a small real array:
-            # squared_norm's own sums inline, by vdot: BLAS ddot as ndarray.dot, two calls
-            # less per step)
-            miss = solved - last
-            if solved.dtype.kind == "f" and solved.size <= DOT_SIZE:
-                a, b = miss.ravel(), solved.ravel()
-                closer = vdot(a, a) < vdot(b, b)
-            else:
-                closer = squared_norm(miss) < squared_norm(solved)
+            # when it predicted ``solved`` better than the cold guess
+            closer = squared_norm(solved - last) < squared_norm(solved)
             return WarmStart(solved, (), int(closer))
     best = 0
     best_error = (

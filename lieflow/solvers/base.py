@@ -19,7 +19,7 @@ import attrs
 import numpy as np
 
 from ..algebras import Array
-from ..backends import numpy_c_function
+from ..backends import numpy_c_function, vdot
 
 
 @runtime_checkable
@@ -105,13 +105,14 @@ def sum_of_squares(x: Array) -> Any:
     product of the raveled array (real and imaginary parts as two reals) for up to
     :data:`DOT_SIZE` numbers, else a plain sum of squares (``einsum``, no BLAS call,
     whose threading overhead dominates for small arrays). The two may differ in the last
-    bits (they add the squares in different orders), and the dot product warns (NumPy's
-    ``RuntimeWarning``) where squares of finite entries overflow, ``einsum`` never."""
+    bits (they add the squares in different orders). Neither warns where squares of
+    finite entries overflow (the dot product is :func:`~lieflow.backends.vdot`: the BLAS
+    ``dot`` of ``ndarray.dot``, without its floating-point error check)."""
     flat = x.ravel() if isinstance(x, np.ndarray) else np.ascontiguousarray(x).reshape(-1)
     if flat.dtype.kind == "c":
         flat = flat.view(flat.real.dtype)
     if flat.size <= DOT_SIZE:
-        return flat.dot(flat)
+        return vdot(flat, flat)
     return einsum("i,i->", flat, flat)
 
 
@@ -119,7 +120,7 @@ def squared_norm(x: Array) -> float:
     """:func:`sum_of_squares` as a Python float."""
     if type(x) is np.ndarray and x.dtype.kind == "f" and x.size <= DOT_SIZE:
         flat = x.ravel()  # the common case inline: one problem's update, a few µs a call
-        return float(flat.dot(flat))
+        return float(vdot(flat, flat))
     return float(sum_of_squares(x))
 
 

@@ -225,9 +225,9 @@ def lean_check(
             if step * step == _INF:
                 step = _INF
         elif dot:
-            # both squared norms by vdot: BLAS ddot (ndarray.dot's bits) that never warns
-            # (ndarray.dot warns when squares of finite entries overflow, the blow-up this
-            # check reports; so(10): 0.3 against 1.1 µs for einsum)
+            # squared_norm's own fast path, inline (two calls per update less; measured
+            # ~3 % of an so(10) step): vdot, BLAS ddot (ndarray.dot's bits) that never warns
+            # where squares of finite entries overflow, the blow-up this check reports
             flat = new.ravel()
             size2 = float(vdot(flat, flat))
             if size2 < _INF:
