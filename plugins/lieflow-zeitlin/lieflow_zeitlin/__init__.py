@@ -28,7 +28,7 @@ positions, strengths).
 from __future__ import annotations
 
 from . import diagnostics
-from .coherent import Vortex, VortexCensus, VortexDetector, fibonacci_points
+from .coherent import Vortex, VortexCensus, VortexDetector, fibonacci_points, low_pass
 from .diagnostics import (
     energy_spectrum,
     enstrophy_spectrum,
@@ -100,6 +100,7 @@ __all__ = [
     "import_quflow",
     "kappa",
     "lm_index",
+    "low_pass",
     "matrix_to_grid",
     "matrix_to_sh",
     "random_sh",

@@ -47,7 +47,7 @@ from .quantization import matrix_to_sh
 
 Array = NDArray[Any]
 
-__all__ = ["Vortex", "VortexCensus", "VortexDetector", "fibonacci_points"]
+__all__ = ["Vortex", "VortexCensus", "VortexDetector", "fibonacci_points", "low_pass"]
 
 
 def fibonacci_points(n: int) -> Array:
@@ -60,6 +60,19 @@ def fibonacci_points(n: int) -> Array:
     phi = k * math.pi * (3.0 - math.sqrt(5.0))
     r = np.sqrt(1.0 - z * z)
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=-1)
+
+
+def low_pass(W: ArrayLike, smoothing: float) -> Array:
+    """The matrix ``Q(ω̄)`` of the low-passed vorticity ``ω̄_lm = exp(-σ² l(l+1)/2) ω_lm``
+    (``σ = smoothing``, radians) of the states ``W`` (shape ``(..., N, N)``): the field the
+    detector looks at, as a matrix (for pictures)."""
+    from .dissipation import degree_multiplier
+
+    W = np.asarray(W)
+    if W.ndim < 2 or W.shape[-1] != W.shape[-2]:
+        raise lieflow.InputError(f"W must have shape (..., N, N), got {W.shape}")
+    l = np.arange(W.shape[-1])
+    return degree_multiplier(W, np.exp(-0.5 * smoothing**2 * l * (l + 1)))
 
 
 @attrs.frozen
@@ -236,15 +249,18 @@ class VortexDetector:
     def _graph_default(self) -> tuple[Array, Array]:
         return _edges(self.xyz)
 
-    def filtered(self, W: ArrayLike) -> Array:
-        """The low-passed vorticity ``ω̄`` at the sample points :attr:`xyz`, shape
-        ``(..., points)``."""
+    def _states(self, W: ArrayLike) -> Array:
         W = np.asarray(W)
         if W.ndim < 2 or W.shape[-2:] != (self.N, self.N):
             raise lieflow.InputError(
                 f"W has shape {W.shape}; this detector is for (..., {self.N}, {self.N})"
             )
-        coeffs = matrix_to_sh(W)
+        return W
+
+    def filtered(self, W: ArrayLike) -> Array:
+        """The low-passed vorticity ``ω̄`` at the sample points :attr:`xyz`, shape
+        ``(..., points)``."""
+        coeffs = matrix_to_sh(self._states(W))
         E, index = self._synthesis
         parts = np.stack([coeffs.real, coeffs.imag], axis=-1)[..., index[:, 0], index[:, 1]]
         return np.asarray(parts @ E.T)

@@ -156,6 +156,22 @@ def test_solid_body_rotation_is_two_hemispheres(detector: lz.VortexDetector) -> 
         assert v.area == pytest.approx(2 * math.pi, rel=0.01)
 
 
+def test_low_pass_is_the_field_the_detector_samples(detector: lz.VortexDetector) -> None:
+    """``low_pass(W, σ)`` multiplies degree ``l`` by ``exp(-σ² l(l+1)/2)``, and the detector's
+    samples of ``W`` are the values of that field (its harmonics summed at the points)."""
+    from scipy.special import sph_harm_y
+
+    W = lz.random_vorticity(N, degree=20, seed=9)
+    coeffs = lz.matrix_to_sh(lz.low_pass(W, detector.smoothing))
+    l, m = lz.degrees_and_orders(N)
+    factor = np.exp(-0.5 * detector.smoothing**2 * l * (l + 1))
+    np.testing.assert_allclose(coeffs, lz.matrix_to_sh(W) * factor, atol=1e-13)
+    p = detector.xyz[::97]
+    theta, phi = np.arccos(p[:, 2]), np.arctan2(p[:, 1], p[:, 0])
+    values = sum(c * sph_harm_y(lk, mk, theta, phi) for c, lk, mk in zip(coeffs, l, m, strict=True))
+    np.testing.assert_allclose(detector.filtered(W)[::97], values.real, atol=1e-10)
+
+
 def test_fields_without_vortices(detector: lz.VortexDetector) -> None:
     assert detector.census(np.zeros((N, N), complex)).count == 0
     assert detector.filtered(np.zeros((3, N, N), complex)).shape == (3, detector.points)
