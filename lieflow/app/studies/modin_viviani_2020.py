@@ -167,7 +167,7 @@ PLANS: dict[str, Plan] = {
         "full",
         N=128,
         h=0.025,
-        t_final=4000.0,
+        t_final=2000.0,
         save_every=800,
         gammas=tuple(round(0.15 * k, 2) for k in range(13)),
         seeds=8,
