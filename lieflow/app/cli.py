@@ -373,12 +373,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--smoke", action="store_true",
                    help="a study at toy size (seconds): checks the setup only")  # fmt: skip
     p.add_argument("--seed", type=int, default=0, help="seed of the random data (default 0)")
-    p.add_argument("--executor", choices=("local", "dask"), default="local",
-                   help="a study's runs: local process pool (default) or Dask")  # fmt: skip
-    p.add_argument("--scheduler", metavar="ADDRESS",
-                   help="address of a running Dask scheduler (with --executor dask)")  # fmt: skip
-    p.add_argument("--workers", type=_positive_int, metavar="N",
-                   help="a study's processes (default: cores)")  # fmt: skip
+    _executor_arguments(p, "a study's runs: ")
     p.add_argument("--device", default="cpu", metavar="DEV",
                    help="a study's [run] device: cpu (default), cupy, torch:cuda:0")  # fmt: skip
     p.add_argument("-q", "--quiet", action="store_true", help="no per-run log lines")
@@ -418,12 +413,7 @@ def _parser() -> argparse.ArgumentParser:
         ),
     )
     p.add_argument("grid", type=Path, metavar="GRID.toml")
-    p.add_argument("--executor", choices=("local", "dask"), default="local",
-                   help="local process pool (default) or Dask distributed")  # fmt: skip
-    p.add_argument("--scheduler", metavar="ADDRESS",
-                   help="address of a running Dask scheduler (with --executor dask)")  # fmt: skip
-    p.add_argument("--workers", type=_positive_int, metavar="N",
-                   help="processes of the local pool or LocalCluster (default: cores)")  # fmt: skip
+    _executor_arguments(p)
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="sweep directory (overrides [sweep] directory)")  # fmt: skip
     p.add_argument("--store", choices=("zarr",), default=None,
@@ -433,6 +423,16 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_sweep)
     return parser
+
+
+def _executor_arguments(p: argparse.ArgumentParser, whose: str = "") -> None:
+    """``--executor``, ``--scheduler``, ``--workers``: where the runs of a sweep go."""
+    p.add_argument("--executor", choices=("local", "dask"), default="local",
+                   help=f"{whose}local process pool (default) or Dask distributed")  # fmt: skip
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="address of a running Dask scheduler (with --executor dask)")  # fmt: skip
+    p.add_argument("--workers", type=_positive_int, metavar="N",
+                   help="processes of the local pool or LocalCluster (default: cores)")  # fmt: skip
 
 
 def _positive_int(text: str) -> int:
