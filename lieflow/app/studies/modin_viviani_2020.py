@@ -223,9 +223,9 @@ def initial_states(plan: Plan, seed: int, directory: Path) -> list[InitialState]
     runs); otherwise :class:`~lieflow.InputError` is raised before anything is run.
     """
     lz = _plugin()
-    folder = directory / "initial"
-    folder.mkdir(parents=True, exist_ok=True)
+    (directory / "initial").mkdir(parents=True, exist_ok=True)
     c2 = 4 * math.pi  # rms vorticity 1
+    system = lz.EulerZeitlin(plan.N)  # the inertial frame's energy and Casimirs
     out = []
     for g in plan.gammas:
         for s in range(seed, seed + plan.seeds):
@@ -243,7 +243,6 @@ def initial_states(plan: Plan, seed: int, directory: Path) -> list[InitialState]
                 tmp = path.with_suffix(f".tmp{os.getpid()}.npy")
                 np.save(tmp, W)
                 os.replace(tmp, path)
-            system = lz.EulerZeitlin(plan.N)  # the inertial frame's energy and Casimirs
             rotation = (3 / (8 * math.pi)) * g * math.sqrt(c2)  # Ω = 3 L_z / 8π, L along z
             # ½∫|∇ψ|² dΩ = η · 4πħ/N (η: the system's Hamiltonian in fluid time)
             energy = float(system.hamiltonian(W)) * 4 * math.pi * lz.hbar(plan.N) / plan.N
@@ -500,22 +499,20 @@ def analyse(
     axis = "file"
     files = [str(f) for f in ds[axis].values]
     detector = lz.VortexDetector(plan.N, smoothing=plan.smoothing, threshold=plan.threshold)
-    others = [
-        lz.VortexDetector(plan.N, smoothing=s, threshold=t, points=detector.points)
-        for s, t in ALTERNATIVES
-    ]
-    coarse = lz.VortexDetector(plan.N, smoothing=plan.staircase_smoothing, points=detector.points)
+    others = [lz.VortexDetector(plan.N, smoothing=s, threshold=t) for s, t in ALTERNATIVES]
+    coarse = lz.VortexDetector(plan.N, smoothing=plan.staircase_smoothing)
     time_values = np.asarray(ds["time"].values if "time" in ds.coords else [], dtype=float)
     window = time_values >= (1 - plan.settle) * plan.t_final - 1e-9 * plan.t_final
     energy = np.asarray(ds["energy_error"].values, dtype=float)
     casimir = np.nanmax(np.asarray(ds["casimir_drift"].values, dtype=float), axis=-1)
+    iterations = np.asarray(ds["iterations"].values, dtype=float)[:, 1:]
+    status, error, wall = (ds[k].values for k in ("status", "error", "wall_time"))
     results = []
     for state in states:
         i = files.index(state.file)
-        status = str(ds["status"].values[i])
-        W = ds["W"].isel({axis: i}).values if status == "complete" else None
+        W = ds["W"].isel({axis: i}).values if status[i] == "complete" else None
         if W is None or not np.all(np.isfinite(W)):
-            results.append(_missing(state, status, str(ds["error"].values[i]), detector.points))
+            results.append(_missing(state, str(status[i]), str(error[i]), coarse.points))
             continue
         values = detector.filtered(W)
         censuses = [detector.census_of_field(v) for v in values]
@@ -531,7 +528,7 @@ def analyse(
         results.append(
             RunResult(
                 state=state,
-                status=status,
+                status=str(status[i]),
                 error="",
                 counts=counts,
                 positive=np.array([c.positive for c in censuses]),
@@ -547,8 +544,8 @@ def analyse(
                 momentum_drift=float(np.max(np.linalg.norm(L - L[0], axis=-1)) / root_c2),
                 energy_error=float(np.nanmax(energy[i])),
                 casimir_drift=float(np.nanmax(casimir[i])),
-                iterations=float(np.nanmean(np.asarray(ds["iterations"].values[i])[1:])),
-                wall_time=float(ds["wall_time"].values[i]),
+                iterations=float(np.nanmean(iterations[i])),
+                wall_time=float(wall[i]),
             )
         )
         if log is not None:

@@ -158,13 +158,14 @@ def _fraction(_inst: object, _attr: attrs.Attribute, value: float) -> None:
 
 
 def _default_points(self: VortexDetector) -> int:
-    return max(1500, 2 * self.N * self.N)
+    """A spacing of a quarter of the low-pass width: ``4π (4/σ)²`` points, 1500 to 20 000."""
+    return int(np.clip(4 * math.pi * (4 / self.smoothing) ** 2, 1500, 20_000))
 
 
 def _basis(N: int, points: Array, smoothing: float) -> tuple[Array, Array]:
     r"""Real matrix ``E`` with ``ω̄(x_p) = E[p] @ [Re ω_lm, Im ω_lm]`` over ``m >= 0``
     (``ω_l0 Y_l0 + 2 Re Σ_{m>0} ω_lm Y_lm``), the heat-kernel factors folded in; degrees whose
-    factor is below ``1e-12`` are left out."""
+    factor is below ``1e-9`` are left out."""
     from scipy.special import sph_harm_y  # 0.1 s to import: on first use
 
     theta = np.arccos(np.clip(points[:, 2], -1.0, 1.0))
@@ -173,7 +174,7 @@ def _basis(N: int, points: Array, smoothing: float) -> tuple[Array, Array]:
     index = []
     for l in range(1, N):
         factor = math.exp(-0.5 * smoothing**2 * l * (l + 1))
-        if factor < 1e-12:
+        if factor < 1e-9:
             break
         for m in range(l + 1):
             Y = sph_harm_y(l, m, theta, phi) * factor
@@ -220,7 +221,9 @@ class VortexDetector:
     threshold : float
         Smallest persistence of a vortex, as a fraction of ``max|ω̄|`` (default 0.2).
     points : int
-        Number of sample points (default ``max(1500, 2N²)``; spacing ``√(4π/n)``).
+        Number of sample points (spacing ``√(4π/n)``; default ``4π(4/σ)²``, a quarter of
+        the low-pass width, between 1500 and 20 000: the low-passed field varies on the
+        scale ``σ``, whatever ``N``).
 
     The sample points, their triangulation and the synthesis matrix are built once, here
     (read-only arrays); :meth:`census` is then one transform ``W -> ω_lm`` (O(N³)), one
