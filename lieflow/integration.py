@@ -19,6 +19,7 @@ from . import driver
 from .algebras import Array
 from .backends import from_host, is_foreign_array, is_numpy, to_numpy
 from .driver import DeferredDiagnostics, Diagnostics, Monitor
+from .engines import Engine, scheme_flow
 from .errors import InputError
 from .flows import Flow, SchemeFlow, StepStats, WarmStart
 from .schemes.base import Scheme
@@ -178,56 +179,6 @@ def _resolve_steps(h: float, steps: int | None, t_final: float | None) -> int:
             "choose h = t_final / N or pass steps=N"
         )
     return n
-
-
-Engine = Literal["auto", "numpy", "compiled"]
-
-
-def scheme_flow(
-    system: IsospectralSystem,
-    scheme: Scheme,
-    solver: Solver,
-    W0: Array,
-    steps: int,
-    *,
-    engine: Engine = "auto",
-    warm_start: bool | int = True,
-) -> SchemeFlow:
-    """The :class:`SchemeFlow` that runs ``scheme`` on ``system`` with ``engine``.
-
-    ``"numpy"``: a plain :class:`SchemeFlow`. ``"compiled"``: the compiled engine
-    (:class:`lieflow.compiled.CompiledSchemeFlow`, many steps per call), or
-    :class:`InputError` if numba is missing or the case is not supported. ``"auto"``: the
-    compiled engine where it is supported, installed and faster
-    (:func:`lieflow.compiled.wins`, judged for ``steps`` steps of ``W0``), else numpy.
-    The flow is built once, of the class it ends up with.
-    """
-    if engine == "numpy":
-        return SchemeFlow(system, scheme, solver, warm_start)
-    if engine not in ("auto", "compiled"):
-        raise InputError(f"engine must be 'auto', 'numpy' or 'compiled', got {engine!r}")
-    if not is_numpy(W0):  # an array of another library (lieflow.backends)
-        if engine == "compiled":
-            raise InputError(
-                f"engine='compiled' runs NumPy arrays only, got a {type(W0).__module__} "
-                "array; use engine='auto' (the array's own library runs the steps)"
-            )
-        return SchemeFlow(system, scheme, solver, warm_start)
-    from . import compiled
-
-    if engine == "auto" and not compiled.available():
-        return SchemeFlow(system, scheme, solver, warm_start)
-    n = W0.shape[-1]
-    K = W0.size // max(n * n, 1)
-    # judged before plan(), which loads the system's compiled B
-    if engine == "auto" and not compiled.wins(n, steps, K, np.iscomplexobj(W0)):
-        return SchemeFlow(system, scheme, solver, warm_start)
-    plan = compiled.plan(system, scheme, solver, W0)  # names a missing numba too
-    if isinstance(plan, str):
-        if engine == "compiled":
-            raise InputError(f"engine='compiled' cannot run this case: {plan}; use engine='auto'")
-        return SchemeFlow(system, scheme, solver, warm_start)
-    return plan.flow(system, scheme, solver, warm_start)
 
 
 def _available_memory() -> int | None:

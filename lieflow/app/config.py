@@ -57,7 +57,7 @@ from ..algebras import Array
 from ..backends import check_device
 from ..errors import InputError, LieflowError, PluginError, quote, shorten
 from ..flows import Flow, Splitting
-from ..integration import Engine, scheme_flow
+from ..engines import Engine, scheme_flow
 from ..plugins import Kind, Registry, default_registry
 from ..schemes.base import Scheme
 from ..sinks import run_identity
