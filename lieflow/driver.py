@@ -533,7 +533,7 @@ class Diagnostics:
         """:meth:`of_chunk` given the energies ``H`` and Casimirs ``C`` of its states."""
         rows: tuple[ExtraRow, ...] = ()
         if self.extra is not None:
-            rows = tuple((int(chunk.index[j]), float(chunk.t[j]), self.extra(chunk.state_at(j)))
+            rows = tuple((int(chunk.index[j]), float(chunk.t[j]), self.extra(chunk.state_at(int(j))))
                          for j in np.flatnonzero(chunk.index % self.extra_every == 0))  # fmt: skip
         return ChunkDiagnostics(H, C, self.energy_error(H), self.casimir_drift(C), rows)
 
@@ -698,15 +698,13 @@ def run(
             batch = 1
         else:
             batch = min(batch_steps(W0), every or BATCH_STEPS)
-        extra = diagnostics is not None and diagnostics.extra is not None
-        recording = Recording(
-            save_every, steps, diagnostics.extra_every if extra else 0, diagnostics is not None
-        )
+        extra = 0 if diagnostics is None or diagnostics.extra is None else diagnostics.extra_every
+        recording = Recording(save_every, steps, extra, diagnostics is not None)
         for chunk in advance(flow, W0, h, steps, start=start, state=state, batch=batch,
                              recording=recording):  # fmt: skip
             if not is_numpy(chunk.W):  # another array library: to the host, once per chunk
                 chunk = attrs.evolve(chunk, W=to_numpy(chunk.W))
-            if chunk.W.shape[0] == 1:  # one step (a numpy-engine chunk): its mask in Python
+            if chunk.held is None and chunk.W.shape[0] == 1:  # one step: its mask in Python
                 k = chunk.start + 1
                 kept = k % save_every == 0 or k == steps
                 keep = _ONE_STEP[kept]

@@ -31,7 +31,6 @@ from typing import Any
 import attrs
 import numpy as np
 
-from ..algebras import Array
 from ..solvers.base import ImplicitProblem, Solver, SolveResult
 from ..solvers.fixed_point import (
     _EPS,
@@ -50,10 +49,13 @@ from ..solvers.newton import Auto
 
 __all__ = ["TracedSolver", "supported", "verdict"]
 
+#: A value of a traced program (a JAX tracer), or a concrete JAX array.
+Traced = Any
+
 
 def verdict(
-    rule: StoppingRule, floor: float, res: Array, k: Array, met: Array, growth: Array
-) -> Array:
+    rule: StoppingRule, floor: float, res: Traced, k: Traced, met: Traced, growth: Traced
+) -> Traced:
     """:func:`~lieflow.solvers.fixed_point.stopping_verdict` of ``rule`` on the relative
     updates ``res[:k]`` (``res``: a buffer of ``rule.max_iter`` entries, ``+inf`` from
     ``k`` on), traced: the code of the reason to stop, :data:`GO` to go on. ``floor`` is the
@@ -82,7 +84,7 @@ def verdict(
     return jnp.where(finite, code, NON_FINITE)
 
 
-def _norms(x: Array, core_ndim: int) -> Array:
+def _norms(x: Traced, core_ndim: int) -> Traced:
     """Frobenius norms over the trailing ``core_ndim`` axes (the batch shape)."""
     import jax.numpy as jnp
 
@@ -102,7 +104,7 @@ class Iteration:
 
 def _iteration(solver: Solver) -> Iteration | None:
     """The traced iteration of a plain fixed-point solver (or its frozen-B form)."""
-    if type(solver).solve is not FixedPoint.solve or getattr(solver, "anderson", 0):
+    if type(solver).solve is not FixedPoint.solve or getattr(solver, "anderson", False):
         return None
     if isinstance(solver, FrozenB) and type(solver)._map is FrozenB._map:
         return Iteration(solver.name, "frozen_map", solver.rule)
@@ -123,12 +125,12 @@ def supported(solver: Solver) -> str | None:
     return None
 
 
-def _fixed_point(problem: ImplicitProblem, it: Iteration) -> tuple[Array, Array, Array, Array]:
+def _fixed_point(problem: ImplicitProblem, it: Iteration) -> tuple[Traced, Traced, Traced, Traced]:
     """One traced solve: ``(x, iterations, last relative update, verdict code)``."""
     import jax.numpy as jnp
     from jax import lax
 
-    F: Callable[[Array], Array] = getattr(problem, it.map_name)
+    F: Callable[[Traced], Traced] = getattr(problem, it.map_name)
     rule = it.rule
     x0 = problem.x0
     core = problem.core_ndim
@@ -157,7 +159,7 @@ def _fixed_point(problem: ImplicitProblem, it: Iteration) -> tuple[Array, Array,
     return g, k, res[k - 1], code
 
 
-def ok(code: Array) -> Array:
+def ok(code: Traced) -> Traced:
     """Whether a verdict code accepts the solve (converged, or at roundoff)."""
     return (code == CONVERGED) | (code == ROUNDOFF)
 
@@ -174,7 +176,7 @@ class TracedSolver:
     def __init__(self, solver: Solver) -> None:
         self.solver = solver
         self.name = str(solver.name)
-        self.verdicts: list[tuple[Array, Array]] = []
+        self.verdicts: list[tuple[Traced, Traced]] = []
         if isinstance(solver, Auto):
             first, fallback = _iteration(solver.first), _iteration(solver.fallback)
             assert first is not None and fallback is not None
@@ -206,4 +208,4 @@ class TracedSolver:
                 ok(code), lambda carry: carry, again, (x, k, r, code, which)
             )
         self.verdicts.append((ok(code), which))
-        return SolveResult(x, True, k, (r,), "converged", self.names[0])
+        return SolveResult(x, True, k, (r,), "converged", self.names[0])  # traced values

@@ -29,6 +29,8 @@ per shape and dtype): a flow reused for several runs compiles once.
 from __future__ import annotations
 
 import math
+import os
+from pathlib import Path
 from typing import Any
 
 import attrs
@@ -56,7 +58,8 @@ def available() -> bool:
 
 def _jax() -> Any:
     """The ``jax`` module with double precision switched on (``jax_enable_x64``: lieflow's
-    states are float64/complex128, and a traced loop counts in 64-bit integers)."""
+    states are float64/complex128, and a traced loop counts in 64-bit integers) and, unless
+    the user chose one, JAX's persistent compilation cache in :func:`cache_directory`."""
     try:
         import jax
     except ImportError as exc:
@@ -65,7 +68,20 @@ def _jax() -> Any:
             "pip install 'jax[cuda12]'), or choose engine='numpy'"
         ) from exc
     jax.config.update("jax_enable_x64", True)
+    if not jax.config.jax_compilation_cache_dir:
+        jax.config.update("jax_compilation_cache_dir", str(cache_directory()))
     return jax
+
+
+def cache_directory() -> Path:
+    """Where the traced engine's compiled programs are kept between processes (JAX's
+    persistent compilation cache, keyed by the program itself: the same system, scheme,
+    solver, step size, shape and dtype compile once per machine): ``$XDG_CACHE_HOME/
+    lieflow/jax``, else ``~/.cache/lieflow/jax``. A cache directory the user set for JAX
+    (``JAX_COMPILATION_CACHE_DIR`` or ``jax.config``) is used as it is."""
+    xdg = os.environ.get("XDG_CACHE_HOME", "")
+    base = Path(xdg) if os.path.isabs(xdg) else Path.home() / ".cache"
+    return base / "lieflow" / "jax"
 
 
 def jax_array(x: Any) -> Any:
@@ -207,6 +223,10 @@ class TracedSchemeFlow(SchemeFlow):
         depth = 0 if state is None else state.depth
         program = self._program(float(h), diagnostics, depth, Wj)
         history = None if state is None else self._history(state, Wj, h)
+        # committed to the state's device, as the program's outputs are: the inputs of the
+        # first call then look like those of the next ones (no second compilation)
+        device = next(iter(Wj.devices()))
+        Wj, history = jax.device_put((Wj, history), device)
         parts: list[Any] = []
         held: list[Any] = []
         done = 0
