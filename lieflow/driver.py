@@ -533,8 +533,9 @@ class Diagnostics:
         """:meth:`of_chunk` given the energies ``H`` and Casimirs ``C`` of its states."""
         rows: tuple[ExtraRow, ...] = ()
         if self.extra is not None:
-            rows = tuple((int(chunk.index[j]), float(chunk.t[j]), self.extra(chunk.state_at(int(j))))
-                         for j in np.flatnonzero(chunk.index % self.extra_every == 0))  # fmt: skip
+            at = np.flatnonzero(chunk.index % self.extra_every == 0).tolist()
+            rows = tuple((int(chunk.index[j]), float(chunk.t[j]), self.extra(chunk.state_at(j)))
+                         for j in at)  # fmt: skip
         return ChunkDiagnostics(H, C, self.energy_error(H), self.casimir_drift(C), rows)
 
 

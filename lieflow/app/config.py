@@ -55,9 +55,9 @@ import numpy as np
 
 from ..algebras import Array
 from ..backends import check_device
+from ..engines import Engine, scheme_flow
 from ..errors import InputError, LieflowError, PluginError, quote, shorten
 from ..flows import Flow, Splitting
-from ..engines import Engine, scheme_flow
 from ..plugins import Kind, Registry, default_registry
 from ..schemes.base import Scheme
 from ..sinks import run_identity

@@ -43,8 +43,8 @@ import numpy as np
 
 from .. import compiled
 from ..algebras import SO, Array
-from ..errors import InputError
 from ..engines import Engine
+from ..errors import InputError
 from ..integration import integrate
 from ..schemes import get as get_scheme
 from ..solution import Solution
