@@ -68,7 +68,7 @@ def _jax() -> Any:
             "pip install 'jax[cuda12]'), or choose engine='numpy'"
         ) from exc
     jax.config.update("jax_enable_x64", True)
-    if not jax.config.jax_compilation_cache_dir:
+    if not getattr(jax.config, "jax_compilation_cache_dir", None):
         jax.config.update("jax_compilation_cache_dir", str(cache_directory()))
     return jax
 
