@@ -88,8 +88,8 @@ def test_the_warm_start_as_arrays_predicts_and_trusts_as_the_warm_start(depth: i
         arrays = warm.advance(arrays, solved, np)
         assert int(arrays.trusted) == state.trusted
         assert int(arrays.count) == len(state.history())
-    back = warm.to_warm_start(lf.WarmStart.keeping(depth), arrays, int(arrays.count),
-                              int(arrays.trusted))  # fmt: skip
+    rows = [arrays.history[j] for j in range(int(arrays.count))]
+    back = lf.WarmStart.keeping(depth).replaced(rows, int(arrays.trusted))
     for a, b in zip(back.history(), state.history(), strict=True):
         np.testing.assert_array_equal(a, b)
 

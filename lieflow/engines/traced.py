@@ -125,6 +125,7 @@ class _Program:
     names: tuple[str, ...]
     diagnostics: bool
     holds_all: bool
+    offsets: Any  # the shape and dtype of a step's solved offsets (the warm start's)
 
 
 def _traces(f: Any, W: Any) -> bool:
@@ -186,6 +187,11 @@ class TracedSchemeFlow(SchemeFlow):
     #: chunks end at the states a run needs, and hold only those (lieflow.driver.advance)
     holds_needed_states = True
     _programs: dict[tuple[Any, ...], _Program] = attrs.field(init=False, factory=dict, repr=False)
+    #: the warm start the last chunk returned and the arrays it was made of (reused when
+    #: the next chunk starts from it: no conversion per chunk)
+    _carried: list[tuple[WarmStart, warm.History]] = attrs.field(
+        init=False, factory=list, repr=False
+    )
 
     def step(
         self, W: Array, t: float, h: float, state: WarmStart | None
@@ -222,22 +228,26 @@ class TracedSchemeFlow(SchemeFlow):
         Wj = jax_array(W)
         depth = 0 if state is None else state.depth
         program = self._program(float(h), diagnostics, depth, Wj)
-        history = None if state is None else self._history(state, Wj, h)
+        history = None if state is None else self._history(state, program)
         # committed to the state's device, as the program's outputs are: the inputs of the
         # first call then look like those of the next ones (no second compilation)
         device = next(iter(Wj.devices()))
         Wj, history = jax.device_put((Wj, history), device)
         parts: list[Any] = []
         held: list[Any] = []
-        done = 0
+        done, filled = 0, (0, 0)
         while done < steps:
             ask = min(program.length, steps - done)
-            Wj, history, count, *buffers, states = program.run(Wj, history, ask)
-            taken, *host = jax.device_get((count, *buffers))
-            taken = int(taken)
-            parts.append([b[:taken] for b in host])
+            Wj, last, history, rows, count, *buffers, states = program.run(Wj, history, ask)
+            # the one synchronisation of the call: the counts and the per-step numbers
+            counts = (count,) if history is None else (count, history.count, history.trusted)
+            fetched = jax.device_get((counts, buffers))
+            taken = int(fetched[0][0])
+            parts.append([b[:taken] for b in fetched[1]])
             if program.holds_all:
                 held.append(states[:taken])
+            if taken and history is not None:
+                filled = (int(fetched[0][1]), int(fetched[0][2]))
             done += taken
             if taken < ask:
                 break
@@ -247,14 +257,14 @@ class TracedSchemeFlow(SchemeFlow):
         new = state
         if state is not None and done:
             assert history is not None
-            count, trusted = (int(v) for v in jax.device_get((history.count, history.trusted)))
-            new = _leaves_like(warm.to_warm_start(state, history, count, trusted), W)
+            new = _leaves_like(state.replaced(list(rows[: filled[0]]), filled[1]), W)
+            self._carried.clear()  # the next chunk, given ``new``, starts from ``history``
+            self._carried.append((new, history))
         if program.holds_all:  # every state, the diagnostics the host's
             W_out = _like(jax.numpy.concatenate(held) if len(held) > 1 else held[0], W)
             kept = None
         else:  # the last state only, the diagnostics the device's
-            W_out = _like(Wj, W)[None]
-            W_out = W_out if done else W_out[:0]
+            W_out = _like(last, W) if done else _like(last, W)[:0]
             kept = np.array([done - 1]) if done else np.zeros(0, dtype=np.int64)
         on_device = program.diagnostics and not program.holds_all
         return driver.Chunk(
@@ -270,16 +280,14 @@ class TracedSchemeFlow(SchemeFlow):
             casimirs=casimirs if on_device else None,
         )
 
-    def _history(self, state: WarmStart, W: Any, h: float) -> warm.History:
-        """``state`` as the arrays the program carries (on ``W``'s device)."""
-        jax = _jax()
-        shape = jax.eval_shape(
-            lambda W: _one_step(
-                self.system, self.scheme, loops.TracedSolver(self.solver), W, h, None
-            )[1],
-            jax.ShapeDtypeStruct(W.shape, W.dtype),
-        )
-        return warm.from_warm_start(state, tuple(shape.shape), shape.dtype, jax.numpy)
+    def _history(self, state: WarmStart, program: _Program) -> warm.History:
+        """``state`` as the arrays the program carries: those the last chunk ended with
+        when ``state`` is the warm start it returned, else converted."""
+        for returned, history in self._carried:
+            if returned is state:
+                return history
+        shape = program.offsets
+        return warm.from_warm_start(state, tuple(shape.shape), shape.dtype, _jax().numpy)
 
     def _program(self, h: float, diagnostics: bool, depth: int, W: Any) -> _Program:
         """The compiled chunk program for step size ``h`` (built on first use, kept)."""
@@ -305,6 +313,10 @@ class TracedSchemeFlow(SchemeFlow):
             per_step = math.prod(W.shape) if holds_all else 1
         length = max(1, min(driver.CHUNK_STEPS, driver.CHUNK_ENTRIES // max(per_step, 1)))
         stored = (length, *W.shape) if holds_all else (0, *W.shape)
+        offsets = jax.eval_shape(
+            lambda W: _one_step(system, scheme, loops.TracedSolver(solver), W, h, None)[1],
+            jax.ShapeDtypeStruct(W.shape, W.dtype),
+        )
 
         def run(W: Any, history: warm.History | None, steps: Any) -> tuple[Any, ...]:
             buffers = (
@@ -345,6 +357,9 @@ class TracedSchemeFlow(SchemeFlow):
             j, _, W, history, buffers = lax.while_loop(
                 lambda c: (c[0] < steps) & ~c[1], body, start
             )
-            return (W, history, j, *buffers)
+            # the history's rows as separate outputs too (a warm start's leaves: no
+            # slicing on the host), and W with the chunk's step axis
+            rows = () if history is None else tuple(history.history[i] for i in range(depth))
+            return (W, W[None], history, rows, j, *buffers)
 
-        return _Program(jax.jit(run), length, names, diagnostics, holds_all)
+        return _Program(jax.jit(run), length, names, diagnostics, holds_all, offsets)

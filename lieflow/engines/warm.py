@@ -32,7 +32,7 @@ import numpy as np
 from ..algebras import Array
 from ..warm_start import WarmStart, extrapolation_matrix
 
-__all__ = ["History", "advance", "from_warm_start", "predict", "to_warm_start"]
+__all__ = ["History", "advance", "from_warm_start", "predict"]
 
 
 class History(NamedTuple):
@@ -66,14 +66,6 @@ def from_warm_start(
 def _host_or_same(x: Any, xp: Any) -> Any:
     """``x`` as ``xp.asarray`` can take it: NumPy arrays go through a contiguous copy."""
     return np.ascontiguousarray(x) if isinstance(x, np.ndarray) else x
-
-
-def to_warm_start(template: WarmStart, history: History, count: int, trusted: int) -> WarmStart:
-    """The :class:`~lieflow.warm_start.WarmStart` of the same depth and form as
-    ``template`` holding the first ``count`` rows of ``history`` (``count`` and ``trusted``
-    read on the host)."""
-    rows = [history.history[j] for j in range(count)]
-    return template.replaced(rows, int(trusted))
 
 
 def predict(state: History, xp: Any) -> Array:
