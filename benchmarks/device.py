@@ -6,7 +6,7 @@ size and scheme after all device rows, up to ``--reference-max``, 1024 by defaul
 
     python -m benchmarks.device                     # every engine the machine has
     python -m benchmarks.device --engines traced hand --sizes 256 1024 2048
-    python -m benchmarks.device --dry-run           # JAX and array_api_strict on the CPU, N = 16, 32
+    python -m benchmarks.device --dry-run           # JAX, array_api_strict on the CPU
     python -m benchmarks.device --out table.md
 
 Engines (rows):
@@ -194,9 +194,7 @@ def hand_written(system: Any, h: float, rtol: float, steps: int) -> Callable[[An
         def F(M: Any) -> Any:
             B = system.B(M)
             BM = B @ M
-            return W + (h / 2) * (BM - jnp.conj(jnp.swapaxes(BM, -1, -2))) + (h * h / 4) * (
-                BM @ B
-            )
+            return W + (h / 2) * (BM - jnp.conj(jnp.swapaxes(BM, -1, -2))) + (h * h / 4) * (BM @ B)
 
         def body(c: tuple[Any, ...]) -> tuple[Any, ...]:
             M, _, k = c
@@ -243,8 +241,9 @@ def initial_state(N: int) -> np.ndarray:
     return np.asarray(W * (np.sqrt(N) / np.linalg.norm(W)))
 
 
-def _row(N: int, h: float, scheme: str, dtype: Any, engine: str, seconds: float,
-         updates: Sequence[int]) -> dict[str, Any]:  # fmt: skip
+def _row(
+    N: int, h: float, scheme: str, dtype: Any, engine: str, seconds: float, updates: Sequence[int]
+) -> dict[str, Any]:
     steps = len(updates)
     per_step = 1e3 * seconds / steps
     return {
@@ -264,9 +263,17 @@ def _row(N: int, h: float, scheme: str, dtype: Any, engine: str, seconds: float,
 def reference(system: Any, W0c: np.ndarray, scheme_name: str, steps: int, h: float) -> np.ndarray:
     """The numpy engine's end state after ``steps`` steps from ``W0c`` (host, all BLAS
     threads; the default warm start, as the traced rows)."""
-    sol = lf.integrate(system, lf.schemes.get(scheme_name), W0c, h, steps=steps,
-                       solver=lf.solvers.FixedPoint(rtol=RTOL["complex128"], max_iter=200),
-                       save_every=steps, diagnostics=False, engine="numpy")  # fmt: skip
+    sol = lf.integrate(
+        system,
+        lf.schemes.get(scheme_name),
+        W0c,
+        h,
+        steps=steps,
+        solver=lf.solvers.FixedPoint(rtol=RTOL["complex128"], max_iter=200),
+        save_every=steps,
+        diagnostics=False,
+        engine="numpy",
+    )
     return np.asarray(sol.W_final)
 
 
@@ -294,20 +301,41 @@ def main(argv: Sequence[str] | None = None) -> int:
         default="auto",
         help="the array library of the eager rows",
     )
-    parser.add_argument("--engines", nargs="+", choices=("traced", "hand", "eager"),
-                        default=["traced", "hand", "eager"])  # fmt: skip
+    parser.add_argument(
+        "--engines",
+        nargs="+",
+        choices=("traced", "hand", "eager"),
+        default=["traced", "hand", "eager"],
+    )
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024, 2048])
     parser.add_argument("--steps", type=int, default=10)
-    parser.add_argument("--anderson", type=int, nargs="+", default=[0, 5],
-                        help="traced rows: FixedPoint(anderson=m) for each m (0: plain)")  # fmt: skip
-    parser.add_argument("--check-every", type=int, nargs="+", default=[1, 4],
-                        help="eager rows: FixedPoint(check_every=k) for each k")  # fmt: skip
-    parser.add_argument("--reference-max", type=int, default=1024,
-                        help="compare with the CPU engine up to this N (minutes at 1024)")  # fmt: skip
+    parser.add_argument(
+        "--anderson",
+        type=int,
+        nargs="+",
+        default=[0, 5],
+        help="traced rows: FixedPoint(anderson=m) for each m (0: plain)",
+    )
+    parser.add_argument(
+        "--check-every",
+        type=int,
+        nargs="+",
+        default=[1, 4],
+        help="eager rows: FixedPoint(check_every=k) for each k",
+    )
+    parser.add_argument(
+        "--reference-max",
+        type=int,
+        default=1024,
+        help="compare with the CPU engine up to this N (minutes at 1024)",
+    )
     parser.add_argument("--no-single", action="store_true", help="skip complex64")
     parser.add_argument("--out", help="also write the table (Markdown) to this file")
-    parser.add_argument("--dry-run", action="store_true",
-                        help="JAX (CPU) and array_api_strict at N = 16, 32, 2 steps")  # fmt: skip
+    parser.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="JAX (CPU) and array_api_strict at N = 16, 32, 2 steps",
+    )
     args = parser.parse_args(argv)
     if args.dry_run:
         args.library, args.sizes, args.steps = "array_api_strict", [16, 32], 2
@@ -379,15 +407,19 @@ def main(argv: Sequence[str] | None = None) -> int:
                     put, sync, _ = eager
                     for k in args.check_every:
                         try:
-                            W1, _, _, warm = run_steps(system, scheme, put(W0), 1, sync, h,
-                                                       rtol, None, k)  # fmt: skip
-                            end, updates, seconds, _ = run_steps(system, scheme, W1, args.steps,
-                                                                 sync, h, rtol, warm, k)  # fmt: skip
+                            W1, _, _, warm = run_steps(
+                                system, scheme, put(W0), 1, sync, h, rtol, None, k
+                            )
+                            end, updates, seconds, _ = run_steps(
+                                system, scheme, W1, args.steps, sync, h, rtol, warm, k
+                            )
                         except lf.ConvergenceError as exc:
                             failures.append(f"{label} eager k={k}: {exc}")
                             continue
-                        record(_row(N, h, name, dtype, f"eager, check every {k}", seconds,
-                                    updates), end)  # fmt: skip
+                        record(
+                            _row(N, h, name, dtype, f"eager, check every {k}", seconds, updates),
+                            end,
+                        )
     # the CPU references last (minutes at N = 1024); the hand-written rows started one step
     # later than they ended (scan of `steps` from the state after `steps`): compared with
     # 2 * steps steps

@@ -105,9 +105,8 @@ def _like(y: Any, like: Any) -> Any:
     return namespace(like).from_dlpack(y)
 
 
-def _leaves_like(state: WarmStart | None, like: Any) -> WarmStart | None:
-    if state is None:
-        return None
+def _leaves_like(state: WarmStart, like: Any) -> WarmStart:
+    """``state`` with its kept solutions as arrays of ``like``'s library."""
     return state.replaced([_like(x, like) for x in state.history()], int(state.trusted))
 
 
