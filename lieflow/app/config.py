@@ -772,8 +772,6 @@ def _run(raw: Mapping[str, Any], source: str, base: Path, default_output: str) -
     )
 
 
-
-
 def parse_config(
     text: str, *, source: str = "<string>", base_dir: Path | str | None = None
 ) -> Config:
