@@ -109,8 +109,9 @@ class ConvergenceError(LieflowError):
         return self if hint is None else self._with(hint=hint)
 
     def _with(self, **changes: Any) -> ConvergenceError:
-        fields = dict(solver=self.solver, iterations=self.iterations, residuals=self.residuals,
-                      step=self.step, t=self.t, hint=self.hint)  # fmt: skip
+        fields: dict[str, Any] = dict(solver=self.solver, iterations=self.iterations,
+                                      residuals=self.residuals, step=self.step, t=self.t,
+                                      hint=self.hint)  # fmt: skip
         fields.update(changes)
         return ConvergenceError(self.reason, **fields)
 

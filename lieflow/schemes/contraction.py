@@ -42,8 +42,8 @@ def spectral_diameter(B: Array, skew: bool) -> float:
     B = np.asarray(to_numpy(B))
     B = B.reshape(-1, *B.shape[-2:])
     if skew:
-        ev = np.linalg.eigvalsh(1j * B)
-        return float(np.max(ev[:, -1] - ev[:, 0]))
+        real = np.linalg.eigvalsh(1j * B)
+        return float(np.max(real[:, -1] - real[:, 0]))
     ev = np.linalg.eigvals(B)
     return float(np.max(np.abs(ev[:, :, None] - ev[:, None, :])))
 
