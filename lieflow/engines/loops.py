@@ -138,6 +138,7 @@ def _fixed_point(problem: ImplicitProblem, it: Iteration) -> tuple[Traced, Trace
     floor = rule.roundoff_floor * max(eps / _EPS, 1.0)
     tiny = float(np.finfo(float).tiny)
     res0 = jnp.full((rule.max_iter,), jnp.inf, dtype=jnp.float64)
+    quiet = min(rule.patience, rule.window, rule.max_iter - 1)
     norm0 = _norms(x0, core).astype(jnp.float64)
 
     def body(carry: tuple[Any, ...]) -> tuple[Any, ...]:
@@ -151,7 +152,15 @@ def _fixed_point(problem: ImplicitProblem, it: Iteration) -> tuple[Traced, Trace
         res = res.at[k].set(jnp.where(finite, r, jnp.nan))
         met = jnp.all(step <= rule.atol + rule.rtol * size)
         growth = jnp.max(size / size0)
-        code = verdict(rule, floor, res, k + 1, met, growth)
+        # the scalar rule's two shortcuts (lean_check): a met tolerance converges; an unmet,
+        # finite, bounded update within the first ``quiet`` goes on — the whole rule only
+        # otherwise
+        plain = finite & (met | ((k + 1 <= quiet) & (growth <= rule.divergence_factor)))
+        code = lax.cond(
+            plain,
+            lambda: jnp.where(met, CONVERGED, GO).astype(jnp.int64),
+            lambda: verdict(rule, floor, res, k + 1, met, growth).astype(jnp.int64),
+        )
         return g, g, k + 1, res, size0, code
 
     start = (x0, x0, jnp.asarray(0, jnp.int64), res0, norm0, jnp.asarray(GO, jnp.int64))
