@@ -364,22 +364,28 @@ def integrate(
     progress : bool or Monitor
         ``True`` shows a progress bar (needs ``rich``); a
         :class:`~lieflow.driver.Monitor` receives the progress instead.
-    engine : {"auto", "numpy", "compiled"}
-        How a scheme's steps are computed. ``"numpy"``: one vectorised numpy step at a time
-        (any system, scheme, solver, dtype). ``"compiled"``: loops compiled with numba
-        (``pip install 'lieflow[fast]'``) that advance many steps per call, for systems
-        that supply a compiled ``B`` (:meth:`~lieflow.IsospectralSystem.compiled_B`: the
-        rigid bodies, the periodic Toda lattice, point vortices, Euler–Zeitlin, and any
-        system with ``B(W) = S ⊙ W``), schemes with a compiled form (SyDIRK, reduced-form
-        BlockGauss), float64 data or complex128 data on u(n)/su(N), and ``FixedPoint`` (or
-        ``Auto``) solvers; same
-        iterations and stopping rule, results equal to roundoff, and a step it cannot
-        finish is handed to the numpy path (see :mod:`lieflow.compiled`); raises
-        :class:`InputError` if numba is missing or the case is not supported. ``"auto"``
-        (default): compiled where supported, numba is installed, and it is faster
-        (``n <= 128``, complex ``n <= 96``, and at least 1000 trajectory-steps, see
-        :func:`lieflow.compiled.wins`: a function of the run alone, so the same run gives
-        the same bits in any process), else numpy.
+    engine : {"auto", "numpy", "compiled", "jax"}
+        How a scheme's steps are computed (:mod:`lieflow.engines`). ``"numpy"``: the eager
+        engine, one vectorised step at a time on the array's own library (any system,
+        scheme, solver, dtype). ``"compiled"``: loops compiled with numba
+        (``pip install 'lieflow[fast]'``) that advance many steps per call, for NumPy arrays
+        of systems that supply a compiled ``B``
+        (:meth:`~lieflow.IsospectralSystem.compiled_B`: the rigid bodies, the periodic Toda
+        lattice, point vortices, Euler–Zeitlin, and any system with ``B(W) = S ⊙ W``),
+        schemes with a compiled form (SyDIRK, reduced-form BlockGauss), float64 data or
+        complex128 data on u(n)/su(N), and ``FixedPoint`` (or ``Auto``) solvers (see
+        :mod:`lieflow.compiled`). ``"jax"``: the traced engine
+        (:mod:`lieflow.engines.traced`, ``pip install jax``): the whole step compiled by
+        ``jax.jit`` and run on the array's device, a chunk of steps per call (NumPy arrays
+        run on JAX's default device). Both run the same iterations and stopping rule, give
+        results equal to roundoff, hand a step they cannot finish to the numpy path, and
+        raise :class:`InputError` naming what is missing or not supported. ``"auto"``
+        (default): for NumPy arrays the compiled loops where supported, numba is installed
+        and they are faster (``n <= 128``, complex ``n <= 96``, and at least 1000
+        trajectory-steps, see :func:`lieflow.compiled.wins`: a function of the run alone, so
+        the same run gives the same bits in any process), else numpy; for JAX arrays (and
+        CuPy or PyTorch arrays on a GPU JAX runs on) the traced engine where it runs the
+        case, else the eager engine.
     out : str, path or Sink, optional
         Stream the run into this trajectory file — the format ``lieflow run`` writes (the
         sink the plugin registry holds for the file's suffix, :func:`lieflow.sinks.open_sink`:
