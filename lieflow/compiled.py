@@ -338,7 +338,7 @@ class CompiledSchemeFlow(SchemeFlow):
     """A :class:`~lieflow.flows.SchemeFlow` whose steps the compiled loops take, a chunk per
     call (:meth:`step_many`, used by :func:`lieflow.driver.advance`); :meth:`step` (the
     numpy path) takes any step they do not accept. Build it with
-    :func:`lieflow.integration.scheme_flow`.
+    :func:`lieflow.engines.scheme_flow`.
 
     Each new state is mapped onto the phase space inside the loops, as the numpy path does
     (:meth:`~lieflow.IsospectralSystem.compiled_project`), or, for a system without a

@@ -43,6 +43,7 @@ __all__ = [
     "Monitor",
     "MultiStepFlow",
     "Outcome",
+    "Recording",
     "advance",
     "batch_steps",
     "chunk_steps",
@@ -112,6 +113,15 @@ class Chunk:
     state : tree of arrays
         The flow's state after the last step: with ``W[-1]`` and :attr:`stop`, all a
         checkpoint needs to resume bit-for-bit.
+    held : ndarray of int, optional
+        Which steps' states ``W`` holds (indices ``0 .. m-1`` into the chunk, increasing,
+        the last step always among them); ``None`` (the default): every step's. A flow
+        whose states live on a device holds only those its :class:`Recording` needs
+        (:attr:`MultiStepFlow.holds_needed_states`), so that only they reach the host.
+    energy, casimirs : ndarray, optional
+        The Hamiltonian ``(m, *batch)`` and Casimirs ``(m, *batch, n_casimirs)`` of every
+        step, where the flow computed them (on its device); ``None``: :class:`Diagnostics`
+        computes them from ``W``.
     """
 
     start: int
@@ -121,6 +131,9 @@ class Chunk:
     residuals: Array = attrs.field(repr=False)
     solvers: tuple[str, ...]
     state: Any = attrs.field(repr=False)
+    held: Array | None = attrs.field(default=None, kw_only=True, repr=False)
+    energy: Array | None = attrs.field(default=None, kw_only=True, repr=False)
+    casimirs: Array | None = attrs.field(default=None, kw_only=True, repr=False)
 
     @property
     def size(self) -> int:
@@ -142,10 +155,76 @@ class Chunk:
         """Times ``k h`` of the chunk's steps."""
         return self.index * self.h
 
+    def states(self, keep: Array) -> Array:
+        """The states of the steps where the boolean mask ``keep`` (one entry per step) is
+        true: ``W[keep]``, or the rows of the held steps among them (every step kept must
+        be held: :class:`Recording` decides both)."""
+        held = self.held
+        if held is None:
+            return self.W[keep]
+        rows = keep[held]
+        if int(np.count_nonzero(rows)) != int(np.count_nonzero(keep)):
+            raise ValueError(
+                f"steps {(self.index[keep]).tolist()} are kept, but the chunk holds the states "
+                f"of steps {(self.index[held]).tolist()} only"
+            )
+        return self.W[rows]
+
+    def state_at(self, j: int) -> Array:
+        """The state after the chunk's ``j``-th step (``0 .. m-1``), which must be held."""
+        held = self.held
+        if held is None:
+            return self.W[j]
+        rows = np.flatnonzero(held == j)
+        if not rows.size:
+            raise ValueError(f"the chunk does not hold the state of step {self.start + 1 + j}")
+        return self.W[int(rows[0])]
+
+
+@attrs.frozen
+class Recording:
+    """What the consumer (:func:`run`) needs of the steps, decided once per run: the states
+    of step ``k`` where ``k % save_every == 0`` or ``k == last`` (saved) or
+    ``k % extra_every == 0`` (the system's extra diagnostics, ``extra_every > 0``), and the
+    energy and Casimirs of every step when ``diagnostics``. A flow whose states live on a
+    device (:attr:`MultiStepFlow.holds_needed_states`) ends its chunks at the states needed
+    and holds only those, so that nothing else crosses to the host."""
+
+    save_every: int = 1
+    last: int = 0
+    extra_every: int = 0
+    diagnostics: bool = False
+
+    def needs_state(self, k: int) -> bool:
+        """Whether the state after step ``k`` is saved or diagnosed."""
+        extra = self.extra_every
+        return k % self.save_every == 0 or k == self.last or bool(extra and k % extra == 0)
+
+    def next_needed(self, k: int) -> int:
+        """The first step after ``k`` whose state is needed (at most :attr:`last`)."""
+        j = (k // self.save_every + 1) * self.save_every
+        if self.extra_every:
+            j = min(j, (k // self.extra_every + 1) * self.extra_every)
+        return min(j, max(self.last, k + 1))
+
+    def needed(self, index: Array) -> Array:
+        """The boolean mask of :meth:`needs_state` over step indices ``index``."""
+        mask = (index % self.save_every == 0) | (index == self.last)
+        if self.extra_every:
+            mask |= index % self.extra_every == 0
+        return np.asarray(mask)
+
 
 @runtime_checkable
 class MultiStepFlow(Flow, Protocol):
-    """A :class:`~lieflow.flows.Flow` that can also advance many steps per call."""
+    """A :class:`~lieflow.flows.Flow` that can also advance many steps per call.
+
+    A flow that sets ``holds_needed_states = True`` (a device engine,
+    :class:`lieflow.engines.traced.TracedSchemeFlow`) takes ``recording=`` (the run's
+    :class:`Recording`) in :meth:`step_many`: :func:`advance` then ends its chunks at the
+    states the recording needs, and the chunk holds those states only
+    (:attr:`Chunk.held`), with the energy and Casimirs of every step when it asks for
+    diagnostics (:attr:`Chunk.energy`, :attr:`Chunk.casimirs`)."""
 
     def step_many(self, W: Array, start: int, h: float, steps: int, state: Any) -> Chunk:
         """Up to ``steps`` steps from ``W`` after step ``start``. Fewer (possibly none) when
@@ -193,6 +272,7 @@ def advance(
     start: int = 0,
     state: Any = None,
     batch: int = 1,
+    recording: Recording | None = None,
 ) -> Iterator[Chunk]:
     """Advance ``flow`` from ``W0`` (the state after step ``start``) up to step ``steps``.
 
@@ -218,6 +298,10 @@ def advance(
         consumer's work per chunk is shared by them. A step that fails, or a
         ``KeyboardInterrupt`` while stepping, first yields the chunk of the steps done
         before it.
+    recording : Recording, optional
+        What the consumer needs of the steps (:func:`run` passes its own); a flow that
+        holds only the states needed (:class:`MultiStepFlow`) ends its chunks at them.
+        ``None``: every step's state is needed.
 
     Yields
     ------
@@ -236,6 +320,10 @@ def advance(
     many = getattr(flow, "step_many", None)
     many = many if callable(many) else None
     size = chunk_steps(W0)
+    needed = None  # a flow that holds only the states needed: the recording, and its chunks
+    if many is not None and getattr(flow, "holds_needed_states", False) is True:
+        needed = Recording(last=steps) if recording is None else recording
+        size = CHUNK_STEPS
     if many is None and batch > 1 and steps - start > 1 and is_numpy(W0):
         yield from _batched(flow, W0, h, steps, start, state, batch)
         return
@@ -249,7 +337,11 @@ def advance(
             # started, so a run resumed at a chunk end takes the same chunks as an
             # uninterrupted one (bit-for-bit resume).
             asked = min(size - k % size, steps - k)
-            chunk = many(W, k, h, asked, state)
+            if needed is None:
+                chunk = many(W, k, h, asked, state)
+            else:  # up to the next state needed (a save point), which it holds
+                asked = min(asked, needed.next_needed(k) - k)
+                chunk = many(W, k, h, asked, state, recording=needed)
             if chunk.size:
                 yield chunk
                 W, k, state = chunk.W[-1], chunk.stop, chunk.state
@@ -426,15 +518,24 @@ class Diagnostics:
         return np.abs(C - self.C0) / self.scale
 
     def of_chunk(self, chunk: Chunk) -> ChunkDiagnostics:
-        """The diagnostics of ``chunk``'s steps."""
+        """The diagnostics of ``chunk``'s steps (its own energy and Casimirs where its flow
+        computed them)."""
+        if chunk.energy is not None and chunk.casimirs is not None:
+            return self._of(chunk, np.asarray(chunk.energy), np.asarray(chunk.casimirs))
+        if chunk.held is not None:
+            raise ValueError(
+                "the chunk holds some of its states only and no energies: its flow computes "
+                "diagnostics when driver.run is given them (Recording.diagnostics)"
+            )
         return self._of(chunk, self.energy(chunk.W), self.casimirs(chunk.W))
 
     def _of(self, chunk: Chunk, H: Array, C: Array) -> ChunkDiagnostics:
         """:meth:`of_chunk` given the energies ``H`` and Casimirs ``C`` of its states."""
         rows: tuple[ExtraRow, ...] = ()
         if self.extra is not None:
-            rows = tuple((int(chunk.index[j]), float(chunk.t[j]), self.extra(chunk.W[j]))
-                         for j in np.flatnonzero(chunk.index % self.extra_every == 0))  # fmt: skip
+            at = np.flatnonzero(chunk.index % self.extra_every == 0).tolist()
+            rows = tuple((int(chunk.index[j]), float(chunk.t[j]), self.extra(chunk.state_at(j)))
+                         for j in at)  # fmt: skip
         return ChunkDiagnostics(H, C, self.energy_error(H), self.casimir_drift(C), rows)
 
 
@@ -457,8 +558,12 @@ class DeferredDiagnostics:
     def start(self, chunk: Chunk) -> tuple[Diagnostics, ChunkDiagnostics]:
         """The run's :class:`Diagnostics` and those of its first ``chunk``."""
         system, W0 = self.system, self.W0
-        X = np.concatenate((W0[None], chunk.W))
-        H, C = np.asarray(system.hamiltonian(X)), np.asarray(system.casimirs(X))
+        if chunk.energy is not None and chunk.casimirs is not None:  # the flow's own
+            H = np.concatenate((np.asarray(system.hamiltonian(W0))[None], chunk.energy))
+            C = np.concatenate((np.asarray(system.casimirs(W0))[None], chunk.casimirs))
+        else:
+            X = np.concatenate((W0[None], chunk.W))
+            H, C = np.asarray(system.hamiltonian(X)), np.asarray(system.casimirs(X))
         diag = Diagnostics(system, np.asarray(H[0]), C[0], np.asarray(system.casimir_scale(W0)),
                            self.extra, self.extra_every)  # fmt: skip
         return diag, diag._of(chunk, H[1:], C[1:])
@@ -594,10 +699,13 @@ def run(
             batch = 1
         else:
             batch = min(batch_steps(W0), every or BATCH_STEPS)
-        for chunk in advance(flow, W0, h, steps, start=start, state=state, batch=batch):
+        extra = 0 if diagnostics is None or diagnostics.extra is None else diagnostics.extra_every
+        recording = Recording(save_every, steps, extra, diagnostics is not None)
+        for chunk in advance(flow, W0, h, steps, start=start, state=state, batch=batch,
+                             recording=recording):  # fmt: skip
             if not is_numpy(chunk.W):  # another array library: to the host, once per chunk
                 chunk = attrs.evolve(chunk, W=to_numpy(chunk.W))
-            if chunk.W.shape[0] == 1:  # one step (a numpy-engine chunk): its mask in Python
+            if chunk.held is None and chunk.W.shape[0] == 1:  # one step: its mask in Python
                 k = chunk.start + 1
                 kept = k % save_every == 0 or k == steps
                 keep = _ONE_STEP[kept]

@@ -75,6 +75,9 @@ class ConvergenceError(LieflowError):
         Relative update norms, one per iteration.
     step, t : int or None, float or None
         Step index and time of the failed step (filled in by :func:`lieflow.integrate`).
+    hint : str or None
+        What the failed step says about a step size that converges (a fixed-point
+        iteration's estimated contraction, :func:`lieflow.schemes.contraction.hint`).
     """
 
     def __init__(
@@ -86,6 +89,7 @@ class ConvergenceError(LieflowError):
         residuals: Sequence[float],
         step: int | None = None,
         t: float | None = None,
+        hint: str | None = None,
     ) -> None:
         self.reason = reason
         self.solver = solver
@@ -93,18 +97,23 @@ class ConvergenceError(LieflowError):
         self.residuals = tuple(float(r) for r in residuals)
         self.step = step
         self.t = t
+        self.hint = hint
         super().__init__(self._message())
 
     def at(self, step: int, t: float) -> ConvergenceError:
         """The same failure, located at step index ``step`` and time ``t``."""
-        return ConvergenceError(
-            self.reason,
-            solver=self.solver,
-            iterations=self.iterations,
-            residuals=self.residuals,
-            step=step,
-            t=t,
-        )
+        return self._with(step=step, t=t)
+
+    def with_hint(self, hint: str | None) -> ConvergenceError:
+        """The same failure with ``hint`` (the message ends with it); itself for ``None``."""
+        return self if hint is None else self._with(hint=hint)
+
+    def _with(self, **changes: Any) -> ConvergenceError:
+        fields: dict[str, Any] = dict(solver=self.solver, iterations=self.iterations,
+                                      residuals=self.residuals, step=self.step, t=self.t,
+                                      hint=self.hint)  # fmt: skip
+        fields.update(changes)
+        return ConvergenceError(self.reason, **fields)
 
     def _message(self) -> str:
         where = "" if self.step is None else f" at step {self.step} (t = {self.t:.6g})"
@@ -122,7 +131,8 @@ class ConvergenceError(LieflowError):
             ),
             "non_finite": "the iterate became NaN/Inf: reduce h or check the system's B map",
         }.get(self.reason, "reduce h or change the solver")
+        hint = "" if self.hint is None else f" {self.hint}"
         return (
             f"{self.solver} did not converge{where}: {self.reason} after {self.iterations} "
-            f"iterations, last relative update {last}. To fix: {advice}."
+            f"iterations, last relative update {last}. To fix: {advice}.{hint}"
         )

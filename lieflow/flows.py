@@ -32,10 +32,11 @@ import attrs
 import numpy as np
 
 from .algebras import SO, Array
-from .errors import InputError
+from .errors import ConvergenceError, InputError
+from .schemes import contraction
 from .schemes.base import Scheme, StepStats
 from .solvers.base import Solver
-from .solvers.fixed_point import FixedPoint
+from .solvers.fixed_point import FixedPoint, FrozenB
 from .systems.base import IsospectralSystem
 from .systems.shifted import CasimirShifted
 from .tableaus import COMPOSITIONS, composition_weights
@@ -159,13 +160,20 @@ class SchemeFlow:
         self, W: Array, h: float, state: WarmStart | None, exact: bool
     ) -> tuple[Array, WarmStart | None, StepStats]:
         """A step; ``exact``: ``W`` is on the phase space and the step keeps it there."""
-        if state is None:
-            res = self.scheme.step(W, h, self.system, self.solver, None)
-            new = None
-        else:
-            prediction = state.predict()
-            res = self.scheme.step(W, h, self.system, self.solver, prediction.guess)
-            new = prediction.advance(res.warm)
+        try:
+            if state is None:
+                res = self.scheme.step(W, h, self.system, self.solver, None)
+                new = None
+            else:
+                prediction = state.predict()
+                res = self.scheme.step(W, h, self.system, self.solver, prediction.guess)
+                new = prediction.advance(res.warm)
+        except ConvergenceError as exc:
+            # a fixed-point iteration that failed: which step size would converge
+            solver = self.solver
+            if isinstance(solver, FixedPoint) and not isinstance(solver, FrozenB):
+                raise exc.with_hint(contraction.hint(self.system, self.scheme, W, h)) from None
+            raise
         W1 = res.W
         if exact and type(W1) is np.ndarray and W1.dtype.kind == "f":
             return W1, new, res.stats

@@ -19,6 +19,7 @@ from . import driver
 from .algebras import Array
 from .backends import from_host, is_foreign_array, is_numpy, to_numpy
 from .driver import DeferredDiagnostics, Diagnostics, Monitor
+from .engines import Engine, scheme_flow
 from .errors import InputError
 from .flows import Flow, SchemeFlow, StepStats, WarmStart
 from .schemes.base import Scheme
@@ -178,56 +179,6 @@ def _resolve_steps(h: float, steps: int | None, t_final: float | None) -> int:
             "choose h = t_final / N or pass steps=N"
         )
     return n
-
-
-Engine = Literal["auto", "numpy", "compiled"]
-
-
-def scheme_flow(
-    system: IsospectralSystem,
-    scheme: Scheme,
-    solver: Solver,
-    W0: Array,
-    steps: int,
-    *,
-    engine: Engine = "auto",
-    warm_start: bool | int = True,
-) -> SchemeFlow:
-    """The :class:`SchemeFlow` that runs ``scheme`` on ``system`` with ``engine``.
-
-    ``"numpy"``: a plain :class:`SchemeFlow`. ``"compiled"``: the compiled engine
-    (:class:`lieflow.compiled.CompiledSchemeFlow`, many steps per call), or
-    :class:`InputError` if numba is missing or the case is not supported. ``"auto"``: the
-    compiled engine where it is supported, installed and faster
-    (:func:`lieflow.compiled.wins`, judged for ``steps`` steps of ``W0``), else numpy.
-    The flow is built once, of the class it ends up with.
-    """
-    if engine == "numpy":
-        return SchemeFlow(system, scheme, solver, warm_start)
-    if engine not in ("auto", "compiled"):
-        raise InputError(f"engine must be 'auto', 'numpy' or 'compiled', got {engine!r}")
-    if not is_numpy(W0):  # an array of another library (lieflow.backends)
-        if engine == "compiled":
-            raise InputError(
-                f"engine='compiled' runs NumPy arrays only, got a {type(W0).__module__} "
-                "array; use engine='auto' (the array's own library runs the steps)"
-            )
-        return SchemeFlow(system, scheme, solver, warm_start)
-    from . import compiled
-
-    if engine == "auto" and not compiled.available():
-        return SchemeFlow(system, scheme, solver, warm_start)
-    n = W0.shape[-1]
-    K = W0.size // max(n * n, 1)
-    # judged before plan(), which loads the system's compiled B
-    if engine == "auto" and not compiled.wins(n, steps, K, np.iscomplexobj(W0)):
-        return SchemeFlow(system, scheme, solver, warm_start)
-    plan = compiled.plan(system, scheme, solver, W0)  # names a missing numba too
-    if isinstance(plan, str):
-        if engine == "compiled":
-            raise InputError(f"engine='compiled' cannot run this case: {plan}; use engine='auto'")
-        return SchemeFlow(system, scheme, solver, warm_start)
-    return plan.flow(system, scheme, solver, warm_start)
 
 
 def _available_memory() -> int | None:
@@ -413,22 +364,28 @@ def integrate(
     progress : bool or Monitor
         ``True`` shows a progress bar (needs ``rich``); a
         :class:`~lieflow.driver.Monitor` receives the progress instead.
-    engine : {"auto", "numpy", "compiled"}
-        How a scheme's steps are computed. ``"numpy"``: one vectorised numpy step at a time
-        (any system, scheme, solver, dtype). ``"compiled"``: loops compiled with numba
-        (``pip install 'lieflow[fast]'``) that advance many steps per call, for systems
-        that supply a compiled ``B`` (:meth:`~lieflow.IsospectralSystem.compiled_B`: the
-        rigid bodies, the periodic Toda lattice, point vortices, Euler–Zeitlin, and any
-        system with ``B(W) = S ⊙ W``), schemes with a compiled form (SyDIRK, reduced-form
-        BlockGauss), float64 data or complex128 data on u(n)/su(N), and ``FixedPoint`` (or
-        ``Auto``) solvers; same
-        iterations and stopping rule, results equal to roundoff, and a step it cannot
-        finish is handed to the numpy path (see :mod:`lieflow.compiled`); raises
-        :class:`InputError` if numba is missing or the case is not supported. ``"auto"``
-        (default): compiled where supported, numba is installed, and it is faster
-        (``n <= 128``, complex ``n <= 96``, and at least 1000 trajectory-steps, see
-        :func:`lieflow.compiled.wins`: a function of the run alone, so the same run gives
-        the same bits in any process), else numpy.
+    engine : {"auto", "numpy", "compiled", "jax"}
+        How a scheme's steps are computed (:mod:`lieflow.engines`). ``"numpy"``: the eager
+        engine, one vectorised step at a time on the array's own library (any system,
+        scheme, solver, dtype). ``"compiled"``: loops compiled with numba
+        (``pip install 'lieflow[fast]'``) that advance many steps per call, for NumPy arrays
+        of systems that supply a compiled ``B``
+        (:meth:`~lieflow.IsospectralSystem.compiled_B`: the rigid bodies, the periodic Toda
+        lattice, point vortices, Euler–Zeitlin, and any system with ``B(W) = S ⊙ W``),
+        schemes with a compiled form (SyDIRK, reduced-form BlockGauss), float64 data or
+        complex128 data on u(n)/su(N), and ``FixedPoint`` (or ``Auto``) solvers (see
+        :mod:`lieflow.compiled`). ``"jax"``: the traced engine
+        (:mod:`lieflow.engines.traced`, ``pip install jax``): the whole step compiled by
+        ``jax.jit`` and run on the array's device, a chunk of steps per call (NumPy arrays
+        run on JAX's default device). Both run the same iterations and stopping rule, give
+        results equal to roundoff, hand a step they cannot finish to the numpy path, and
+        raise :class:`InputError` naming what is missing or not supported. ``"auto"``
+        (default): for NumPy arrays the compiled loops where supported, numba is installed
+        and they are faster (``n <= 128``, complex ``n <= 96``, and at least 1000
+        trajectory-steps, see :func:`lieflow.compiled.wins`: a function of the run alone, so
+        the same run gives the same bits in any process), else numpy; for JAX arrays (and
+        CuPy or PyTorch arrays on a GPU JAX runs on) the traced engine where it runs the
+        case, else the eager engine.
     out : str, path or Sink, optional
         Stream the run into this trajectory file — the format ``lieflow run`` writes (the
         sink the plugin registry holds for the file's suffix, :func:`lieflow.sinks.open_sink`:

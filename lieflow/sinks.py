@@ -334,7 +334,10 @@ class MemorySink:
         n = self._kept
         index = keep.nonzero()[0]  # keep is 1-D (np.flatnonzero's wrapper costs ~1 µs)
         # every state kept (a one-step chunk, save_every=1): the chunk itself, no gathered copy
-        kept = chunk.W if index.size == keep.size else chunk.W[index]
+        if chunk.held is None:
+            kept = chunk.W if index.size == keep.size else chunk.W[index]
+        else:  # a chunk that holds some states only (a device flow's)
+            kept = chunk.states(keep)
         self._W[n : n + index.size] = to_host(kept)
         self._k[n : n + index.size] = index + (a + 1)  # the step indices kept
         n += index.size

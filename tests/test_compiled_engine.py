@@ -295,7 +295,7 @@ def test_chunks_end_at_multiples_of_the_chunk_size_wherever_the_run_starts() -> 
 
 
 def test_a_complete_chunk_is_not_followed_by_a_numpy_step() -> None:
-    from lieflow.integration import scheme_flow
+    from lieflow.engines import scheme_flow
 
     body = lf.systems.RigidBody()
     W0 = body.random_state(0)
@@ -348,7 +348,7 @@ def test_a_compiled_flow_stays_compiled_inside_a_splitting(
     """Issue 26.3: the sub-steps of a compiled scheme flow inside a Splitting (and a
     Projected) are taken by the compiled loops — the scheme's numpy step never runs — and
     agree with the numpy engine's to roundoff (the reference: the same splitting on numpy)."""
-    from lieflow.integration import scheme_flow
+    from lieflow.engines import scheme_flow
 
     body = lf.systems.RigidBody(inertia=(1.0, 2.0, 3.0))
     W0 = body.random_state(3)

@@ -155,7 +155,7 @@ def test_resumed_runs_equal_uninterrupted_ones_bit_for_bit(engine: str) -> None:
     run stops at a chunk end (compiled: a call of the loops) or anywhere (numpy)."""
     if engine == "compiled":
         pytest.importorskip("numba")
-    from lieflow.integration import scheme_flow
+    from lieflow.engines import scheme_flow
 
     system, W0 = _grb()
     scheme, solver = lf.schemes.get("gauss2"), lf.solvers.FixedPoint()

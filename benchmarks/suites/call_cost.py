@@ -67,7 +67,8 @@ import numpy as np
 import lieflow as lf
 from lieflow.app.reproduce import Case
 from lieflow.compiled import CompiledSchemeFlow
-from lieflow.integration import DEFAULT_SOLVER, scheme_flow
+from lieflow.engines import scheme_flow
+from lieflow.integration import DEFAULT_SOLVER
 
 from ..config import BenchContext
 from ..report import Section, Table, TargetCheck, seconds

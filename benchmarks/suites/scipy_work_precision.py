@@ -32,7 +32,7 @@ import lieflow as lf
 from lieflow import IsospectralSystem
 from lieflow.app.reproduce import Case
 from lieflow.driver import Diagnostics
-from lieflow.integration import Engine
+from lieflow.engines import Engine
 from lieflow.systems.shifted import casimir_shift
 
 from ..config import BenchContext

@@ -30,7 +30,7 @@ import numpy as np
 
 import lieflow as lf
 from lieflow import driver
-from lieflow.integration import scheme_flow
+from lieflow.engines import scheme_flow
 
 from ..config import BenchContext
 from ..report import Section, Table, TargetCheck, ratio, seconds

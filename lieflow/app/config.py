@@ -54,10 +54,10 @@ import attrs
 import numpy as np
 
 from ..algebras import Array
-from ..backends import check_device
+from ..backends import check_device, place
+from ..engines import ENGINES, Engine, scheme_flow
 from ..errors import InputError, LieflowError, PluginError, quote, shorten
 from ..flows import Flow, Splitting
-from ..integration import Engine, scheme_flow
 from ..plugins import Kind, Registry, default_registry
 from ..schemes.base import Scheme
 from ..sinks import run_identity
@@ -245,7 +245,7 @@ class RunSettings:
         The trajectory file.
     t_final : float or None
         The final time, when the section gave ``t_final`` instead of ``steps``.
-    engine : {"auto", "numpy", "compiled"}
+    engine : {"auto", "numpy", "compiled", "jax"}
         How the scheme's steps are computed (:func:`lieflow.integrate`'s ``engine``). Not
         part of the run's identity: a file may be resumed with another engine (the steps
         then agree to roundoff, not bit for bit).
@@ -261,8 +261,9 @@ class RunSettings:
         Where the steps run (:func:`lieflow.backends.place`): ``"cpu"`` (default; NumPy),
         ``"cupy"``, ``"cupy:1"``, ``"torch"``, ``"torch:cuda:1"``, ``"jax"``, ... The state
         (and, on resume, the warm start) is placed there once; states reach the file a chunk
-        at a time. Other than ``"cpu"`` the steps run on the array library (the numpy
-        engine's source; ``engine = "compiled"`` is refused). Not part of the identity.
+        at a time. Other than ``"cpu"`` the steps run on the array library: compiled by
+        JAX where it runs on that device (the traced engine, :mod:`lieflow.engines`), else
+        eagerly (``engine = "compiled"`` is refused). Not part of the identity.
     """
 
     h: float
@@ -352,9 +353,11 @@ class RunSetup:
         ``[run] engine``, composed with the ``[splitting]`` flows if there are any."""
         run = self.config.run
         stepped = shifted(self.system, self.W0, run.casimir_shift)
-        engine = run.engine if run.device == "cpu" else "numpy"  # the array library's steps
-        inner = scheme_flow(stepped, self.scheme, self.solver, self.W0, run.steps,
-                            engine=cast(Engine, engine))  # fmt: skip
+        # on a device the engine is chosen for the state as it will be placed there: the
+        # traced engine where JAX runs on it, else the array library's eager steps
+        sample = self.W0 if run.device == "cpu" else place(self.W0, run.device)
+        inner = scheme_flow(stepped, self.scheme, self.solver, sample, run.steps,
+                            engine=cast(Engine, run.engine))  # fmt: skip
         if self.config.splitting is None:
             return inner
         return Splitting.named(self.config.splitting.method, *self.flows, inner)
@@ -710,9 +713,9 @@ def _run(raw: Mapping[str, Any], source: str, base: Path, default_output: str) -
     if output is not None and not output.strip():
         raise sec.error("output", "is empty", 'give a file name such as output = "run.h5"')
     engine = sec.string("engine", required=False, hint='"auto"') or "auto"
-    if engine not in _ENGINES:
+    if engine not in ENGINES:
         raise sec.error(
-            "engine", f"must be one of {', '.join(map(repr, _ENGINES))}, got {engine!r}",
+            "engine", f"must be one of {', '.join(map(repr, ENGINES))}, got {engine!r}",
             'engine = "auto" (compiled where supported and faster, else numpy)',
         )  # fmt: skip
     shift: float | str = 0.0
@@ -767,9 +770,6 @@ def _run(raw: Mapping[str, Any], source: str, base: Path, default_output: str) -
         checkpoint,
         device,
     )
-
-
-_ENGINES = ("auto", "numpy", "compiled")
 
 
 def parse_config(

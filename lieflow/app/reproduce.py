@@ -43,8 +43,9 @@ import numpy as np
 
 from .. import compiled
 from ..algebras import SO, Array
+from ..engines import Engine
 from ..errors import InputError
-from ..integration import Engine, integrate
+from ..integration import integrate
 from ..schemes import get as get_scheme
 from ..solution import Solution
 from ..solvers.fixed_point import FixedPoint

@@ -196,7 +196,7 @@ class ZarrSink:
                                                    save_every=self._save_every)  # fmt: skip
             diagnostics = self._diagnostics.of_chunk(chunk)
         keep = np.asarray(keep, dtype=bool)
-        states = to_host(chunk.W[keep])
+        states = to_host(chunk.states(keep))
         self._buffer.append((chunk.index[keep], states, to_host(chunk.iterations),
                              to_host(chunk.residuals), diagnostics))  # fmt: skip
         self._last = (chunk.stop, np.array(to_host(chunk.W[-1])))

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import importlib
 import math
+import sys
 from collections.abc import Callable
 from types import ModuleType
 from typing import Any
@@ -32,6 +33,7 @@ __all__ = [
     "host_norms",
     "is_foreign_array",
     "is_numpy",
+    "is_traced",
     "machine_epsilon",
     "namespace",
     "place",
@@ -95,6 +97,14 @@ def namespace(*arrays: Any) -> ModuleType:
         ) from exc
 
 
+def is_traced(x: Any) -> bool:
+    """Whether ``x`` is an abstract value of a program being traced (``jax.jit``): it has
+    no data, and what is computed from it belongs to that one trace — a cache must not keep
+    it (it would leak out of the trace)."""
+    jax = sys.modules.get("jax")  # not imported unless JAX arrays are in use
+    return jax is not None and isinstance(x, jax.core.Tracer)
+
+
 def device_of(x: Any) -> Any:
     """The device ``x`` lives on (``"cpu"`` for NumPy arrays)."""
     if is_numpy(x):
@@ -107,11 +117,21 @@ def from_host(a: Any, like: Any, dtype: Any = None) -> Any:
     (``dtype``: a dtype of that library, default ``a``'s). ``a`` itself for NumPy ``like``.
 
     One host-to-device copy: callers cache the result of constants (e.g. per operator).
+    The cast happens on the host where ``dtype`` is a NumPy dtype (NumPy's, JAX's and
+    CuPy's are), so that the result is a concrete array even while ``like`` is being traced
+    (``jax.jit``): a constant of the program, which a cache may keep; other libraries'
+    dtypes are cast on the device.
     """
     if is_numpy(like):
         return a if dtype is None else np.asarray(a, dtype=dtype)
     xp = namespace(like)
-    out = xp.asarray(np.ascontiguousarray(a), device=device_of(like))
+    host = np.ascontiguousarray(a)
+    if dtype is not None:
+        try:
+            host, dtype = host.astype(np.dtype(dtype), copy=False), None
+        except TypeError:  # not a NumPy dtype (PyTorch's)
+            pass
+    out = xp.asarray(host, device=device_of(like))
     return out if dtype is None else xp.astype(out, dtype)
 
 

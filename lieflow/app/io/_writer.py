@@ -415,7 +415,7 @@ class TrajectoryWriter:
         for the next checkpoint. Nothing is written until :meth:`checkpoint`."""
         diag = self._diagnostics.of_chunk(chunk) if diagnostics is None else diagnostics
         keep = np.asarray(keep, dtype=bool)
-        entry = (chunk.index[keep], to_host(chunk.W[keep]), to_host(chunk.iterations),
+        entry = (chunk.index[keep], to_host(chunk.states(keep)), to_host(chunk.iterations),
                  to_host(chunk.residuals), diag)  # fmt: skip
         last = (chunk.stop, chunk.h, np.array(to_host(chunk.W[-1])), chunk.state)
         # one append and one assignment: recorded entirely or not at all

@@ -42,7 +42,7 @@ import attrs
 import numpy as np
 from numpy.typing import NDArray
 
-from lieflow.backends import device_of, from_host, namespace
+from lieflow.backends import device_of, from_host, is_traced, namespace
 
 Array = NDArray[Any]
 
@@ -111,7 +111,9 @@ class CyclicReduction:
 
     def on(self, like: Any, real_dtype: Any) -> tuple[Any, ...]:
         """``(lower, upper, inverse)`` as arrays of ``like``'s library and device in
-        ``real_dtype``, copied from the host on first use and kept with this object."""
+        ``real_dtype``, copied from the host on first use and kept with this object — except
+        while ``like`` is traced (``jax.jit``): the program then holds them as constants of
+        its own, which must not outlive the trace."""
         xp = namespace(like)
         key = (xp.__name__, str(device_of(like)), str(real_dtype))
         placed = self._placed.get(key)
@@ -119,7 +121,8 @@ class CyclicReduction:
             placed = tuple(
                 from_host(x, like, real_dtype) for x in (self.lower, self.upper, self.inverse)
             )
-            self._placed[key] = placed
+            if not is_traced(like):
+                self._placed[key] = placed
         return placed
 
     def solve(self, Y: Any, lower: Any, upper: Any, inverse: Any) -> Any:

@@ -65,7 +65,7 @@ import numpy as np
 from numpy.typing import ArrayLike, DTypeLike, NDArray
 
 import lieflow
-from lieflow.backends import from_host, is_numpy, namespace
+from lieflow.backends import from_host, is_foreign_array, is_numpy, namespace
 
 from . import _recurrences as _rec
 from .laplacian import HoppeYauLaplacian, matrix_size
@@ -356,6 +356,9 @@ class EulerZeitlin(lieflow.IsospectralSystem):
         r"""Energy ``-½ Re tr((W - F_f)^† B(W)) >= 0``, shape ``W.shape[:-2]``."""
         A = self._anomaly(W)
         P = self.laplacian.solve(A)
+        if not is_numpy(A):  # an array of another library (lieflow.backends), or traced
+            xp = namespace(A)
+            return -0.5 * xp.real(xp.sum(xp.conj(A) * P, axis=(-2, -1)))
         return -0.5 * np.real(np.sum(np.conj(A) * P, axis=(-2, -1)))
 
     def casimirs(self, W: Array) -> Array:
@@ -364,8 +367,10 @@ class EulerZeitlin(lieflow.IsospectralSystem):
         Uses ``tr(A^k) = Σ_ij (A^a)_ij (A^b)_ji`` with ``a = ⌊k/2⌋``, ``b = ⌈k/2⌉``, so
         ``k <= 4`` costs a single matrix product.
         """
-        A = 1j * np.asarray(W)
         powers = [k for k in self.casimir_powers if k <= self.N]
+        if is_foreign_array(W):  # an array of another library (lieflow.backends), or traced
+            return self._casimirs_arrays(W, powers)
+        A = 1j * np.asarray(W)
         if not powers:
             return np.zeros((*A.shape[:-2], 0))
         top = (max(powers) + 1) // 2
@@ -377,6 +382,25 @@ class EulerZeitlin(lieflow.IsospectralSystem):
             for k in powers
         ]
         return np.stack(out, axis=-1)
+
+    def _casimirs_arrays(self, W: Any, powers: list[int]) -> Any:
+        """:meth:`casimirs` in array-API operations (the same products)."""
+        xp = namespace(W)
+        A = 1j * W
+        if not powers:
+            return xp.zeros((*A.shape[:-2], 0), dtype=xp.float64)
+        stack = [A]  # A^1, A^2, ...
+        for _ in range(2, (max(powers) + 1) // 2 + 1):
+            stack.append(stack[-1] @ A)
+        out = []
+        for k in powers:
+            a, b = k // 2, k - k // 2
+            if a == 0:  # tr(A)
+                out.append(xp.real(xp.sum(xp.linalg.diagonal(A), axis=-1)))
+            else:
+                Xa, Xb = stack[a - 1], stack[b - 1]
+                out.append(xp.real(xp.sum(Xa * xp.matrix_transpose(Xb), axis=(-2, -1))))
+        return xp.stack(out, axis=-1)
 
     def extra_diagnostics(self, W: ArrayLike) -> dict[str, Array]:
         """The turbulence diagnostics of one state that ``lieflow run`` stores under
