@@ -143,6 +143,18 @@ def test_smoke_results(smoke: Path) -> None:
 
 
 @pytest.mark.slow
+def test_smoke_on_a_device_equals_the_cpu(smoke: Path, tmp_path: Path) -> None:
+    """``[run] device`` passed through: the eager engine on ``array_api_strict`` arrays (the
+    array API on the CPU) gives every saved state of every run to roundoff."""
+    result = mv.reproduce_modin_viviani(tmp_path, plan="smoke", device="array_api_strict")
+    cpu, device = lf.open_sweep(smoke / "sweep"), lf.open_sweep(result.directory / "sweep")
+    assert np.abs(cpu.W.values - device.W.values).max() < 1e-13
+    with (smoke / "results.csv").open(encoding="utf-8") as fh:
+        outcomes = [int(row["outcome"]) for row in csv.DictReader(fh)]
+    assert [r.outcome for r in result.analysis.runs] == outcomes
+
+
+@pytest.mark.slow
 def test_quick_study_finds_the_trend(tmp_path: Path) -> None:
     """The laptop variant (about 3 minutes on 2 idle cores): fewer coherent vortices at
     larger γ, the rank correlation negative with its whole 95 % interval, and the Casimirs
