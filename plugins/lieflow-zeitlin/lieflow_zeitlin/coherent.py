@@ -159,7 +159,10 @@ def _fraction(_inst: object, _attr: attrs.Attribute, value: float) -> None:
 
 def _default_points(self: VortexDetector) -> int:
     """A spacing of a quarter of the low-pass width: ``4π (4/σ)²`` points, 1500 to 20 000."""
-    return int(np.clip(4 * math.pi * (4 / self.smoothing) ** 2, 1500, 20_000))
+    s = self.smoothing
+    if not (isinstance(s, (int, float)) and math.isfinite(s) and s > 0):
+        return 1500  # the validator refuses this smoothing
+    return int(np.clip(4 * math.pi * (4 / s) ** 2, 1500, 20_000))
 
 
 def _basis(N: int, points: Array, smoothing: float) -> tuple[Array, Array]:

@@ -184,8 +184,9 @@ def test_bad_input(detector: lz.VortexDetector) -> None:
         detector.census(np.zeros((2, N, N), complex))
     with pytest.raises(lf.InputError, match="threshold"):
         lz.VortexDetector(N, threshold=1.5)
-    with pytest.raises(lf.InputError, match="smoothing"):
-        lz.VortexDetector(N, smoothing=-1.0)
+    for smoothing in (-1.0, 0.0, math.nan):
+        with pytest.raises(lf.InputError, match="smoothing"):
+            lz.VortexDetector(N, smoothing=smoothing)
     with pytest.raises(lf.InputError, match="integer >= 12"):
         lz.fibonacci_points(5)
 
