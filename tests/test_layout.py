@@ -20,6 +20,7 @@ APP_MODULES = {
     "plugin",
     "reproduce",
     "salvage",
+    "studies",
     "sweeps",
     "zarr_sink",
 }

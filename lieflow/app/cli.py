@@ -7,8 +7,10 @@ Subcommands::
             [--resume] [--out FILE] [--force] [--no-progress]
     lieflow salvage FILE.h5           cut a damaged trajectory file back to its last
                                       verified checkpoint (then run --resume)
-    lieflow reproduce [--out DIR]     the paper's experiments: figures, report.md, results.csv
-            [--quick] [--seed N]
+    lieflow reproduce [STUDY]         the paper's experiments (default) or a published study
+            [--out DIR] [--quick] [--seed N]  (modin-viviani-2020): figures, report.md,
+            [--executor ...] [--workers N]    results.csv
+            [--device DEV] [--smoke]
     lieflow plot FILE.h5 [--out DIR]  energy error, Casimir drift and iterations per step,
             [--movie OUT.mp4|OUT.gif] plus the figures a plugin registered for the system
                                       (and its movie of the saved states)
@@ -176,14 +178,17 @@ def _cmd_salvage(args: argparse.Namespace) -> int:
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
-    from .reproduce import reproduce
+    from .reproduce import reproduce_study
 
     def log(message: str) -> None:
         if not args.quiet:
             print(message, file=sys.stderr, flush=True)
 
-    result = reproduce(args.out, quick=args.quick, seed=args.seed, log=log)
-    for path in result.files:
+    files = reproduce_study(args.study, args.out, quick=args.quick, smoke=args.smoke,
+                            seed=args.seed, executor=args.executor, workers=args.workers,
+                            scheduler=args.scheduler, device=args.device,
+                            log=None if args.quiet else log)  # fmt: skip
+    for path in files:
         print(path)
     return EXIT_OK
 
@@ -348,16 +353,29 @@ def _parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "reproduce",
-        help="rerun the paper's experiments (figures, report.md, results.csv)",
+        help="rerun the paper's experiments or a published study (figures, report.md, ...)",
         description=(
-            "Rerun the paper's numerical experiments (rigid body, Toda lattice, generalized "
-            "rigid body with midpoint, sydirk7, gauss2, gauss3) and write energy-error "
-            "figures, report.md (Tables 1-6 next to the published numbers) and results.csv."
+            "Rerun the paper's numerical experiments (STUDY = paper, the default: rigid body, "
+            "Toda lattice, generalized rigid body with midpoint, sydirk7, gauss2, gauss3; "
+            "energy-error figures, report.md with Tables 1-6 next to the published numbers, "
+            "results.csv), or a published study: modin-viviani-2020 (2, 3 or 4 coherent "
+            "vortices of 2D Euler on the sphere against gamma; an ensemble run as a sweep, "
+            "written to DIR/modin-viviani-2020[-quick]/; resumable: run the same command "
+            "again)."
         ),
     )
+    p.add_argument("study", nargs="?", default="paper", metavar="STUDY",
+                   help="paper (default) or modin-viviani-2020")  # fmt: skip
     p.add_argument("--out", type=Path, default=Path("lieflow-out"), metavar="DIR")
-    p.add_argument("--quick", action="store_true", help="10x fewer steps, GRB n = 10 only")
+    p.add_argument("--quick", action="store_true",
+                   help="paper: 10x fewer steps, GRB n = 10 only; modin-viviani-2020: the "
+                        "laptop variant (N = 32, 32 runs, minutes on 2 cores)")  # fmt: skip
+    p.add_argument("--smoke", action="store_true",
+                   help="a study at toy size (seconds): checks the setup only")  # fmt: skip
     p.add_argument("--seed", type=int, default=0, help="seed of the random data (default 0)")
+    _executor_arguments(p, "a study's runs: ")
+    p.add_argument("--device", default="cpu", metavar="DEV",
+                   help="a study's [run] device: cpu (default), cupy, torch:cuda:0")  # fmt: skip
     p.add_argument("-q", "--quiet", action="store_true", help="no per-run log lines")
     p.set_defaults(func=_cmd_reproduce)
 
@@ -395,12 +413,7 @@ def _parser() -> argparse.ArgumentParser:
         ),
     )
     p.add_argument("grid", type=Path, metavar="GRID.toml")
-    p.add_argument("--executor", choices=("local", "dask"), default="local",
-                   help="local process pool (default) or Dask distributed")  # fmt: skip
-    p.add_argument("--scheduler", metavar="ADDRESS",
-                   help="address of a running Dask scheduler (with --executor dask)")  # fmt: skip
-    p.add_argument("--workers", type=_positive_int, metavar="N",
-                   help="processes of the local pool or LocalCluster (default: cores)")  # fmt: skip
+    _executor_arguments(p)
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="sweep directory (overrides [sweep] directory)")  # fmt: skip
     p.add_argument("--store", choices=("zarr",), default=None,
@@ -410,6 +423,16 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_sweep)
     return parser
+
+
+def _executor_arguments(p: argparse.ArgumentParser, whose: str = "") -> None:
+    """``--executor``, ``--scheduler``, ``--workers``: where the runs of a sweep go."""
+    p.add_argument("--executor", choices=("local", "dask"), default="local",
+                   help=f"{whose}local process pool (default) or Dask distributed")  # fmt: skip
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="address of a running Dask scheduler (with --executor dask)")  # fmt: skip
+    p.add_argument("--workers", type=_positive_int, metavar="N",
+                   help="processes of the local pool or LocalCluster (default: cores)")  # fmt: skip
 
 
 def _positive_int(text: str) -> int:

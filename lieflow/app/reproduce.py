@@ -55,6 +55,7 @@ from ..systems.toda import PAPER_W0, PeriodicToda
 
 __all__ = [
     "SCHEMES",
+    "STUDIES",
     "Case",
     "Published",
     "ReproduceResult",
@@ -63,6 +64,7 @@ __all__ = [
     "paper_cases",
     "published",
     "reproduce",
+    "reproduce_study",
     "run_case",
     "run_paper_algorithm",
 ]
@@ -749,3 +751,76 @@ def _write_report(
     ]
     path.write_text("\n".join(lines), encoding="utf-8")
     return path
+
+
+#: What ``lieflow reproduce STUDY`` can rerun: the paper's experiments (``"paper"``, the
+#: default, :func:`reproduce`) and published studies built on lieflow's public API, the
+#: sweep machinery and the plugins (:mod:`lieflow.app.studies`).
+STUDIES: dict[str, str] = {
+    "paper": "the paper's experiments: rigid body, Toda lattice, generalized rigid body "
+    "(Tables 1-6)",
+    "modin-viviani-2020": "Modin & Viviani (J. Fluid Mech. 2020): 2, 3 or 4 coherent vortices "
+    "of 2D Euler on the sphere against gamma = |L|/sqrt(C2) (plugin lieflow-zeitlin, "
+    "lieflow[sweep])",
+}
+
+
+def reproduce_study(
+    study: str,
+    out_dir: Path | str = "lieflow-out",
+    *,
+    quick: bool = False,
+    smoke: bool = False,
+    seed: int = 0,
+    executor: str = "local",
+    workers: int | None = None,
+    scheduler: str | None = None,
+    device: str = "cpu",
+    log: Callable[[str], None] | None = None,
+) -> tuple[Path, ...]:
+    """Rerun ``study`` (a key of :data:`STUDIES`) and return the files it wrote.
+
+    ``quick`` is the laptop variant, ``smoke`` a toy-sized run of the whole pipeline
+    (seconds; studies with sweeps only); ``executor``, ``workers``, ``scheduler`` and
+    ``device`` place the runs of a study that sweeps (:func:`lieflow.sweep`, ``[run]
+    device``); the paper's experiments run in this process and take none of them.
+
+    Raises
+    ------
+    InputError
+        An unknown study, or options the study does not take.
+    """
+    if study not in STUDIES:
+        raise InputError(
+            f"reproduce: unknown study {study!r}. To fix: give one of "
+            + ", ".join(STUDIES)
+            + " (`lieflow reproduce --help` says what each reruns)"
+        )
+    if study == "paper":
+        given = [
+            name
+            for name, value, default in (
+                ("--smoke", smoke, False),
+                ("--executor", executor, "local"),
+                ("--workers", workers, None),
+                ("--scheduler", scheduler, None),
+                ("--device", device, "cpu"),
+            )
+            if value != default
+        ]
+        if given:
+            raise InputError(
+                f"reproduce: {', '.join(given)} apply to the studies that run sweeps, not to "
+                "the paper's experiments (which run in this process). To fix: leave them out, "
+                "or name a study, e.g. `lieflow reproduce modin-viviani-2020 --quick`"
+            )
+        return reproduce(out_dir, quick=quick, seed=seed, log=log).files
+    if quick and smoke:
+        raise InputError("reproduce: give --quick or --smoke, not both")
+    from .studies.modin_viviani_2020 import reproduce_modin_viviani
+
+    plan = "smoke" if smoke else "quick" if quick else "full"
+    result = reproduce_modin_viviani(out_dir, plan=plan, seed=seed, executor=executor,
+                                     workers=workers, scheduler=scheduler, device=device,
+                                     log=log)  # fmt: skip
+    return result.files

@@ -18,12 +18,17 @@ quasi-geostrophic), :mod:`~lieflow_zeitlin.dissipation` (viscosity, hyperviscosi
 stochastic forcing as lieflow flows, for ``lieflow.flows.Splitting``) and
 :mod:`~lieflow_zeitlin.diagnostics` (spectra by degree, Casimirs, vorticity distribution, time
 averages; stored by ``lieflow run`` under ``/diagnostics/extra``) and
-:mod:`~lieflow_zeitlin.plotting` (PNG figures; needs matplotlib, imported on demand).
+:mod:`~lieflow_zeitlin.plotting` (PNG figures; needs matplotlib, imported on demand),
+:mod:`~lieflow_zeitlin.momentum` (total angular momentum, Modin & Viviani's first integral
+``γ = ‖L‖/√C₂`` and random initial vorticity with a prescribed ``γ``) and
+:mod:`~lieflow_zeitlin.coherent` (the coherent vortex structures of a state: count, signs,
+positions, strengths).
 """
 
 from __future__ import annotations
 
 from . import diagnostics
+from .coherent import Vortex, VortexCensus, VortexDetector, fibonacci_points, low_pass
 from .diagnostics import (
     energy_spectrum,
     enstrophy_spectrum,
@@ -40,6 +45,14 @@ from .dissipation import (
     degree_multiplier,
 )
 from .laplacian import HoppeYauLaplacian, harmonics, spin_matrices, tridiagonal
+from .momentum import (
+    GAMMA_MAX,
+    angular_momentum,
+    enstrophy_integral,
+    gamma,
+    random_vorticity_gamma,
+    solid_body_rotation,
+)
 from .quantization import (
     SphereGrid,
     degrees_and_orders,
@@ -59,6 +72,7 @@ from .quflow import import_quflow, read_quflow
 from .system import EulerZeitlin, VorticityAlgebra
 
 __all__ = [
+    "GAMMA_MAX",
     "EulerZeitlin",
     "HoppeYauLaplacian",
     "Hyperviscosity",
@@ -66,12 +80,19 @@ __all__ = [
     "SphereGrid",
     "StochasticForcing",
     "Viscosity",
+    "Vortex",
+    "VortexCensus",
+    "VortexDetector",
     "VorticityAlgebra",
+    "angular_momentum",
     "degree_multiplier",
     "degrees_and_orders",
     "diagnostics",
     "energy_spectrum",
+    "enstrophy_integral",
     "enstrophy_spectrum",
+    "fibonacci_points",
+    "gamma",
     "grid_to_matrix",
     "grid_to_sh",
     "harmonics",
@@ -79,14 +100,17 @@ __all__ = [
     "import_quflow",
     "kappa",
     "lm_index",
+    "low_pass",
     "matrix_to_grid",
     "matrix_to_sh",
     "random_sh",
     "random_vorticity",
+    "random_vorticity_gamma",
     "read_quflow",
     "running_mean",
     "sh_to_grid",
     "sh_to_matrix",
+    "solid_body_rotation",
     "spectra",
     "spin_matrices",
     "time_mean",

@@ -1,0 +1,8 @@
+"""Published studies that ``lieflow reproduce STUDY`` reruns with lieflow's public API, the
+sweep machinery and the plugins (:data:`lieflow.app.reproduce.STUDIES` lists them):
+
+- :mod:`~lieflow.app.studies.modin_viviani_2020` — the long-time fate of 2D Euler on the
+  sphere against ``γ = ‖L‖/√C₂`` (Modin & Viviani, J. Fluid Mech. 2020), with the
+  ``lieflow-zeitlin`` plugin; its figure in ``modin_viviani_2020_figure``, its written
+  results in ``modin_viviani_2020_report``.
+"""
