@@ -19,6 +19,7 @@ from .base import (
     StageProblem,
     StepResult,
     StepStats,
+    identity,
     real_scalar,
     retry,
     scratch,
@@ -103,8 +104,8 @@ class MidpointProblem(StageProblem):
 
     def frozen_map(self, M: Array) -> Array:
         B = self.B(M)
-        eye = np.eye(B.shape[-1], dtype=B.dtype)
-        left = np.linalg.solve(eye - self.half * B, self.W0)
+        eye = identity(B.shape[-1], B)
+        left = namespace(B).linalg.solve(eye - self.half * B, self.W0)
         return solve_right(left, eye + self.half * B)
 
     def update(self, M: Array) -> Array:

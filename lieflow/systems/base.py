@@ -11,6 +11,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ..algebras import GL, SO, SU, Array, LieAlgebra, U, frobenius_norm
+from ..backends import device_of, is_numpy, namespace
 from ..errors import LieflowError
 
 
@@ -21,7 +22,11 @@ def _real_trace(P: Array) -> Array:
     if isinstance(P, np.ndarray):
         t = P.trace(axis1=-2, axis2=-1)
         return t.real if P.dtype.kind == "c" else t
-    return np.real(np.trace(P, axis1=-2, axis2=-1))
+    if is_numpy(P):
+        return np.real(np.trace(P, axis1=-2, axis2=-1))
+    xp = namespace(P)  # another array library (lieflow.backends)
+    t = xp.linalg.trace(P)
+    return xp.real(t) if xp.isdtype(t.dtype, "complex floating") else t
 
 
 def read_only(arr: np.ndarray) -> np.ndarray:
@@ -239,6 +244,11 @@ class IsospectralSystem(ABC):
                 out.append(_real_trace(P))
         if 1 in powers:
             out.insert(0, _real_trace(W))
+        if not is_numpy(W):  # another array library (lieflow.backends)
+            xp = namespace(W)
+            if not out:
+                return xp.zeros((*W.shape[:-2], 0), dtype=W.dtype, device=device_of(W))
+            return xp.stack(out, axis=-1)
         if not out:
             return np.zeros((*W.shape[:-2], 0))
         if isinstance(W, np.ndarray) and W.ndim == 2:  # one state: a vector of scalars
