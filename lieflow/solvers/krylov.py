@@ -53,6 +53,54 @@ def _cast(mask: Array, like: Array) -> Array:
     return namespace(mask).astype(mask, like.dtype)
 
 
+def _orthogonalize(V: Array, w: Array, j: Any) -> tuple[Array, Array]:
+    """``w`` made orthogonal to the basis rows ``V[:j+1]`` by classical Gram–Schmidt
+    applied twice, and its coefficients ``h`` (a vector of ``V``'s row count, zero below
+    row ``j``). NumPy arrays (``j`` known on the host): the rows built so far only; other
+    libraries: all rows (those not built yet are zero, and so are their coefficients)."""
+    if is_numpy(V):
+        rows = int(j) + 1
+        Vj = V[:rows]
+        h = Vj @ w
+        w = w - h @ Vj
+        h2 = Vj @ w
+        w = w - h2 @ Vj
+        out = np.zeros(V.shape[0], dtype=V.dtype)
+        out[:rows] = h + h2
+        return w, out
+    h = V @ w
+    w = w - h @ V
+    h2 = V @ w
+    return w - h2 @ V, h + h2
+
+
+def _basis(rows: int, like: Array) -> Array:
+    """Room for ``rows`` basis vectors like ``like``: zeros (rows not built yet must be zero
+    for :func:`_orthogonalize`), uninitialised for NumPy (whose rows are read only once
+    built)."""
+    if is_numpy(like):
+        return np.empty((rows, like.shape[0]), dtype=like.dtype)
+    return _zeros((rows, like.shape[0]), like)
+
+
+def _combine(y: Array, V: Array, j: Any) -> Array:
+    """``sum_i y_i V[i]`` over the ``j`` rows built (``y`` is zero beyond them)."""
+    if is_numpy(V):
+        used = int(j)
+        return y[:used] @ V[:used]
+    return y @ V[: y.shape[0], :]
+
+
+def _set_row(V: Array, i: Any, v: Array) -> Array:
+    """``V`` with row ``i`` replaced by ``v``: in place for NumPy (``V`` is GMRES's own
+    array), by ``where`` against the row index otherwise (no item assignment)."""
+    if is_numpy(V):
+        V[int(i)] = v
+        return V
+    xp = namespace(V)
+    return xp.where((_arange(V.shape[0], V) == i)[:, None], v[None, :], V)
+
+
 def _norm(v: Array) -> Array:
     """Euclidean norm of a real vector, a 0-d array."""
     xp = namespace(v)
@@ -100,32 +148,28 @@ def gmres(
 
     def arnoldi(state: tuple[Any, ...]) -> tuple[Any, ...]:
         j, V, v, Q, R, beta, _res = state
-        w = apply(v)
-        h = V @ w  # classical Gram–Schmidt, twice (unused rows of V are zero)
-        w = w - h @ V
-        h2 = V @ w
-        w = w - h2 @ V
+        w, h = _orthogonalize(V, apply(v), j)
         hn = _norm(w)
         next_row = rows == j + 1
         v = w / xp.where(hn > 0, hn, 1.0)  # a breakdown (hn = 0) ends the cycle: res = 0
-        V = xp.where(next_row[:, None], v[None, :], V)
-        t = Q @ xp.where(next_row, hn, h + h2)  # column j of H, the rotations so far applied
+        V = _set_row(V, j + 1, v)
+        t = Q @ xp.where(next_row, hn, h)  # column j of H, the rotations so far applied
         this_row = rows == j
-        a = xp.sum(xp.where(this_row, t, 0.0))
+        a = xp.sum(xp.where(this_row, t, 0.0))  # t[j] and t[j + 1]
         c = xp.sum(xp.where(next_row, t, 0.0))
         rho = xp.sqrt(a * a + c * c)
         safe = xp.where(rho > 0, rho, 1.0)
         cos = xp.where(rho > 0, a / safe, 1.0)
         sin = c / safe
-        # the rotation of rows j, j + 1 that zeroes t[j + 1]: [cos sin; -sin cos] there
-        ej, ej1 = _cast(this_row, b), _cast(next_row, b)
-        G = (
-            eye
-            + (cos - 1.0) * (ej[:, None] * ej[None, :] + ej1[:, None] * ej1[None, :])
-            + sin * (ej[:, None] * ej1[None, :] - ej1[:, None] * ej[None, :])
+        # the rotation [cos sin; -sin cos] of rows j, j + 1 zeroes t[j + 1]: t[j] becomes
+        # rho, and Q takes the rotation (two rows changed)
+        R = xp.where(
+            (cols == j)[None, :], xp.where(this_row, rho, t * _cast(rows < j, b))[:, None], R
         )
-        Q = G @ Q
-        R = xp.where((cols == j)[None, :], (G @ t)[:, None], R)
+        qj = xp.sum(xp.where(this_row[:, None], Q, 0.0), axis=0)
+        qj1 = xp.sum(xp.where(next_row[:, None], Q, 0.0), axis=0)
+        Q = xp.where(this_row[:, None], (cos * qj + sin * qj1)[None, :], Q)
+        Q = xp.where(next_row[:, None], (cos * qj1 - sin * qj)[None, :], Q)
         res = xp.abs(beta * xp.sum(xp.where(next_row, Q[:, 0], 0.0)))
         return j + 1, V, v, Q, R, beta, res
 
@@ -136,7 +180,7 @@ def gmres(
     def cycle(state: tuple[Any, ...]) -> tuple[Any, ...]:
         count, x, r, beta = state
         v = r / xp.where(beta > 0, beta, 1.0)
-        V = xp.where((rows == 0)[:, None], v[None, :], _zeros((k + 1, n), b))
+        V = _set_row(_basis(k + 1, b), rows[0], v)
         R = _zeros((k + 1, k), b)
         j, V, _v, Q, R, _beta, _res = while_loop(
             arnoldi_going, arnoldi, (rows[0], V, v, eye, R, beta, beta)
@@ -149,7 +193,7 @@ def gmres(
         Rk = Rk + eye[:k, :k] * _cast(xp.logical_or(~used, pivots == 0), b)[None, :]
         g = xp.where(used, beta * Q[:k, 0], 0.0)
         y = xp.linalg.solve(Rk, g[:, None])[:, 0]
-        x = x + y @ V[:k, :]
+        x = x + _combine(y, V, j)
         r = b - apply(x)
         return count + 1, x, r, _norm(r)
 
