@@ -300,7 +300,8 @@ def contract(coef: np.ndarray, X: Array, axis: int) -> Array:
     ``X``'s library, and a single-precision ``X`` stays single)."""
     xp = namespace(X)
     tail = (slice(None),) * (-axis - 1)
-    parts = [X[(Ellipsis, k, *tail)] for k in range(coef.shape[1])]
+    indices: list[Any] = [(Ellipsis, k, *tail) for k in range(coef.shape[1])]
+    parts = [X[index] for index in indices]
     rows = []
     for row in coef.tolist():
         terms = [c * part for c, part in zip(row, parts, strict=True)]

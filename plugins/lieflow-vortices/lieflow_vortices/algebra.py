@@ -38,12 +38,13 @@ def diagonal_blocks(W: ArrayLike, K: int) -> Array:
     ``W`` has shape ``(..., 3K, 3K)``; leading axes broadcast.
     """
     if is_foreign_array(W):  # entries (3k + a, 3k + b) of the flattened matrices, one take
-        xp = namespace(W)
+        X: Any = W
+        xp = namespace(X)
         n = 3 * K
         k, a, b = np.meshgrid(np.arange(K), np.arange(3), np.arange(3), indexing="ij")
-        flat = xp.reshape(W, (*W.shape[:-2], n * n))
-        at = from_host(((3 * k + a) * n + 3 * k + b).ravel(), W)
-        return xp.reshape(xp.take(flat, at, axis=-1), (*W.shape[:-2], K, 3, 3))
+        flat = xp.reshape(X, (*X.shape[:-2], n * n))
+        at = from_host(((3 * k + a) * n + 3 * k + b).ravel(), X)
+        return xp.reshape(xp.take(flat, at, axis=-1), (*X.shape[:-2], K, 3, 3))
     W = np.asarray(W)
     blocks = W.reshape(*W.shape[:-2], K, 3, K, 3)
     idx = np.arange(K)
@@ -61,11 +62,11 @@ def block_vee(W: ArrayLike) -> Array:
     linear map, so functions of ``m`` stay differentiable on the whole matrix space.
     """
     foreign = is_foreign_array(W)
-    W = W if foreign else np.asarray(W)
-    n = W.shape[-1]
-    if W.ndim < 2 or W.shape[-2] != n or n % 3:
-        raise lieflow.InputError(f"expected matrices of shape (..., 3K, 3K), got shape {W.shape}")
-    D = diagonal_blocks(W, n // 3)
+    X: Any = W if foreign else np.asarray(W)
+    n = X.shape[-1]
+    if X.ndim < 2 or X.shape[-2] != n or n % 3:
+        raise lieflow.InputError(f"expected matrices of shape (..., 3K, 3K), got shape {X.shape}")
+    D = diagonal_blocks(X, n // 3)
     Dt = namespace(D).matrix_transpose(D) if foreign else np.swapaxes(D, -1, -2)
     return 0.5 * (vee(D) - vee(Dt))
 
@@ -76,17 +77,17 @@ def block_hat(m: ArrayLike) -> Array:
     Returns shape ``(..., 3K, 3K)``; off-diagonal 3×3 blocks are zero.
     """
     foreign = is_foreign_array(m)
-    m = m if foreign else np.asarray(m)
-    if m.ndim < 2 or m.shape[-1] != 3:
-        raise lieflow.InputError(f"expected momenta of shape (..., K, 3), got shape {m.shape}")
-    *batch, K, _ = m.shape
+    v: Any = m if foreign else np.asarray(m)
+    if v.ndim < 2 or v.shape[-1] != 3:
+        raise lieflow.InputError(f"expected momenta of shape (..., K, 3), got shape {v.shape}")
+    *batch, K, _ = v.shape
     if foreign:  # hat(m_i) at block (i, i) of a (..., K, 3, K, 3) array by where, no scatter
-        blocks = hat(m)[..., :, :, None, :]
-        out = namespace(m).where(_diagonal_mask(K, m), blocks, 0.0)
-        return namespace(m).reshape(out, (*batch, 3 * K, 3 * K))
-    out = np.zeros((*batch, K, K, 3, 3), dtype=m.dtype)
+        xp = namespace(v)
+        out = xp.where(_diagonal_mask(K, v), hat(v)[..., :, :, None, :], 0.0)
+        return xp.reshape(out, (*batch, 3 * K, 3 * K))
+    out = np.zeros((*batch, K, K, 3, 3), dtype=v.dtype)
     idx = np.arange(K)
-    out[..., idx, idx, :, :] = hat(m)
+    out[..., idx, idx, :, :] = hat(v)
     return np.swapaxes(out, -3, -2).reshape(*batch, 3 * K, 3 * K)
 
 
