@@ -10,7 +10,7 @@ import attrs
 import numpy as np
 
 from ..algebras import Array, minus_dagger, transpose
-from ..backends import device_of, is_numpy, namespace
+from ..backends import is_numpy, namespace
 from ..errors import ConvergenceError
 from ..solvers.base import ImplicitProblem, Solver, SolveResult, einsum
 from ..systems.base import IsospectralSystem
@@ -283,13 +283,6 @@ def solve_right(rhs: Array, mat: Array) -> Array:
             np.linalg.solve(np.swapaxes(mat, -1, -2), np.swapaxes(rhs, -1, -2)), -1, -2
         )
     return transpose(namespace(mat).linalg.solve(transpose(mat), transpose(rhs)))
-
-
-def identity(n: int, like: Array) -> Array:
-    """The ``n×n`` identity in ``like``'s library, dtype and device."""
-    if is_numpy(like):
-        return np.eye(n, dtype=like.dtype)
-    return namespace(like).eye(n, dtype=like.dtype, device=device_of(like))
 
 
 def contract(coef: np.ndarray, X: Array, axis: int) -> Array:

@@ -10,7 +10,7 @@ import attrs
 import numpy as np
 
 from ..algebras import Array, dagger
-from ..backends import copy, device_of, from_host, is_numpy, namespace
+from ..backends import copy, device_of, from_host, identity, is_numpy, namespace
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau, gauss, one_of
@@ -21,7 +21,6 @@ from .base import (
     StepStats,
     TableauProblem,
     contract,
-    identity,
     scratch,
     solve,
     solve_right,

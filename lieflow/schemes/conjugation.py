@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from ..backends import device_of, namespace
+from ..backends import device_of, identity, namespace
 from ..errors import ConvergenceError
 
 Array = Any
@@ -65,10 +65,6 @@ def _dagger(xp: Any, X: Array) -> Array:
     """``X^†`` over the last two axes."""
     Xt = xp.matrix_transpose(X)
     return xp.conj(Xt) if xp.isdtype(X.dtype, "complex floating") else Xt
-
-
-def _eye_like(xp: Any, X: Array) -> Array:
-    return xp.eye(X.shape[-1], dtype=X.dtype, device=device_of(X))
 
 
 def _matrix_norms(xp: Any, X: Array) -> Array:
@@ -203,7 +199,7 @@ def _unitary_conjugate(K: Array, W0: Array, skew: bool, xp: Any) -> Array:
 def _similarity(K: Array, W0: Array, xp: Any) -> Array:
     """:func:`conjugate` with ``U = I + K`` as it is: ``W0 + (K W0 - W0 K) U^{-1}``."""
     D = K @ W0 - W0 @ K
-    U = _eye_like(xp, K) + K
+    U = identity(K.shape[-1], K) + K
     return W0 + xp.matrix_transpose(xp.linalg.solve(xp.matrix_transpose(U), xp.matrix_transpose(D)))
 
 
@@ -212,7 +208,7 @@ def cayley(B: Array, a: float, xp: Any | None = None) -> Array:
     ``K = C - I = 2a (I - aB)^{-1} B``, by one solve with ``n`` right-hand sides. ``C`` is
     unitary (to roundoff) when ``B`` is skew-Hermitian."""
     xp = namespace(B) if xp is None else xp
-    eye = _eye_like(xp, B)
+    eye = identity(B.shape[-1], B)
     return xp.linalg.solve(eye - a * B, (2 * a) * B)
 
 
@@ -261,7 +257,7 @@ def frozen_stage_conjugator(B: Array, A: Array, h: float) -> Array:
     dense = xp.reshape(
         xp.permute_dims(blocks, (*range(k), k, k + 2, k + 1, k + 3)), (*batch, s * n, s * n)
     )
-    eye_n = _eye_like(xp, B)
+    eye_n = identity(B.shape[-1], B)
     rhs = xp.reshape(xp.broadcast_to(eye_n, (*batch, s, n, n)), (*batch, s * n, n))
     eye = xp.eye(s * n, dtype=B.dtype, device=device_of(B))
     return xp.reshape(xp.linalg.solve(eye - dense, rhs), (*batch, s, n, n))

@@ -6,7 +6,7 @@ import attrs
 import numpy as np
 
 from ..algebras import Array
-from ..backends import device_of, namespace
+from ..backends import device_of, identity, namespace
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau, one_of
@@ -17,7 +17,6 @@ from .base import (
     StepStats,
     TableauProblem,
     contract,
-    identity,
     solve,
     solve_right,
     symplectic,

@@ -8,7 +8,7 @@ import attrs
 import numpy as np
 
 from ..algebras import Array, minus_dagger
-from ..backends import copy, is_numpy, namespace
+from ..backends import copy, identity, is_numpy, namespace
 from ..errors import TableauError
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
@@ -19,7 +19,6 @@ from .base import (
     StageProblem,
     StepResult,
     StepStats,
-    identity,
     real_scalar,
     retry,
     scratch,

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from ..backends import device_of, is_numpy, namespace
+from ..backends import device_of, identity, is_numpy, namespace
 
 Array = Any
 #: ``while_loop(cond, body, state)``: ``body`` applied while ``cond(state)`` holds
@@ -139,7 +139,7 @@ def gmres(
     k = max(1, min(int(restart), n))
     rows = _arange(k + 1, b)
     cols = rows[:k]
-    eye = _cast(rows[:, None] == rows[None, :], b)
+    eye = identity(k + 1, b)
     target = rtol * _norm(b)
 
     def arnoldi_going(state: tuple[Any, ...]) -> Any:

@@ -9,7 +9,7 @@ import attrs
 import numpy as np
 
 from ..algebras import Array
-from ..backends import device_norms, device_of, is_numpy, namespace
+from ..backends import device_norms, device_of, identity, is_numpy, namespace
 from ..errors import InputError
 from . import arguments
 from .base import ImplicitProblem, Solver, SolveResult, batch_norm
@@ -59,12 +59,6 @@ def from_real(v: Array, shape: tuple[int, ...], dtype: Any) -> Array:
     return xp.reshape(v, shape)
 
 
-def _identity(m: int, like: Array) -> Array:
-    if is_numpy(like):
-        return np.eye(m, dtype=like.dtype)
-    return namespace(like).eye(m, dtype=like.dtype, device=device_of(like))
-
-
 def dense_direction(problem: ImplicitProblem, x: Array, rhs: Array) -> Array:
     """Newton's direction ``d`` with ``(I - F'(x)) d = rhs``, the matrix assembled densely:
     its ``m`` columns (``m`` real unknowns per problem, a static count) by one call of
@@ -75,7 +69,7 @@ def dense_direction(problem: ImplicitProblem, x: Array, rhs: Array) -> Array:
     xp = namespace(x)
     r = to_real(rhs, core)
     batch, m = r.shape
-    eye = _identity(m, r)
+    eye = identity(m, r)
     units = xp.reshape(xp.broadcast_to(eye[:, None, :], (m, batch, m)), (m * batch, m))
     stacked = (m, *x.shape)
     dx = from_real(units, stacked, x.dtype)
