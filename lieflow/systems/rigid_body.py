@@ -9,9 +9,9 @@ import attrs
 import numpy as np
 
 from ..algebras import SO, Array, minus_dagger
-from ..backends import from_host, is_foreign_array, is_numpy, namespace
+from ..backends import is_foreign_array, is_numpy, namespace
 from ..errors import InputError
-from .base import IsospectralSystem, read_only
+from .base import IsospectralSystem, read_only, table_like
 
 
 def _positive_vector(values: Sequence[float] | np.ndarray, what: str) -> np.ndarray:
@@ -26,22 +26,6 @@ def _positive_vector(values: Sequence[float] | np.ndarray, what: str) -> np.ndar
 
 def _moments(values: Sequence[float] | np.ndarray) -> np.ndarray:
     return _positive_vector(values, "moments of inertia")
-
-
-def _like(table: np.ndarray, W: Array) -> np.ndarray:
-    """``table`` (float64) in the real precision of ``W`` (a float32 state stays float32);
-    ``table`` itself for a double-precision ``W`` (no dtype promotion per call); for ``W``
-    of another array library (:mod:`lieflow.backends`) a copy on its device (small)."""
-    if type(W) is np.ndarray and W.dtype.char == "d":  # the common case first (per update)
-        return table
-    if not is_numpy(W):
-        xp = namespace(W)
-        single = W.dtype in (xp.float32, xp.complex64)
-        return from_host(table, W, xp.float32 if single else xp.float64)
-    dtype = W.dtype if isinstance(W, np.ndarray) else np.asarray(W).dtype
-    if dtype.char in "dD":
-        return table
-    return table.astype(np.result_type(np.asarray(W).real.dtype, np.float32), copy=False)
 
 
 class _Body(IsospectralSystem):
@@ -67,7 +51,7 @@ class _Body(IsospectralSystem):
         )
 
     def B(self, W: Array) -> Array:
-        return W * _like(self._factor, W)
+        return W * table_like(self._factor, W)
 
     def stage_B(self, W: Array) -> Array:
         r"""``B(P(W))`` at a stage value ``W``, ``P(W) = (W - W^T)/2`` the so(n) stage
@@ -90,8 +74,8 @@ class _Body(IsospectralSystem):
         :math:`\sum_{ij} (w_{ij}/2) W_{ij}^2`: bit for bit the same (halving one factor of
         each product halves it exactly), one pass less."""
         if not is_numpy(W):  # another array library (lieflow.backends)
-            return namespace(W).sum(W * W * _like(self._half_weights, W), axis=(-2, -1))
-        return np.einsum("...ij,...ij,ij->...", W, W, _like(self._half_weights, W))
+            return namespace(W).sum(W * W * table_like(self._half_weights, W), axis=(-2, -1))
+        return np.einsum("...ij,...ij,ij->...", W, W, table_like(self._half_weights, W))
 
 
 def _principal_moments(values: Sequence[float] | np.ndarray) -> np.ndarray:

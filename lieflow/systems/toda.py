@@ -9,9 +9,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ..algebras import GL, Array, transpose
-from ..backends import from_host, is_foreign_array, is_numpy, namespace
+from ..backends import is_foreign_array, is_numpy, namespace
 from ..errors import InputError
-from .base import IsospectralSystem, read_only
+from .base import IsospectralSystem, read_only, table_like
 
 #: The paper's initial condition for n = 4 (eigenvalues ±1, ±sqrt 5).
 PAPER_W0 = np.array(
@@ -102,16 +102,6 @@ class PeriodicToda(IsospectralSystem):
     def _algebra(self) -> GL:
         return GL(self.n)
 
-    def _sign_like(self, W: Array) -> np.ndarray:
-        if not is_numpy(W):  # another array library: on its device, in W's real precision
-            xp = namespace(W)
-            single = W.dtype in (xp.float32, xp.complex64)
-            return from_host(self.sign, W, xp.float32 if single else xp.float64)
-        dtype = W.dtype if isinstance(W, np.ndarray) else np.asarray(W).dtype
-        if dtype.char in "dD":  # the table itself: no dtype promotion per call
-            return self.sign
-        return self.sign.astype(np.result_type(np.asarray(W).real.dtype, np.float32), copy=False)
-
     def project(self, W: Array) -> Array:
         """The symmetric part ``(W + W^T)/2`` (the identity with ``gl_gradient=True``)."""
         W = W if is_foreign_array(W) else np.asarray(W)
@@ -165,8 +155,8 @@ class PeriodicToda(IsospectralSystem):
 
     def B(self, W: Array) -> Array:
         if self.gl_gradient:
-            return transpose(W) * self._sign_like(W)
-        return W * self._sign_like(W)
+            return transpose(W) * table_like(self.sign, W)
+        return W * table_like(self.sign, W)
 
     @property
     def hadamard_factor(self) -> Array | None:
@@ -214,5 +204,5 @@ class PeriodicToda(IsospectralSystem):
         """
         W = W if is_foreign_array(W) else np.asarray(W)
         xp = namespace(W)
-        out: Array = -0.5 * xp.sum(W * W * self._sign_like(W), axis=(-2, -1))
+        out: Array = -0.5 * xp.sum(W * W * table_like(self.sign, W), axis=(-2, -1))
         return out
