@@ -283,13 +283,17 @@ class Probe:
 def _traced_step_matches_numpy(
     jax: Any, name: str, scheme_name: str, update: str, kind: str, updates: int
 ) -> None:
+    """The second step of a run, warm-started from the first's offsets, traced, against
+    NumPy's."""
     system = _system(name)
     scheme = lf.schemes.get(scheme_name, update=update)
     W0 = system.random_state(0)
-    ref = scheme.step(W0, H, system, lf.solvers.FixedPoint(rtol=1e-15)).W
+    solver = lf.solvers.FixedPoint(rtol=1e-15)
+    first = scheme.step(W0, H, system, solver)
+    ref = scheme.step(first.W, H, system, solver, first.warm).W
     probe = Probe(jax, kind, updates)
-    step = jax.jit(lambda W: system.project(scheme.step(W, H, system, probe, None).W))
-    got = step(jax.numpy.asarray(W0))
+    step = jax.jit(lambda W, warm: system.project(scheme.step(W, H, system, probe, warm).W))
+    got = step(jax.numpy.asarray(first.W), jax.numpy.asarray(first.warm))
     assert _relative(got, system.project(ref)) <= 1e-12
     # diagnostics traced too, on the device
     energy = jax.jit(system.hamiltonian)(got)
