@@ -148,7 +148,7 @@ def _steps(flow: Flow, W0: Array, h: float, start: int, warm: Any) -> Iterator[S
         yield Step(
             chunk.stop,
             chunk.stop * h,
-            chunk.W[-1],
+            chunk.W[-1, ...],  # an index every array library takes
             StepStats(int(chunk.iterations[-1]), chunk.solvers[-1], float(chunk.residuals[-1])),
             chunk.state,
         )

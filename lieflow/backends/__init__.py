@@ -31,6 +31,7 @@ __all__ = [
     "device_of",
     "from_host",
     "host_norms",
+    "identity",
     "is_foreign_array",
     "is_numpy",
     "is_traced",
@@ -156,6 +157,13 @@ def copy(x: Any) -> Any:
     if is_numpy(x):
         return np.array(x, copy=True)
     return namespace(x).asarray(x, copy=True)
+
+
+def identity(n: int, like: Any) -> Any:
+    """The ``n×n`` identity matrix in ``like``'s library, dtype and device."""
+    if is_numpy(like):
+        return np.eye(n, dtype=like.dtype)
+    return namespace(like).eye(n, dtype=like.dtype, device=device_of(like))
 
 
 def device_norms(x: Any, core_ndim: int) -> Any:

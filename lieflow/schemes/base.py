@@ -9,8 +9,8 @@ from typing import Any, TypeVar
 import attrs
 import numpy as np
 
-from ..algebras import Array, minus_dagger
-from ..backends import is_numpy
+from ..algebras import Array, minus_dagger, transpose
+from ..backends import is_numpy, namespace
 from ..errors import ConvergenceError
 from ..solvers.base import ImplicitProblem, Solver, SolveResult, einsum
 from ..systems.base import IsospectralSystem
@@ -276,8 +276,30 @@ def symplectic(tableau: ButcherTableau) -> ButcherTableau:
 
 
 def solve_right(rhs: Array, mat: Array) -> Array:
-    """``rhs mat^{-1}`` (batched), as a solve with the transposed matrix."""
-    return np.swapaxes(np.linalg.solve(np.swapaxes(mat, -1, -2), np.swapaxes(rhs, -1, -2)), -1, -2)
+    """``rhs mat^{-1}`` (batched), as a solve with the transposed matrix; arrays of any
+    library (``linalg.solve`` of the array's namespace)."""
+    if is_numpy(mat):
+        return np.swapaxes(
+            np.linalg.solve(np.swapaxes(mat, -1, -2), np.swapaxes(rhs, -1, -2)), -1, -2
+        )
+    return transpose(namespace(mat).linalg.solve(transpose(mat), transpose(rhs)))
+
+
+def contract(coef: np.ndarray, X: Array, axis: int) -> Array:
+    """``Y[..., i, ...] = sum_k coef[i, k] X[..., k, ...]`` along the (negative) ``axis`` of
+    ``X``: a host matrix of a tableau's coefficients applied to a stack of stage matrices
+    (``numpy.einsum("ik,...k...->...i...")``), in ``X``'s library, as sums of Python-float
+    multiples (the coefficients are constants of the tableau: they never become arrays of
+    ``X``'s library, and a single-precision ``X`` stays single)."""
+    xp = namespace(X)
+    tail = (slice(None),) * (-axis - 1)
+    indices: list[Any] = [(Ellipsis, k, *tail) for k in range(coef.shape[1])]
+    parts = [X[index] for index in indices]
+    rows = []
+    for row in coef.tolist():
+        terms = [c * part for c, part in zip(row, parts, strict=True)]
+        rows.append(sum(terms[1:], terms[0]))
+    return xp.stack(rows, axis=axis)
 
 
 def scratch(held: Array | None, count: int, shape: tuple[int, ...], dtype: Any) -> Array:

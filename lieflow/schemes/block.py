@@ -10,7 +10,7 @@ import attrs
 import numpy as np
 
 from ..algebras import Array, dagger
-from ..backends import copy, device_of, from_host, is_numpy, namespace
+from ..backends import copy, device_of, from_host, identity, is_numpy, namespace
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau, gauss, one_of
@@ -20,6 +20,7 @@ from .base import (
     StepResult,
     StepStats,
     TableauProblem,
+    contract,
     scratch,
     solve,
     solve_right,
@@ -28,23 +29,30 @@ from .base import (
 
 
 def blocks_to_dense(X: Array) -> Array:
-    """``(..., s, s, n, n)`` blocks ``X_kl`` -> the dense ``(..., sn, sn)`` matrix."""
+    """``(..., s, s, n, n)`` blocks ``X_kl`` -> the dense ``(..., sn, sn)`` matrix (arrays
+    of any library)."""
     *batch, s, _, n, _ = X.shape
-    return np.swapaxes(X, -3, -2).reshape(*batch, s * n, s * n)
+    xp = namespace(X)
+    return xp.reshape(xp.moveaxis(X, -3, -2), (*batch, s * n, s * n))
 
 
 def dense_to_blocks(X: Array, s: int) -> Array:
     """Inverse of :func:`blocks_to_dense`."""
     *batch, sn, _ = X.shape
     n = sn // s
-    return np.swapaxes(X.reshape(*batch, s, n, s, n), -3, -2)
+    xp = namespace(X)
+    return xp.moveaxis(xp.reshape(X, (*batch, s, n, s, n)), -3, -2)
 
 
 def _block_coefficient_matrix(coef: np.ndarray, mats: Array) -> Array:
     """Dense ``(..., sn, sn)`` matrix with blocks ``coef[k, l] * mats[..., k or l]``.
 
-    ``mats`` has shape ``(..., s, s, n, n)`` already broadcast to the block pattern.
+    ``mats`` has shape ``(..., s, s, n, n)`` or one that broadcasts to it (a block row or
+    column); ``coef`` is a host matrix (placed on ``mats``' device, in its dtype, for
+    arrays of another library).
     """
+    if not is_numpy(mats):
+        coef = from_host(coef, mats, mats.dtype)
     return blocks_to_dense(coef[:, :, None, None] * mats)
 
 
@@ -78,9 +86,9 @@ class BlockProblem(TableauProblem):
         warm: Array | None = None,
     ) -> None:
         super().__init__(system, W0, h, tableau)
-        s = tableau.stages
+        self.s = s = tableau.stages
         self.diag = np.arange(s)
-        self.trivial = np.broadcast_to(
+        self.trivial = namespace(W0).broadcast_to(
             W0[..., None, None, :, :], (*W0.shape[:-2], s, s, *W0.shape[-2:])
         )
         self.warm = warm
@@ -93,13 +101,21 @@ class BlockProblem(TableauProblem):
 
     def stages(self, M: Array) -> Array:
         """The stage values ``M_kk``, shape ``(..., s, n, n)``."""
-        return M[..., self.diag, self.diag, :, :]
+        if self._host:
+            return M[..., self.diag, self.diag, :, :]
+        # another array library: no indexing by integer arrays assumed
+        return namespace(M).stack([M[..., k, k, :, :] for k in range(self.s)], axis=-3)
 
     def _combine(self, BM: Array, MB: Array, BMB: Array) -> Array:
         A, h = self.A, self.h
-        ABM = np.einsum("ik,...kjab->...ijab", A, BM)
-        MBAt = np.einsum("jl,...ilab->...ijab", A, MB)
-        ABMBAt = np.einsum("ik,jl,...klab->...ijab", A, A, BMB)
+        if self._host:
+            ABM = np.einsum("ik,...kjab->...ijab", A, BM)
+            MBAt = np.einsum("jl,...ilab->...ijab", A, MB)
+            ABMBAt = np.einsum("ik,jl,...klab->...ijab", A, A, BMB)
+        else:  # another array library: the same sums, by contract
+            ABM = contract(A, BM, -4)
+            MBAt = contract(A, MB, -3)
+            ABMBAt = contract(A, contract(A, BMB, -3), -4)
         return h * (ABM - MBAt) + (h * h) * ABMBAt
 
     def map(self, M: Array) -> Array:
@@ -121,12 +137,11 @@ class BlockProblem(TableauProblem):
 
     def frozen_map(self, M: Array) -> Array:
         B = self.B(self.stages(M))
-        s, n = self.A.shape[0], B.shape[-1]
-        eye = np.eye(s * n, dtype=B.dtype)
+        s = self.s
+        eye = identity(s * B.shape[-1], B)
         AB = _block_coefficient_matrix(self.A, B[..., None, :, :, :])  # blocks a_ik B_k
         BAt = _block_coefficient_matrix(self.A.T, B[..., :, None, :, :])  # blocks B_k a_lk
-        W0b = np.broadcast_to(self.W0[..., None, None, :, :], (*self.W0.shape[:-2], s, s, n, n))
-        left = np.linalg.solve(eye - self.h * AB, blocks_to_dense(W0b))
+        left = namespace(B).linalg.solve(eye - self.h * AB, blocks_to_dense(self.trivial))
         return dense_to_blocks(solve_right(left, eye + self.h * BAt), s)
 
     def update(self, M: Array) -> Array:
@@ -256,17 +271,19 @@ class ReducedProblem(TableauProblem):
         ``G (I - h B^†A^T) = [I ... I]`` and ``P (I + h B A^T) = [W0 ... W0]``."""
         B = self.B(self.stages(x))
         s, n = self.A.shape[0], B.shape[-1]
-        eye = np.eye(s * n, dtype=B.dtype)
+        xp = namespace(B)
+        eye = identity(s * n, B)
         # blocks (j, i) = a_ij B_j: the matrix B A^T acting on a block row from the right
         At = self.A.T
         Bdag = self._Bdag(B)
         CG = _block_coefficient_matrix(At, Bdag[..., :, None, :, :])
         CP = _block_coefficient_matrix(At, B[..., :, None, :, :])
-        rows = np.swapaxes(self.trivial, -3, -2).reshape(*self.trivial.shape[:-3], n, s * n)
+        trivial = self.trivial
+        rows = xp.reshape(xp.moveaxis(trivial, -3, -2), (*trivial.shape[:-3], n, s * n))
         G = solve_right(rows[..., 0, :, :], eye - self.h * CG)
         P = solve_right(rows[..., 1, :, :], eye + self.h * CP)
-        out = np.stack([G, P], axis=-3).reshape(*G.shape[:-2], 2, n, s, n)
-        return np.swapaxes(out, -3, -2)
+        out = xp.reshape(xp.stack([G, P], axis=-3), (*G.shape[:-2], 2, n, s, n))
+        return xp.moveaxis(out, -3, -2)
 
     def update(self, x: Array) -> Array:
         """``W1 = W0 + h sum_i b_i [B(W_i), W_i]`` with ``W_i = G_i^† P_i``."""

@@ -23,8 +23,15 @@ phase space) — ``U`` is unitary: it is made unitary to roundoff by Newton–Sc
 similarity: still isospectral), by a linear solve.
 
 Every function takes and returns arrays of any array-API library (NumPy, CuPy, torch, ...)
-and uses only ``@``, ``+ - *``, ``eye``, ``linalg.solve`` and ``linalg.vector_norm`` of the
-array's own namespace, so one source serves CPU and GPU.
+and uses only ``@``, ``+ - *``, ``eye``, ``where``, ``linalg.solve`` and
+``linalg.vector_norm`` of the array's own namespace, so one source serves CPU and GPU. On
+NumPy arrays the decisions (unitary or not, when Newton–Schulz stops) are made on the host;
+on arrays of another library they are arrays themselves — a fixed number
+(:data:`STATIC_NEWTON_SCHULZ_STEPS`) of Newton–Schulz updates, each applied only where the
+NumPy rule would still iterate, and ``where`` between the unitary and the similarity
+update — so that the functions run traced (``jax.jit``) with no value read on the host. A
+conjugator the NumPy path refuses (:class:`~lieflow.errors.ConvergenceError`) comes back
+as NaN there: the step is then reported as not finite.
 """
 
 from __future__ import annotations
@@ -34,13 +41,8 @@ from typing import Any
 
 import numpy as np
 
+from ..backends import device_of, identity, namespace
 from ..errors import ConvergenceError
-
-_array_namespace: Any
-try:  # optional: the namespace of any array-API library
-    from array_api_compat import array_namespace as _array_namespace
-except ImportError:  # pragma: no cover - NumPy arrays only
-    _array_namespace = None
 
 Array = Any
 
@@ -52,23 +54,17 @@ UPDATES = ("commutator", "conjugation")
 #: squares the distance from unitarity once it is below 1/2: two or three suffice).
 NEWTON_SCHULZ_STEPS = 12
 
-
-def namespace(*arrays: Array) -> Any:
-    """The array-API namespace of ``arrays``: NumPy for NumPy arrays (and without
-    ``array_api_compat``), else ``array_api_compat.array_namespace``."""
-    if _array_namespace is None or all(isinstance(a, np.ndarray) for a in arrays):
-        return np
-    return _array_namespace(*arrays)
+#: Newton–Schulz updates on arrays of another library (:func:`orthonormalize`), a static
+#: count: from ``||E|| <= 3e-3`` (stage equations solved to ``rtol`` leave ``||E||`` of
+#: order ``rtol``) three updates reach roundoff (``3e-3 -> 7e-6 -> 4e-11 -> 1e-21``); a
+#: conjugator that needs more comes back as NaN (the NumPy path iterates on).
+STATIC_NEWTON_SCHULZ_STEPS = 3
 
 
 def _dagger(xp: Any, X: Array) -> Array:
     """``X^†`` over the last two axes."""
     Xt = xp.matrix_transpose(X)
     return xp.conj(Xt) if xp.isdtype(X.dtype, "complex floating") else Xt
-
-
-def _eye_like(xp: Any, X: Array) -> Array:
-    return xp.eye(X.shape[-1], dtype=X.dtype, device=getattr(X, "device", None))
 
 
 def _matrix_norms(xp: Any, X: Array) -> Array:
@@ -80,13 +76,17 @@ def _eps(xp: Any, X: Array) -> float:
     return float(xp.finfo(X.dtype).eps)
 
 
-def is_unitary_generator(B: Array, xp: Any | None = None) -> bool:
+def is_unitary_generator(B: Array, xp: Any | None = None) -> Any:
     """Whether every ``B`` of the stack is skew-Hermitian to roundoff (then the
-    conjugators built from it are unitary)."""
+    conjugators built from it are unitary): a bool for NumPy arrays, a 0-d boolean array
+    (not read on the host) for arrays of another library."""
     xp = namespace(B) if xp is None else xp
-    defect = float(xp.max(_matrix_norms(xp, B + _dagger(xp, B))))
-    size = float(xp.max(_matrix_norms(xp, B)))
-    return defect <= 16 * _eps(xp, B) * max(size, float(np.finfo(float).tiny))
+    defect = xp.max(_matrix_norms(xp, B + _dagger(xp, B)))
+    size = xp.max(_matrix_norms(xp, B))
+    tiny = float(np.finfo(float).tiny)
+    if xp is np:
+        return float(defect) <= 16 * _eps(xp, B) * max(float(size), tiny)
+    return defect <= 16 * _eps(xp, B) * xp.maximum(size, tiny)
 
 
 def orthonormalize(K: Array, xp: Any | None = None) -> Array:
@@ -106,6 +106,8 @@ def orthonormalize(K: Array, xp: Any | None = None) -> Array:
     were not solved to any useful accuracy).
     """
     xp = namespace(K) if xp is None else xp
+    if xp is not np:
+        return _orthonormalize_static(K, xp)
     eps = _eps(xp, K)
     floor = math.sqrt(K.shape[-1]) * eps
     last = math.inf
@@ -130,7 +132,35 @@ def orthonormalize(K: Array, xp: Any | None = None) -> Array:
     return K
 
 
-def conjugate(K: Array, W0: Array, unitary: bool, skew: bool, xp: Any | None = None) -> Array:
+def _orthonormalize_static(K: Array, xp: Any) -> Array:
+    """:func:`orthonormalize` on arrays of another library, with no value read on the host:
+    :data:`STATIC_NEWTON_SCHULZ_STEPS` updates, each kept only where the NumPy rule would
+    still iterate (its stops as 0-d boolean arrays); NaN where the NumPy rule raises
+    (``||E|| >= 1`` at the start) or iterates beyond the static count."""
+    eps = _eps(xp, K)
+    floor = math.sqrt(K.shape[-1]) * eps
+
+    def update(K: Array) -> tuple[Array, Array]:
+        """``E``'s norm and the Newton–Schulz update of ``K``."""
+        Kh = _dagger(xp, K)
+        E = K + Kh + Kh @ K
+        return xp.max(_matrix_norms(xp, E)), K - 0.5 * (E + K @ E)
+
+    err, new = update(K)
+    go = err > floor  # the NumPy loop's first checks: done already, or refused
+    refused = go & (err >= 1.0)
+    for _ in range(1, STATIC_NEWTON_SCHULZ_STEPS):
+        K = xp.where(go, new, K)
+        active = go & (err * err > eps)  # the update did not take ||E|| to roundoff
+        last = err
+        err, new = update(K)
+        go = active & (err > floor) & (err < last)  # above the floor, still decreasing
+    K = xp.where(go, new, K)
+    active = go & (err * err > eps)
+    return xp.where(refused | active, K * math.nan, K)
+
+
+def conjugate(K: Array, W0: Array, unitary: Any, skew: bool, xp: Any | None = None) -> Array:
     r"""``W1 = U W0 U^{-1}`` for ``U = I + K``, formed as ``W0`` plus an increment computed
     from ``K`` (the roundoff of the products is then relative to the step's change, not to
     ``W0``, as in the commutator update):
@@ -141,18 +171,35 @@ def conjugate(K: Array, W0: Array, unitary: bool, skew: bool, xp: Any | None = N
       part is taken, so that ``W1`` is in the algebra exactly;
     * otherwise ``W1 = W0 + (K W0 - W0 K) U^{-1}`` (``= U W0 U^{-1}``), ``U^{-1}`` applied
       by a linear solve with ``U^T``.
+
+    ``unitary`` is a bool, or a 0-d boolean array (:func:`is_unitary_generator` of arrays of
+    another library): then both are formed and ``where`` picks one, nothing is read on the
+    host.
     """
     xp = namespace(K, W0) if xp is None else xp
-    if unitary:
-        K = orthonormalize(K, xp)
-        Kh = _dagger(xp, K)
-        KW = K @ W0
-        if skew:
-            D = KW - _dagger(xp, KW) + KW @ Kh
-            return W0 + 0.5 * (D - _dagger(xp, D))
-        return W0 + (KW + W0 @ Kh + KW @ Kh)
+    if skew or (isinstance(unitary, (bool, np.bool_)) and unitary):
+        return _unitary_conjugate(K, W0, skew, xp)
+    if isinstance(unitary, (bool, np.bool_)):
+        return _similarity(K, W0, xp)
+    # a 0-d boolean array (another library: not read on the host): both, then where
+    return xp.where(unitary, _unitary_conjugate(K, W0, skew, xp), _similarity(K, W0, xp))
+
+
+def _unitary_conjugate(K: Array, W0: Array, skew: bool, xp: Any) -> Array:
+    """:func:`conjugate` with ``U = I + K`` made unitary."""
+    K = orthonormalize(K, xp)
+    Kh = _dagger(xp, K)
+    KW = K @ W0
+    if skew:
+        D = KW - _dagger(xp, KW) + KW @ Kh
+        return W0 + 0.5 * (D - _dagger(xp, D))
+    return W0 + (KW + W0 @ Kh + KW @ Kh)
+
+
+def _similarity(K: Array, W0: Array, xp: Any) -> Array:
+    """:func:`conjugate` with ``U = I + K`` as it is: ``W0 + (K W0 - W0 K) U^{-1}``."""
     D = K @ W0 - W0 @ K
-    U = _eye_like(xp, K) + K
+    U = identity(K.shape[-1], K) + K
     return W0 + xp.matrix_transpose(xp.linalg.solve(xp.matrix_transpose(U), xp.matrix_transpose(D)))
 
 
@@ -161,7 +208,7 @@ def cayley(B: Array, a: float, xp: Any | None = None) -> Array:
     ``K = C - I = 2a (I - aB)^{-1} B``, by one solve with ``n`` right-hand sides. ``C`` is
     unitary (to roundoff) when ``B`` is skew-Hermitian."""
     xp = namespace(B) if xp is None else xp
-    eye = _eye_like(xp, B)
+    eye = identity(B.shape[-1], B)
     return xp.linalg.solve(eye - a * B, (2 * a) * B)
 
 
@@ -204,17 +251,15 @@ def frozen_stage_conjugator(B: Array, A: Array, h: float) -> Array:
     :math:`g g^\dagger` of :math:`\dot g = g B^\dagger`)."""
     xp = namespace(B)
     *batch, s, n, _ = B.shape
-    coef = xp.asarray(
-        np.asarray(A) * h, dtype=xp.finfo(B.dtype).dtype, device=getattr(B, "device", None)
-    )
+    coef = xp.asarray(np.asarray(A) * h, dtype=xp.finfo(B.dtype).dtype, device=device_of(B))
     blocks = coef[:, :, None, None] * B[..., None, :, :, :]  # (..., i, j, a, c) = h a_ij B_j
     k = len(batch)
     dense = xp.reshape(
         xp.permute_dims(blocks, (*range(k), k, k + 2, k + 1, k + 3)), (*batch, s * n, s * n)
     )
-    eye_n = _eye_like(xp, B)
+    eye_n = identity(B.shape[-1], B)
     rhs = xp.reshape(xp.broadcast_to(eye_n, (*batch, s, n, n)), (*batch, s * n, n))
-    eye = xp.eye(s * n, dtype=B.dtype, device=getattr(B, "device", None))
+    eye = xp.eye(s * n, dtype=B.dtype, device=device_of(B))
     return xp.reshape(xp.linalg.solve(eye - dense, rhs), (*batch, s, n, n))
 
 

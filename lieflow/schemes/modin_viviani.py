@@ -6,6 +6,7 @@ import attrs
 import numpy as np
 
 from ..algebras import Array
+from ..backends import device_of, identity, namespace
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau, one_of
@@ -15,6 +16,7 @@ from .base import (
     StepResult,
     StepStats,
     TableauProblem,
+    contract,
     solve,
     solve_right,
     symplectic,
@@ -48,27 +50,55 @@ class ModinVivianiProblem(TableauProblem):
         super().__init__(system, W0, h, tableau)
         self.s = s = tableau.stages
         shape = (*W0.shape[:-2], 2 * s + s * s, *W0.shape[-2:])
-        self.x0 = np.array(warm, dtype=W0.dtype) if warm is not None else np.zeros(shape, W0.dtype)
+        if self._host:
+            self.x0 = (
+                np.array(warm, dtype=W0.dtype) if warm is not None else np.zeros(shape, W0.dtype)
+            )
+        else:  # another array library (lieflow.backends)
+            xp = namespace(W0)
+            zeros = xp.zeros(shape, dtype=W0.dtype, device=device_of(W0))
+            self.x0 = zeros if warm is None else xp.asarray(warm, dtype=W0.dtype, copy=True)
 
     def _split(self, x: Array) -> tuple[Array, Array, Array]:
         s = self.s
-        K = x[..., 2 * s :, :, :].reshape(*x.shape[:-3], s, s, *x.shape[-2:])
+        K = namespace(x).reshape(x[..., 2 * s :, :, :], (*x.shape[:-3], s, s, *x.shape[-2:]))
         return x[..., :s, :, :], x[..., s : 2 * s, :, :], K
 
     def _join(self, X: Array, Y: Array, K: Array) -> Array:
-        K = K.reshape(*K.shape[:-4], self.s * self.s, *K.shape[-2:])
-        return np.concatenate([X, Y, K], axis=-3)
+        xp = namespace(K)
+        K = xp.reshape(K, (*K.shape[:-4], self.s * self.s, *K.shape[-2:]))
+        if self._host:
+            return np.concatenate([X, Y, K], axis=-3)
+        return xp.concat([X, Y, K], axis=-3)
 
     def stages(self, x: Array) -> Array:
         """``W~_i``, shape ``(..., s, n, n)``."""
         X, Y, K = self._split(x)
         return self._stages(X, Y, K, self.W0)
 
-    def _stages(self, X: Array, Y: Array, K: Array, W0: Array | float) -> Array:
-        A = self.A
-        XY = np.einsum("ij,...jab->...iab", A, X + Y)
-        AK = np.einsum("ij,...ijab->...iab", A, K)
-        return np.asarray(W0)[..., None, :, :] + XY + AK if np.ndim(W0) else XY + AK
+    def _mix(self, X: Array) -> Array:
+        """``sum_j a_ij X_j`` over the stage axis ``-3``."""
+        if self._host:
+            return np.einsum("ij,...jab->...iab", self.A, X)
+        return contract(self.A, X, -3)
+
+    def _mix_rows(self, K: Array) -> Array:
+        """``sum_l a_jl K_il``: ``(..., s, s, n, n)`` -> the same shape."""
+        if self._host:
+            return np.einsum("jl,...ilab->...ijab", self.A, K)
+        return contract(self.A, K, -3)
+
+    def _stages(self, X: Array, Y: Array, K: Array, W0: Array | None) -> Array:
+        XY = self._mix(X + Y)
+        if self._host:
+            AK = np.einsum("ij,...ijab->...iab", self.A, K)
+        else:  # sum_j a_ij K_ij for each i
+            rows = []
+            for i, row in enumerate(self.A.tolist()):
+                terms = [a * K[..., i, j, :, :] for j, a in enumerate(row)]
+                rows.append(sum(terms[1:], terms[0]))
+            AK = namespace(K).stack(rows, axis=-3)
+        return XY + AK if W0 is None else W0[..., None, :, :] + XY + AK
 
     def _rhs(
         self,
@@ -82,20 +112,20 @@ class ModinVivianiProblem(TableauProblem):
         dK: Array | None = None,
     ) -> Array:
         """The map, or (with the d-arguments) its derivative, which is linear in them."""
-        A, h = self.A, self.h
+        h = self.h
         W0 = self.W0[..., None, :, :]
         Bj = B[..., None, :, :, :]
         if dB is None:
-            AX = np.einsum("ij,...jab->...iab", A, X)
-            AY = np.einsum("ij,...jab->...iab", A, Y)
-            Z = AX[..., :, None, :, :] + np.einsum("jl,...ilab->...ijab", A, K)
+            AX = self._mix(X)
+            AY = self._mix(Y)
+            Z = AX[..., :, None, :, :] + self._mix_rows(K)
             return self._join(-h * ((W0 + AX) @ B), h * (B @ (W0 + AY)), h * (Bj @ Z))
         assert dX is not None and dY is not None and dK is not None
         dBj = dB[..., None, :, :, :]
-        AX, dAX = (np.einsum("ij,...jab->...iab", A, v) for v in (X, dX))
-        AY, dAY = (np.einsum("ij,...jab->...iab", A, v) for v in (Y, dY))
-        Z = AX[..., :, None, :, :] + np.einsum("jl,...ilab->...ijab", A, K)
-        dZ = dAX[..., :, None, :, :] + np.einsum("jl,...ilab->...ijab", A, dK)
+        AX, dAX = self._mix(X), self._mix(dX)
+        AY, dAY = self._mix(Y), self._mix(dY)
+        Z = AX[..., :, None, :, :] + self._mix_rows(K)
+        dZ = dAX[..., :, None, :, :] + self._mix_rows(dK)
         return self._join(
             -h * (dAX @ B + (W0 + AX) @ dB),
             h * (dB @ (W0 + AY) + B @ dAY),
@@ -111,7 +141,7 @@ class ModinVivianiProblem(TableauProblem):
         dX, dY, dK = self._split(dx)
         W = self._stages(X, Y, K, self.W0)
         B = self.B(W)
-        dB = self.B_derivative(W, self._stages(dX, dY, dK, 0.0))
+        dB = self.B_derivative(W, self._stages(dX, dY, dK, None))
         return self._rhs(X, Y, K, B, dB, dX, dY, dK)
 
     def frozen_map(self, x: Array) -> Array:
@@ -123,23 +153,25 @@ class ModinVivianiProblem(TableauProblem):
         W0, A, h, s = self.W0, self.A, self.h, self.s
         B = self.B(self.stages(x))
         n = B.shape[-1]
-        eye = np.eye(s * n, dtype=B.dtype)
+        xp = namespace(B)
+        eye = identity(s * n, B)
         batch = W0.shape[:-2]
         # X: row block, X (I + h C) = R with blocks C_(j,i) = a_ij B_i
         C = _block_coefficient_matrix(A.T, B[..., None, :, :, :])
         R = -h * (W0[..., None, :, :] @ B)
-        Rrow = np.swapaxes(R, -3, -2).reshape(*batch, n, s * n)
+        Rrow = xp.reshape(xp.moveaxis(R, -3, -2), (*batch, n, s * n))
         Xrow = solve_right(Rrow, eye + h * C)
-        X = np.swapaxes(Xrow.reshape(*batch, n, s, n), -3, -2)
+        X = xp.moveaxis(xp.reshape(Xrow, (*batch, n, s, n)), -3, -2)
         # Y and all K_i: column blocks sharing the matrix I - h B A, blocks (i, j) = B_i a_ij
         D = _block_coefficient_matrix(A, B[..., :, None, :, :])
-        Z = np.einsum("il,...lab->...iab", A, X)  # Z_i
+        Z = self._mix(X)  # Z_i
         rhs_Y = h * (B @ W0[..., None, :, :])  # (..., s, n, n)
         rhs_K = h * (B[..., None, :, :, :] @ Z[..., :, None, :, :])  # [i, j] = B_j Z_i
-        cols = np.concatenate([rhs_Y[..., None, :, :, :], rhs_K], axis=-4)  # (..., 1+s, s, n, n)
-        cols = np.moveaxis(cols, -4, -2).reshape(*batch, s * n, (1 + s) * n)
-        sol = np.linalg.solve(eye - h * D, cols).reshape(*batch, s, n, 1 + s, n)
-        sol = np.moveaxis(sol, -2, -4)  # (..., 1+s, s, n, n)
+        # (..., 1+s, s, n, n)
+        cols = xp.stack([rhs_Y, *(rhs_K[..., i, :, :, :] for i in range(s))], axis=-4)
+        cols = xp.reshape(xp.moveaxis(cols, -4, -2), (*batch, s * n, (1 + s) * n))
+        sol = xp.reshape(xp.linalg.solve(eye - h * D, cols), (*batch, s, n, 1 + s, n))
+        sol = xp.moveaxis(sol, -2, -4)  # (..., 1+s, s, n, n)
         return self._join(X, sol[..., 0, :, :, :], sol[..., 1:, :, :, :])
 
     def update(self, x: Array) -> Array:

@@ -8,7 +8,7 @@ import attrs
 import numpy as np
 
 from ..algebras import Array, minus_dagger
-from ..backends import copy, is_numpy, namespace
+from ..backends import copy, identity, is_numpy, namespace
 from ..errors import TableauError
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
@@ -103,8 +103,8 @@ class MidpointProblem(StageProblem):
 
     def frozen_map(self, M: Array) -> Array:
         B = self.B(M)
-        eye = np.eye(B.shape[-1], dtype=B.dtype)
-        left = np.linalg.solve(eye - self.half * B, self.W0)
+        eye = identity(B.shape[-1], B)
+        left = namespace(B).linalg.solve(eye - self.half * B, self.W0)
         return solve_right(left, eye + self.half * B)
 
     def update(self, M: Array) -> Array:

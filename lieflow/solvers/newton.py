@@ -3,29 +3,151 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import attrs
 import numpy as np
 
 from ..algebras import Array
+from ..backends import device_norms, device_of, identity, is_numpy, namespace
 from ..errors import InputError
 from . import arguments
 from .base import ImplicitProblem, Solver, SolveResult, batch_norm
 from .fixed_point import _EPS, FixedPoint, IterationMonitor, StoppingRule
+from .krylov import WhileLoop, gmres, host_while_loop
+
+#: GMRES's restart length and its most restart cycles in a Newton step.
+GMRES_RESTART = 50
+GMRES_CYCLES = 20
 
 
-def _to_real(x: Array, core_ndim: int) -> np.ndarray:
-    """``(batch..., core...)`` -> ``(batch_size, m)`` real; complex as [Re, Im]."""
+def real_size(x: Array, core_ndim: int) -> int:
+    """How many real unknowns one problem of ``x`` has (complex entries count twice)."""
+    size = math.prod(x.shape[x.ndim - core_ndim :])
+    if is_numpy(x):
+        return 2 * size if np.iscomplexobj(x) else size
+    return 2 * size if namespace(x).isdtype(x.dtype, "complex floating") else size
+
+
+def to_real(x: Array, core_ndim: int) -> Array:
+    """``(batch..., core...)`` -> ``(batch_size, m)`` real; complex as [Re, Im] (arrays of
+    any library)."""
+    if is_numpy(x):
+        core_size = math.prod(x.shape[x.ndim - core_ndim :])
+        flat = x.reshape(-1, core_size)
+        return np.concatenate([flat.real, flat.imag], axis=1) if np.iscomplexobj(x) else flat
+    xp = namespace(x)
     core_size = math.prod(x.shape[x.ndim - core_ndim :])
-    flat = x.reshape(-1, core_size)
-    return np.concatenate([flat.real, flat.imag], axis=1) if np.iscomplexobj(x) else flat
+    flat = xp.reshape(x, (-1, core_size))
+    if not xp.isdtype(x.dtype, "complex floating"):
+        return flat
+    return xp.reshape(xp.stack([xp.real(flat), xp.imag(flat)], axis=1), (-1, 2 * core_size))
 
 
-def _from_real(v: np.ndarray, like: Array, core_ndim: int) -> Array:
-    if np.iscomplexobj(like):
+def from_real(v: Array, shape: tuple[int, ...], dtype: Any) -> Array:
+    """Inverse of :func:`to_real`: rows ``v`` of real unknowns as an array of ``shape`` and
+    the (real or complex) ``dtype`` of the unknowns."""
+    if is_numpy(v):
+        if np.dtype(dtype).kind == "c":
+            half = v.shape[1] // 2
+            v = v[:, :half] + 1j * v[:, half:]
+        return v.reshape(shape).astype(dtype, copy=False)
+    xp = namespace(v)
+    if xp.isdtype(dtype, "complex floating"):
         half = v.shape[1] // 2
-        v = v[:, :half] + 1j * v[:, half:]
-    return v.reshape(like.shape).astype(like.dtype, copy=False)
+        v = xp.astype(v[:, :half], dtype) + xp.astype(v[:, half:], dtype) * 1j
+    return xp.reshape(v, shape)
+
+
+def dense_direction(problem: ImplicitProblem, x: Array, rhs: Array) -> Array:
+    """Newton's direction ``d`` with ``(I - F'(x)) d = rhs``, the matrix assembled densely:
+    its ``m`` columns (``m`` real unknowns per problem, a static count) by one call of
+    ``problem.map_derivative`` on ``m`` unit directions stacked on a new leading axis (``x``
+    broadcast along it), then one batched ``linalg.solve``. Arrays of any library; no value
+    is read on the host (traceable)."""
+    core = problem.core_ndim
+    xp = namespace(x)
+    r = to_real(rhs, core)
+    batch, m = r.shape
+    eye = identity(m, r)
+    units = xp.reshape(xp.broadcast_to(eye[:, None, :], (m, batch, m)), (m * batch, m))
+    stacked = (m, *x.shape)
+    dx = from_real(units, stacked, x.dtype)
+    columns = to_real(problem.map_derivative(xp.broadcast_to(x, stacked), dx), core)
+    J = eye - xp.moveaxis(xp.reshape(columns, (m, batch, m)), 0, -1)  # [b, i, k]
+    d = xp.linalg.solve(J, r[..., None])[..., 0]
+    return from_real(d, x.shape, x.dtype)
+
+
+def gmres_direction(
+    problem: ImplicitProblem,
+    x: Array,
+    rhs: Array,
+    *,
+    forcing: Any,
+    restart: int = GMRES_RESTART,
+    cycles: int = GMRES_CYCLES,
+    while_loop: WhileLoop = host_while_loop,
+) -> Array:
+    """Newton's direction ``d`` with ``(I - F'(x)) d = rhs`` by matrix-free GMRES
+    (:func:`~lieflow.solvers.krylov.gmres`, relative tolerance ``forcing``) on the whole
+    batch as one real system. Traceable with ``while_loop=jax.lax.while_loop``."""
+    core = problem.core_ndim
+    xp = namespace(x)
+    r = to_real(rhs, core)
+    shape = r.shape
+
+    def apply(v: Array) -> Array:
+        dv = from_real(xp.reshape(v, shape), x.shape, x.dtype)
+        return v - xp.reshape(to_real(problem.map_derivative(x, dv), core), (-1,))
+
+    d = gmres(
+        apply, xp.reshape(r, (-1,)), rtol=forcing, restart=restart, cycles=cycles,
+        while_loop=while_loop,
+    )  # fmt: skip
+    return from_real(xp.reshape(d, shape), x.shape, x.dtype)
+
+
+def line_search(
+    problem: ImplicitProblem,
+    x: Array,
+    d: Array,
+    merit: Any,
+    *,
+    trials: int,
+    while_loop: WhileLoop = host_while_loop,
+) -> tuple[Array, Array, Any]:
+    """Backtracking on ``||F(x) - x||`` (the whole batch's norm): the step ``x + λ d`` for
+    ``λ = 1, 1/2, ...`` (at most ``trials`` of them) until the residual falls below
+    ``(1 - 1e-4 λ) merit`` (Armijo's condition, ``merit = ||F(x) - x||``). Returns the last
+    trial, its map value and whether it was accepted (a 0-d boolean array). Arrays of any
+    library; traceable with ``while_loop=jax.lax.while_loop``."""
+    xp = namespace(x)
+    real = xp.finfo(x.dtype).dtype  # λ in x's real precision: a float32 x stays float32
+    one = np.ones((), dtype=real) if is_numpy(x) else xp.ones((), dtype=real, device=device_of(x))
+
+    def searching(state: tuple[Any, ...]) -> Any:
+        k, _lam, _xn, _Fn, accepted = state
+        return (k < trials) & ~accepted
+
+    def trial(state: tuple[Any, ...]) -> tuple[Any, ...]:
+        k, lam, _xn, _Fn, _accepted = state
+        xn = x + lam * d
+        Fn = problem.map(xn)
+        with np.errstate(invalid="ignore", over="ignore"):  # NumPy's warnings only
+            accepted = total_norm(Fn - xn) <= (1.0 - 1e-4 * lam) * merit
+        return k + 1, xp.where(accepted, lam, 0.5 * lam), xn, Fn, accepted
+
+    _k, _lam, xn, Fn, accepted = while_loop(searching, trial, (0, one, x, x, one < 0))
+    return xn, Fn, accepted
+
+
+def total_norm(x: Array) -> Any:
+    """Frobenius norm of the whole array: a NumPy scalar (the plain sum of squares of
+    :func:`~lieflow.solvers.base.batch_norm`) or a 0-d array of ``x``'s library."""
+    if is_numpy(x):
+        return batch_norm(x, x.ndim)
+    return device_norms(x, x.ndim)
 
 
 @attrs.frozen
@@ -84,14 +206,17 @@ class Newton:
             raise InputError(f"linear must be 'auto', 'dense' or 'gmres', got {self.linear!r}")
 
     def solve(self, problem: ImplicitProblem) -> SolveResult:
-        """Newton iteration from ``problem.x0``."""
+        """Newton iteration from ``problem.x0``: the loop on the host, each iteration's
+        linear algebra (:func:`dense_direction` or :func:`gmres_direction`, then
+        :func:`line_search`) in the unknowns' own library."""
         core = problem.core_ndim
         x = problem.x0
         monitor = IterationMonitor(self.rule, core, x)
-        m_real = _to_real(x, core).shape[1]
+        m_real = real_size(x, core)
         dense = self.linear == "dense" or (self.linear == "auto" and m_real <= self.dense_max)
         Fx = problem.map(x)
         floor = monitor.rule.roundoff_floor  # scaled to the iterate's precision
+        trials = max(self.max_halvings, 1)
         while True:
             reason = monitor.check(Fx, x)
             res = monitor.residuals
@@ -103,71 +228,20 @@ class Newton:
                 ok = reason in ("converged", "roundoff")
                 res = monitor.residuals
                 return SolveResult(Fx if ok else x, ok, len(res) - 1, tuple(res), reason, self.name)
-            rel = monitor.residuals[-1]
             rhs = Fx - x
-            d = (
-                self._dense_step(problem, x, rhs, core)
-                if dense
-                else self._gmres_step(problem, x, rhs, core, rel)
-            )
-            x, Fx, descent = self._line_search(problem, x, d, float(batch_norm(rhs, rhs.ndim)))
-            if not descent:
+            if dense:
+                d = dense_direction(problem, x, rhs)
+            else:  # forcing term min(0.1, ||R||): quadratic convergence is kept
+                forcing = max(min(0.1, monitor.residuals[-1]), 1e-15)
+                d = gmres_direction(problem, x, rhs, forcing=forcing)
+            x, Fx, descent = line_search(problem, x, d, total_norm(rhs), trials=trials)
+            if not bool(descent):
                 # Newton's direction does not decrease ||F(x) - x|| at all: x is outside
                 # its basin (Toda, paper W0, sydirk7 at h = 0.8: the sub-step of 1.05 from
                 # the cold guess). One frozen-B step (a contraction where the plain map is
                 # not) moves x on; Newton resumes from there.
                 x = problem.frozen_map(x)
                 Fx = problem.map(x)
-
-    def _line_search(
-        self, problem: ImplicitProblem, x: Array, d: Array, merit: float
-    ) -> tuple[Array, Array, bool]:
-        """Backtracking on ``||F(x) - x||``: the full step if it decreases the residual
-        (always, near the solution: quadratic convergence is kept), else halve it up to
-        ``max_halvings`` times. Returns the new iterate, its map value and whether the
-        residual decreased."""
-        lam = 1.0
-        for _ in range(self.max_halvings):
-            xn = x + lam * d
-            Fn = problem.map(xn)
-            with np.errstate(invalid="ignore", over="ignore"):
-                trial = float(batch_norm(Fn - xn, Fn.ndim))
-            if trial <= (1.0 - 1e-4 * lam) * merit:
-                return xn, Fn, True
-            lam *= 0.5
-        return xn, Fn, False
-
-    @staticmethod
-    def _dense_step(problem: ImplicitProblem, x: Array, rhs: Array, core: int) -> Array:
-        """Assemble ``I - F'(x)`` column by column (all batch members at once) and solve."""
-        r = _to_real(rhs, core)
-        batch, m = r.shape
-        J = np.empty((batch, m, m))
-        e = np.zeros((batch, m))
-        for k in range(m):
-            e[:, k] = 1.0
-            J[:, :, k] = -_to_real(problem.map_derivative(x, _from_real(e, x, core)), core)
-            e[:, k] = 0.0
-        J[:, np.arange(m), np.arange(m)] += 1.0
-        d = np.linalg.solve(J, r[..., None])[..., 0]
-        return _from_real(d, x, core)
-
-    @staticmethod
-    def _gmres_step(problem: ImplicitProblem, x: Array, rhs: Array, core: int, rel: float) -> Array:
-        """Matrix-free GMRES on ``(I - F'(x)) d = rhs`` for the whole batch at once."""
-        import scipy.sparse.linalg as spla  # 0.1 s to import: on first use
-
-        r = _to_real(rhs, core)
-        shape = r.shape
-
-        def apply(v: np.ndarray) -> np.ndarray:
-            dv = _from_real(v.reshape(shape), x, core)
-            return v - _to_real(problem.map_derivative(x, dv), core).ravel()
-
-        op = spla.LinearOperator((r.size, r.size), matvec=apply, dtype=float)
-        tol = max(min(0.1, rel), 1e-15)
-        d, _info = spla.gmres(op, r.ravel(), rtol=tol, atol=0.0, restart=50, maxiter=20)
-        return _from_real(d.reshape(shape), x, core)
 
 
 @attrs.frozen

@@ -11,6 +11,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ..algebras import GL, SO, SU, Array, LieAlgebra, U, frobenius_norm
+from ..backends import device_of, from_host, is_numpy, namespace
 from ..errors import LieflowError
 
 
@@ -21,7 +22,11 @@ def _real_trace(P: Array) -> Array:
     if isinstance(P, np.ndarray):
         t = P.trace(axis1=-2, axis2=-1)
         return t.real if P.dtype.kind == "c" else t
-    return np.real(np.trace(P, axis1=-2, axis2=-1))
+    if is_numpy(P):
+        return np.real(np.trace(P, axis1=-2, axis2=-1))
+    xp = namespace(P)  # another array library (lieflow.backends)
+    t = xp.linalg.trace(P)
+    return xp.real(t) if xp.isdtype(t.dtype, "complex floating") else t
 
 
 def read_only(arr: np.ndarray) -> np.ndarray:
@@ -30,6 +35,23 @@ def read_only(arr: np.ndarray) -> np.ndarray:
     :attr:`IsospectralSystem._derived`). Pass an array the system owns (a copy)."""
     arr.setflags(write=False)
     return arr
+
+
+def table_like(table: np.ndarray, W: Array) -> Array:
+    """A system's constant ``table`` (float64) in the real precision of ``W`` (a float32
+    state stays float32), for products with ``W`` (the rigid bodies' weights, Toda's signs);
+    ``table`` itself for a double-precision ``W`` (no dtype promotion per call); for ``W``
+    of another array library (:mod:`lieflow.backends`) a copy on its device (small)."""
+    if type(W) is np.ndarray and W.dtype.char == "d":  # the common case first (per update)
+        return table
+    if not is_numpy(W):
+        xp = namespace(W)
+        single = W.dtype in (xp.float32, xp.complex64)
+        return from_host(table, W, xp.float32 if single else xp.float64)
+    dtype = W.dtype if isinstance(W, np.ndarray) else np.asarray(W).dtype
+    if dtype.char in "dD":
+        return table
+    return table.astype(np.result_type(np.asarray(W).real.dtype, np.float32), copy=False)
 
 
 class _Derived(dict[Any, Any]):
@@ -239,6 +261,11 @@ class IsospectralSystem(ABC):
                 out.append(_real_trace(P))
         if 1 in powers:
             out.insert(0, _real_trace(W))
+        if not is_numpy(W):  # another array library (lieflow.backends)
+            xp = namespace(W)
+            if not out:
+                return xp.zeros((*W.shape[:-2], 0), dtype=W.dtype, device=device_of(W))
+            return xp.stack(out, axis=-1)
         if not out:
             return np.zeros((*W.shape[:-2], 0))
         if isinstance(W, np.ndarray) and W.ndim == 2:  # one state: a vector of scalars

@@ -9,9 +9,9 @@ import attrs
 import numpy as np
 
 from ..algebras import SO, Array, minus_dagger
-from ..backends import from_host, is_numpy, namespace
+from ..backends import is_foreign_array, is_numpy, namespace
 from ..errors import InputError
-from .base import IsospectralSystem, read_only
+from .base import IsospectralSystem, read_only, table_like
 
 
 def _positive_vector(values: Sequence[float] | np.ndarray, what: str) -> np.ndarray:
@@ -26,22 +26,6 @@ def _positive_vector(values: Sequence[float] | np.ndarray, what: str) -> np.ndar
 
 def _moments(values: Sequence[float] | np.ndarray) -> np.ndarray:
     return _positive_vector(values, "moments of inertia")
-
-
-def _like(table: np.ndarray, W: Array) -> np.ndarray:
-    """``table`` (float64) in the real precision of ``W`` (a float32 state stays float32);
-    ``table`` itself for a double-precision ``W`` (no dtype promotion per call); for ``W``
-    of another array library (:mod:`lieflow.backends`) a copy on its device (small)."""
-    if type(W) is np.ndarray and W.dtype.char == "d":  # the common case first (per update)
-        return table
-    if not is_numpy(W):
-        xp = namespace(W)
-        single = W.dtype in (xp.float32, xp.complex64)
-        return from_host(table, W, xp.float32 if single else xp.float64)
-    dtype = W.dtype if isinstance(W, np.ndarray) else np.asarray(W).dtype
-    if dtype.char in "dD":
-        return table
-    return table.astype(np.result_type(np.asarray(W).real.dtype, np.float32), copy=False)
 
 
 class _Body(IsospectralSystem):
@@ -67,7 +51,7 @@ class _Body(IsospectralSystem):
         )
 
     def B(self, W: Array) -> Array:
-        return W * _like(self._factor, W)
+        return W * table_like(self._factor, W)
 
     def stage_B(self, W: Array) -> Array:
         r"""``B(P(W))`` at a stage value ``W``, ``P(W) = (W - W^T)/2`` the so(n) stage
@@ -89,7 +73,9 @@ class _Body(IsospectralSystem):
         r""":math:`\eta(W) = \tfrac12 \sum_{ij} w_{ij} W_{ij}^2` as
         :math:`\sum_{ij} (w_{ij}/2) W_{ij}^2`: bit for bit the same (halving one factor of
         each product halves it exactly), one pass less."""
-        return np.einsum("...ij,...ij,ij->...", W, W, _like(self._half_weights, W))
+        if not is_numpy(W):  # another array library (lieflow.backends)
+            return namespace(W).sum(W * W * table_like(self._half_weights, W), axis=(-2, -1))
+        return np.einsum("...ij,...ij,ij->...", W, W, table_like(self._half_weights, W))
 
 
 def _principal_moments(values: Sequence[float] | np.ndarray) -> np.ndarray:
@@ -145,7 +131,7 @@ class GeneralizedRigidBody(_Body):
         products instead of five: ``tr W^{2k} = sum_ij (W^k)_ij (W^k)_ji``, the three sums
         in one ``einsum`` over ``W``, ``W^2``, ``W^3`` stacked (the diagnostics evaluate
         them on every chunk of a run)."""
-        if not isinstance(W, np.ndarray):
+        if not isinstance(W, np.ndarray):  # numbers, arrays of another library
             return super().casimirs(W)
         n = self.J.size
         factors = [W[..., None, :, :]]
@@ -204,20 +190,31 @@ class RigidBody(_Body):
 
     def casimirs(self, W: Array) -> Array:
         """``tr W^2 = sum_ij W_ij W_ji`` (``-2 |m|^2``), without a matrix product."""
+        if not is_numpy(W):  # another array library (lieflow.backends)
+            xp = namespace(W)
+            return xp.sum(W * xp.matrix_transpose(W), axis=(-2, -1))[..., None]
         return np.einsum("...ij,...ji->...", W, W)[..., None]
 
 
 def hat(m: Array) -> Array:
-    """The so(3) matrix of a vector: ``hat(m) x = m × x`` (broadcasts over leading axes)."""
-    m = np.asarray(m)
-    out = np.zeros((*m.shape[:-1], 3, 3), dtype=m.dtype)
-    out[..., 0, 1], out[..., 0, 2] = -m[..., 2], m[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = m[..., 2], -m[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -m[..., 1], m[..., 0]
-    return out
+    """The so(3) matrix of a vector: ``hat(m) x = m × x`` (broadcasts over leading axes;
+    arrays of any library)."""
+    if not is_foreign_array(m):
+        m = np.asarray(m)
+        out = np.zeros((*m.shape[:-1], 3, 3), dtype=m.dtype)
+        out[..., 0, 1], out[..., 0, 2] = -m[..., 2], m[..., 1]
+        out[..., 1, 0], out[..., 1, 2] = m[..., 2], -m[..., 0]
+        out[..., 2, 0], out[..., 2, 1] = -m[..., 1], m[..., 0]
+        return out
+    xp = namespace(m)  # another array library: no item assignment, the entries stacked
+    zero = xp.zeros_like(m[..., 0])
+    x, y, z = m[..., 0], m[..., 1], m[..., 2]
+    rows = [(zero, -z, y), (z, zero, -x), (-y, x, zero)]
+    return xp.stack([xp.stack(row, axis=-1) for row in rows], axis=-2)
 
 
 def vee(W: Array) -> Array:
-    """Inverse of :func:`hat`."""
-    W = np.asarray(W)
-    return np.stack([W[..., 2, 1], W[..., 0, 2], W[..., 1, 0]], axis=-1)
+    """Inverse of :func:`hat` (arrays of any library)."""
+    xp = namespace(W) if is_foreign_array(W) else np
+    W = W if xp is not np else np.asarray(W)
+    return xp.stack([W[..., 2, 1], W[..., 0, 2], W[..., 1, 0]], axis=-1)

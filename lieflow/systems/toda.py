@@ -8,9 +8,10 @@ import attrs
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..algebras import GL, Array
+from ..algebras import GL, Array, transpose
+from ..backends import is_foreign_array, is_numpy, namespace
 from ..errors import InputError
-from .base import IsospectralSystem, read_only
+from .base import IsospectralSystem, read_only, table_like
 
 #: The paper's initial condition for n = 4 (eigenvalues ±1, ±sqrt 5).
 PAPER_W0 = np.array(
@@ -101,17 +102,13 @@ class PeriodicToda(IsospectralSystem):
     def _algebra(self) -> GL:
         return GL(self.n)
 
-    def _sign_like(self, W: Array) -> np.ndarray:
-        dtype = W.dtype if isinstance(W, np.ndarray) else np.asarray(W).dtype
-        if dtype.char in "dD":  # the table itself: no dtype promotion per call
-            return self.sign
-        return self.sign.astype(np.result_type(np.asarray(W).real.dtype, np.float32), copy=False)
-
     def project(self, W: Array) -> Array:
         """The symmetric part ``(W + W^T)/2`` (the identity with ``gl_gradient=True``)."""
-        W = np.asarray(W)
+        W = W if is_foreign_array(W) else np.asarray(W)
         if self.gl_gradient:
             return W
+        if not is_numpy(W):  # another array library (lieflow.backends)
+            return 0.5 * (W + transpose(W))
         out = W + W.swapaxes(-1, -2)
         if out.dtype.kind not in "fc":  # integer data: a float result
             return 0.5 * out
@@ -158,8 +155,8 @@ class PeriodicToda(IsospectralSystem):
 
     def B(self, W: Array) -> Array:
         if self.gl_gradient:
-            return np.swapaxes(W, -1, -2) * self._sign_like(W)
-        return W * self._sign_like(W)
+            return transpose(W) * table_like(self.sign, W)
+        return W * table_like(self.sign, W)
 
     @property
     def hadamard_factor(self) -> Array | None:
@@ -191,8 +188,11 @@ class PeriodicToda(IsospectralSystem):
         """The paper's ``η(W) = 2 tr W² - ½ tr(W^T B(W))`` (``= 2 tr W²`` on symmetric W),
         for both variants: ``η = η̃ + 2 tr W²`` (:meth:`gradient_hamiltonian` plus a
         Casimir), so its relative error is a meaningful diagnostic where ``η̃ = 0``."""
-        W = np.asarray(W)
-        tr_W2 = np.einsum("...ij,...ji->...", W, W)
+        if is_foreign_array(W):  # another array library (lieflow.backends)
+            tr_W2 = namespace(W).sum(W * transpose(W), axis=(-2, -1))
+        else:
+            W = np.asarray(W)
+            tr_W2 = np.einsum("...ij,...ji->...", W, W)
         return 2.0 * tr_W2 + self.gradient_hamiltonian(W)
 
     def gradient_hamiltonian(self, W: Array) -> Array:
@@ -202,6 +202,7 @@ class PeriodicToda(IsospectralSystem):
         the extension's ``B̃`` everywhere). Zero on symmetric matrices; it differs from the
         paper's ``η`` by the gl(n) Casimir ``2 tr W²``.
         """
-        W = np.asarray(W)
-        out: Array = -0.5 * np.sum(W * W * self._sign_like(W), axis=(-2, -1))
+        W = W if is_foreign_array(W) else np.asarray(W)
+        xp = namespace(W)
+        out: Array = -0.5 * xp.sum(W * W * table_like(self.sign, W), axis=(-2, -1))
         return out

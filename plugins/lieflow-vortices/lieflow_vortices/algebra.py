@@ -4,7 +4,11 @@ An element is ``W = blockdiag(hat(m_1), ..., hat(m_K))`` with ``hat(m) x = m × 
 identified with the vector of momenta ``m = (m_1, ..., m_K)`` of shape ``(K, 3)``. The
 Frobenius pairing of two elements is ``<W, V> = tr(W^T V) = 2 sum_i m_i · v_i``.
 
-Only lieflow's public API is used (``lieflow.LieAlgebra``, ``lieflow.systems.hat``/``vee``).
+Only lieflow's public API is used (``lieflow.LieAlgebra``, ``lieflow.systems.hat``/``vee``,
+``lieflow.backends``). Every function takes arrays of any array-API library (CuPy, PyTorch,
+JAX, ``array_api_strict``: :mod:`lieflow.backends`) as well as NumPy's, and on those uses
+their namespace only — no item assignment, no indexing by integer arrays, no value read on
+the host — so that it also runs traced (``jax.jit``).
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 import lieflow
+from lieflow.backends import from_host, is_foreign_array, namespace
 from lieflow.systems import hat, vee
 
 Array = NDArray[Any]
@@ -32,6 +37,14 @@ def diagonal_blocks(W: ArrayLike, K: int) -> Array:
 
     ``W`` has shape ``(..., 3K, 3K)``; leading axes broadcast.
     """
+    if is_foreign_array(W):  # entries (3k + a, 3k + b) of the flattened matrices, one take
+        X: Any = W
+        xp = namespace(X)
+        n = 3 * K
+        k, a, b = np.meshgrid(np.arange(K), np.arange(3), np.arange(3), indexing="ij")
+        flat = xp.reshape(X, (*X.shape[:-2], n * n))
+        at = from_host(((3 * k + a) * n + 3 * k + b).ravel(), X)
+        return xp.reshape(xp.take(flat, at, axis=-1), (*X.shape[:-2], K, 3, 3))
     W = np.asarray(W)
     blocks = W.reshape(*W.shape[:-2], K, 3, K, 3)
     idx = np.arange(K)
@@ -48,12 +61,14 @@ def block_vee(W: ArrayLike) -> Array:
     algebra this is the exact inverse of :func:`block_hat`; for any other matrix it is a
     linear map, so functions of ``m`` stay differentiable on the whole matrix space.
     """
-    W = np.asarray(W)
-    n = W.shape[-1]
-    if W.ndim < 2 or W.shape[-2] != n or n % 3:
-        raise lieflow.InputError(f"expected matrices of shape (..., 3K, 3K), got shape {W.shape}")
-    D = diagonal_blocks(W, n // 3)
-    return 0.5 * (vee(D) - vee(np.swapaxes(D, -1, -2)))
+    foreign = is_foreign_array(W)
+    X: Any = W if foreign else np.asarray(W)
+    n = X.shape[-1]
+    if X.ndim < 2 or X.shape[-2] != n or n % 3:
+        raise lieflow.InputError(f"expected matrices of shape (..., 3K, 3K), got shape {X.shape}")
+    D = diagonal_blocks(X, n // 3)
+    Dt = namespace(D).matrix_transpose(D) if foreign else np.swapaxes(D, -1, -2)
+    return 0.5 * (vee(D) - vee(Dt))
 
 
 def block_hat(m: ArrayLike) -> Array:
@@ -61,14 +76,25 @@ def block_hat(m: ArrayLike) -> Array:
 
     Returns shape ``(..., 3K, 3K)``; off-diagonal 3×3 blocks are zero.
     """
-    m = np.asarray(m)
-    if m.ndim < 2 or m.shape[-1] != 3:
-        raise lieflow.InputError(f"expected momenta of shape (..., K, 3), got shape {m.shape}")
-    *batch, K, _ = m.shape
-    out = np.zeros((*batch, K, K, 3, 3), dtype=m.dtype)
+    foreign = is_foreign_array(m)
+    v: Any = m if foreign else np.asarray(m)
+    if v.ndim < 2 or v.shape[-1] != 3:
+        raise lieflow.InputError(f"expected momenta of shape (..., K, 3), got shape {v.shape}")
+    *batch, K, _ = v.shape
+    if foreign:  # hat(m_i) at block (i, i) of a (..., K, 3, K, 3) array by where, no scatter
+        xp = namespace(v)
+        out = xp.where(_diagonal_mask(K, v), hat(v)[..., :, :, None, :], 0.0)
+        return xp.reshape(out, (*batch, 3 * K, 3 * K))
+    out = np.zeros((*batch, K, K, 3, 3), dtype=v.dtype)
     idx = np.arange(K)
-    out[..., idx, idx, :, :] = hat(m)
+    out[..., idx, idx, :, :] = hat(v)
     return np.swapaxes(out, -3, -2).reshape(*batch, 3 * K, 3 * K)
+
+
+def _diagonal_mask(K: int, like: Any) -> Any:
+    """``(K, 1, K, 1)`` booleans, true at the diagonal blocks of a ``(..., K, 3, K, 3)``
+    array, in ``like``'s library and on its device."""
+    return from_host(np.eye(K, dtype=bool)[:, None, :, None], like)
 
 
 @attrs.frozen
@@ -102,6 +128,11 @@ class BlockSO3(lieflow.LieAlgebra):
         return f"so(3)^{self.K}"
 
     def project(self, X: ArrayLike) -> Array:
+        if is_foreign_array(X):  # another array library (lieflow.backends)
+            xp = namespace(X)
+            S = 0.5 * (X - xp.matrix_transpose(X))
+            blocks = xp.reshape(S, (*S.shape[:-2], self.K, 3, self.K, 3))
+            return xp.reshape(xp.where(_diagonal_mask(self.K, X), blocks, 0.0), S.shape)
         X = np.asarray(X)
         S = 0.5 * (X - np.swapaxes(X, -1, -2))
         K = self.K

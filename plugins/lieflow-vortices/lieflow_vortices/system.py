@@ -87,6 +87,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 import lieflow
+from lieflow.backends import from_host, is_foreign_array, namespace
 
 from .algebra import BlockSO3, block_hat, block_vee
 
@@ -102,6 +103,19 @@ _INV_4PI = 1.0 / (4.0 * math.pi)
 def _frozen(a: Array) -> Array:
     a.setflags(write=False)
     return a
+
+
+def _constant(table: Array, like: Any) -> Any:
+    """A float64 table of the system in ``like``'s real precision: a NumPy array for NumPy
+    ``like`` (float32 stays float32), else on ``like``'s device in its library."""
+    if is_foreign_array(like):
+        return from_host(table, like, like.dtype)
+    return table.astype(np.result_type(like.dtype, np.float32), copy=False)
+
+
+def _swap(x: Any) -> Any:
+    """``x`` with its last two axes swapped (arrays of any library)."""
+    return namespace(x).matrix_transpose(x) if is_foreign_array(x) else np.swapaxes(x, -1, -2)
 
 
 def _strengths(values: Sequence[float] | ArrayLike) -> Array:
@@ -240,6 +254,12 @@ class PointVortices(lieflow.IsospectralSystem):
         keeps the precision of ``W``. Not linear: stage values of a step are *not* on the
         spheres, so they are projected with :meth:`project_stage` (onto so(3)^K) instead.
         """
+        if is_foreign_array(W):  # another array library (lieflow.backends)
+            m = block_vee(W)
+            xp = namespace(m)
+            r = xp.linalg.vector_norm(m, axis=-1, keepdims=True)
+            radius = from_host(np.abs(self.strengths)[:, None], m, m.dtype)
+            return block_hat(m * xp.where(r > 0, radius / xp.where(r > 0, r, 1.0), 1.0))
         W = np.asarray(W)
         m = block_vee(W)
         r = np.linalg.norm(m, axis=-1, keepdims=True)
@@ -272,10 +292,9 @@ class PointVortices(lieflow.IsospectralSystem):
     # ---------------------------------------------------------------- dynamics
     def _pair_terms(self, m: Array) -> tuple[Array, Array]:
         """``d_ij = 1 - m_i·m_j/(Γ_iΓ_j)`` (1 on the diagonal) and ``w_ij = 1/d_ij`` (0 on it)."""
-        gram = m @ np.swapaxes(m, -1, -2)
-        dt = np.result_type(m.dtype, np.float32)  # float32 states stay float32
-        d = 1.0 - gram * self._inv_gg.astype(dt, copy=False)
-        return d, self._offdiag.astype(dt, copy=False) / d
+        gram = m @ _swap(m)
+        d = 1.0 - gram * _constant(self._inv_gg, m)  # float32 states stay float32
+        return d, _constant(self._offdiag, m) / d
 
     def B(self, W: Array) -> Array:
         r"""``B(W) = blockdiag(hat(b_i))``, :math:`b_i = \frac{1}{4\pi}\sum_{j\ne i} w_{ij} m_j`,
@@ -292,9 +311,9 @@ class PointVortices(lieflow.IsospectralSystem):
         """
         m, dm = block_vee(W), block_vee(dW)
         _, w = self._pair_terms(m)
-        dm_mT = dm @ np.swapaxes(m, -1, -2)
-        dgram = dm_mT + np.swapaxes(dm_mT, -1, -2)
-        dw = (w * w) * dgram * self._inv_gg.astype(w.dtype, copy=False)
+        dm_mT = dm @ _swap(m)
+        dgram = dm_mT + _swap(dm_mT)
+        dw = (w * w) * dgram * _constant(self._inv_gg, w)
         return block_hat(_INV_4PI * (dw @ m + w @ dm))
 
     def hamiltonian(self, W: Array) -> Array:
@@ -303,8 +322,9 @@ class PointVortices(lieflow.IsospectralSystem):
         :math:`\eta = \frac{1}{2\pi}\sum_{i<j}\Gamma_i\Gamma_j\log(1 - x_i\cdot x_j)`.
         """
         d, _ = self._pair_terms(block_vee(W))
+        xp = namespace(d)
         # sum over i != j counts each pair twice; log d_ii = log 1 = 0
-        eta: Array = _INV_4PI * np.sum(self._gg.astype(d.dtype) * np.log(d), axis=(-2, -1))
+        eta: Array = _INV_4PI * xp.sum(_constant(self._gg, d) * xp.log(d), axis=(-2, -1))
         return eta
 
     def energy(self, W: Array) -> Array:
@@ -314,7 +334,8 @@ class PointVortices(lieflow.IsospectralSystem):
 
     def moment_of_vorticity(self, W: Array) -> Array:
         """``sum_i Γ_i x_i = sum_i m_i``, shape ``(..., 3)``: conserved by rotation symmetry."""
-        total: Array = np.sum(block_vee(W), axis=-2)
+        m = block_vee(W)
+        total: Array = namespace(m).sum(m, axis=-2)
         return total
 
     # ---------------------------------------------------------------- invariants
@@ -324,7 +345,7 @@ class PointVortices(lieflow.IsospectralSystem):
         ``|m_i|^2 = -tr(hat(m_i)^2) / 2``: one quadratic Casimir per so(3) factor.
         """
         m = block_vee(W)
-        norms2: Array = np.sum(m * m, axis=-1)
+        norms2: Array = namespace(m).sum(m * m, axis=-1)
         return norms2
 
     @property
