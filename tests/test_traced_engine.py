@@ -113,6 +113,27 @@ def test_a_traced_run_takes_the_eager_engines_steps(scheme: str) -> None:
     np.testing.assert_allclose(sol.energy_error, ref.energy_error, rtol=0, atol=1e-13)
 
 
+@pytest.mark.parametrize(
+    "solver",
+    [lf.solvers.Newton(), lf.solvers.Newton(linear="gmres"), lf.solvers.FrozenB(),
+     lf.solvers.Auto(lf.solvers.FixedPoint(max_iter=6))],  # fmt: skip
+    ids=["newton-dense", "newton-gmres", "frozen-b", "auto"],
+)
+def test_every_solver_runs_traced_with_the_eager_engines_updates(solver: Any) -> None:
+    """Newton (its direction dense or by GMRES, the line search and the frozen-B fallback
+    as traced loops), FrozenB and Auto (a fixed point capped at 6 updates, so that some
+    steps fall back to Newton) on the generalized rigid body."""
+    system = lf.systems.get("generalized_rigid_body")
+    W0 = system.random_state(1)
+    kwargs: dict[str, Any] = dict(h=0.5, steps=6, save_every=3, solver=solver)
+    ref = lf.integrate(system, lf.schemes.get("gauss2"), W0, engine="numpy", **kwargs)
+    sol = lf.integrate(system, lf.schemes.get("gauss2"), jnp.asarray(W0), engine="jax", **kwargs)
+    np.testing.assert_allclose(sol.W, ref.W, rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(sol.iterations, ref.iterations)
+    assert sol.solvers == ref.solvers
+    assert sol.casimir_drift is not None and sol.casimir_drift.max() < 1e-14
+
+
 class _HostDiagnostics(type(_body()[0])):  # type: ignore[misc]
     """The rigid body with Casimirs written for NumPy only: they do not trace, so the chunk
     brings every state to the host, where the driver computes the diagnostics."""
@@ -206,6 +227,13 @@ def test_a_run_resumed_from_its_file_is_the_uninterrupted_run(tmp_path: Path) ->
     np.testing.assert_array_equal(resumed.iterations, whole.iterations)
 
 
+class _OwnSolver(lf.solvers.FixedPoint):
+    """A solver of one's own (its own ``solve``): no traced form."""
+
+    def solve(self, problem: Any) -> Any:
+        return super().solve(problem)
+
+
 def test_auto_and_named_engines() -> None:
     system, W0 = _body()
     solver = lf.solvers.FixedPoint()
@@ -218,6 +246,6 @@ def test_auto_and_named_engines() -> None:
     with pytest.raises(lf.InputError, match="engine='compiled' runs NumPy arrays only"):
         scheme_flow(system, midpoint, solver, jnp.asarray(W0), 10, engine="compiled")
     with pytest.raises(lf.InputError, match="no traced form"):
-        scheme_flow(system, midpoint, lf.solvers.FixedPoint(anderson=2), W0, 10, engine="jax")
+        scheme_flow(system, midpoint, _OwnSolver(), W0, 10, engine="jax")
     with pytest.raises(lf.InputError, match="engine must be one of"):
         scheme_flow(system, midpoint, solver, W0, 10, engine="gpu")  # type: ignore[arg-type]

@@ -45,7 +45,15 @@ from ..solvers.fixed_point import (
     FrozenB,
     StoppingRule,
 )
-from ..solvers.newton import Auto
+from ..solvers.newton import (
+    Auto,
+    Newton,
+    dense_direction,
+    gmres_direction,
+    line_search,
+    real_size,
+    total_norm,
+)
 
 __all__ = ["TracedSolver", "supported", "verdict"]
 
@@ -94,22 +102,31 @@ def _norms(x: Traced, core_ndim: int) -> Traced:
 
 @attrs.frozen
 class Iteration:
-    """How one traced solve iterates: the map to iterate (``"map"`` or ``"frozen_map"`` of
-    the problem) and the stopping rule, with the solver's name."""
+    """How one traced solve iterates: ``kind`` — ``"map"`` (fixed-point iteration of the
+    problem's map), ``"frozen_map"`` (of its frozen-B map) or ``"newton"`` — with the
+    solver it restates (its stopping rule, name and options)."""
 
-    name: str
-    map_name: str
-    rule: StoppingRule
+    kind: str
+    solver: Any
+
+    @property
+    def name(self) -> str:
+        """The solver's name (what a step's stats record)."""
+        return str(self.solver.name)
 
 
 def _iteration(solver: Solver) -> Iteration | None:
-    """The traced iteration of a plain fixed-point solver (or its frozen-B form)."""
+    """The traced iteration of ``solver``: plain fixed-point iteration (or its frozen-B
+    form) and Newton's method, as the classes define them (a subclass that changes
+    ``solve`` or the map has none)."""
+    if isinstance(solver, Newton):
+        return Iteration("newton", solver) if type(solver).solve is Newton.solve else None
     if type(solver).solve is not FixedPoint.solve or getattr(solver, "anderson", False):
         return None
     if isinstance(solver, FrozenB) and type(solver)._map is FrozenB._map:
-        return Iteration(solver.name, "frozen_map", solver.rule)
+        return Iteration("frozen_map", solver)
     if isinstance(solver, FixedPoint) and type(solver)._map is FixedPoint._map:
-        return Iteration(solver.name, "map", solver.rule)
+        return Iteration("map", solver)
     return None
 
 
@@ -120,52 +137,139 @@ def supported(solver: Solver) -> str | None:
     if _iteration(solver) is None:
         return (
             f"solver {getattr(solver, 'name', type(solver).__name__)!r} has no traced form "
-            "(FixedPoint, FrozenB, and Auto of them)"
+            "(FixedPoint, FrozenB, Newton, and Auto of them)"
         )
     return None
 
 
-def _fixed_point(problem: ImplicitProblem, it: Iteration) -> tuple[Traced, Traced, Traced, Traced]:
-    """One traced solve: ``(x, iterations, last relative update, verdict code)``."""
-    import jax.numpy as jnp
-    from jax import lax
+@attrs.frozen
+class _Judge:
+    """The stopping test of one solve (:class:`~lieflow.solvers.fixed_point.IterationMonitor`'s
+    numbers, traced): ``rule``, its roundoff floor scaled to the iterate's precision and
+    the number of updates the scalar rule's shortcut lets go on unjudged."""
 
-    F: Callable[[Traced], Traced] = getattr(problem, it.map_name)
-    rule = it.rule
-    x0 = problem.x0
-    core = problem.core_ndim
-    eps = float(jnp.finfo(x0.dtype).eps)
-    floor = rule.roundoff_floor * max(eps / _EPS, 1.0)
-    tiny = float(np.finfo(float).tiny)
-    res0 = jnp.full((rule.max_iter,), jnp.inf, dtype=jnp.float64)
-    quiet = min(rule.patience, rule.window, rule.max_iter - 1)
-    norm0 = _norms(x0, core).astype(jnp.float64)
+    rule: StoppingRule
+    core: int
+    floor: float
+    quiet: int
 
-    def body(carry: tuple[Any, ...]) -> tuple[Any, ...]:
-        x, _, k, res, size0, _ = carry
-        g = F(x)
-        step = _norms(g - x, core).astype(jnp.float64)
-        size = _norms(g, core).astype(jnp.float64)
+    @classmethod
+    def of(cls, rule: StoppingRule, x0: Traced, core: int) -> _Judge:
+        import jax.numpy as jnp
+
+        eps = float(jnp.finfo(x0.dtype).eps)
+        quiet = min(rule.patience, rule.window, rule.max_iter - 1)
+        return cls(rule, core, rule.roundoff_floor * max(eps / _EPS, 1.0), quiet)
+
+    def start(self, x0: Traced) -> tuple[Traced, Traced, Traced]:
+        """``(relative updates, reference sizes, count)`` before the first update."""
+        import jax.numpy as jnp
+
+        res = jnp.full((self.rule.max_iter,), jnp.inf, dtype=jnp.float64)
+        return res, _norms(x0, self.core).astype(jnp.float64), jnp.asarray(0, jnp.int64)
+
+    def __call__(
+        self, new: Traced, old: Traced, res: Traced, size0: Traced, k: Traced
+    ) -> tuple[Traced, Traced, Traced, Traced]:
+        """Record the update ``old -> new`` as the ``k``-th: ``(res, size0, code, r)``."""
+        import jax.numpy as jnp
+        from jax import lax
+
+        rule, tiny = self.rule, float(np.finfo(float).tiny)
+        step = _norms(new - old, self.core).astype(jnp.float64)
+        size = _norms(new, self.core).astype(jnp.float64)
         size0 = jnp.where(k == 0, jnp.maximum(jnp.maximum(size0, size), tiny), size0)
         finite = jnp.all(jnp.isfinite(step)) & jnp.all(jnp.isfinite(size))
-        r = jnp.max(step / jnp.maximum(size, tiny))
-        res = res.at[k].set(jnp.where(finite, r, jnp.nan))
+        r = jnp.where(finite, jnp.max(step / jnp.maximum(size, tiny)), jnp.nan)
+        res = res.at[k].set(r)
         met = jnp.all(step <= rule.atol + rule.rtol * size)
         growth = jnp.max(size / size0)
         # the scalar rule's two shortcuts (lean_check): a met tolerance converges; an unmet,
         # finite, bounded update within the first ``quiet`` goes on — the whole rule only
         # otherwise
-        plain = finite & (met | ((k + 1 <= quiet) & (growth <= rule.divergence_factor)))
+        plain = finite & (met | ((k + 1 <= self.quiet) & (growth <= rule.divergence_factor)))
         code = lax.cond(
             plain,
             lambda: jnp.where(met, CONVERGED, GO).astype(jnp.int64),
-            lambda: verdict(rule, floor, res, k + 1, met, growth).astype(jnp.int64),
+            lambda: verdict(rule, self.floor, res, k + 1, met, growth).astype(jnp.int64),
         )
-        return g, g, k + 1, res, size0, code
+        return res, size0, code, r
 
-    start = (x0, x0, jnp.asarray(0, jnp.int64), res0, norm0, jnp.asarray(GO, jnp.int64))
-    _, g, k, res, _, code = lax.while_loop(lambda c: c[5] == GO, body, start)
-    return g, k, res[k - 1], code
+
+def _fixed_point(problem: ImplicitProblem, it: Iteration) -> tuple[Traced, Traced, Traced, Traced]:
+    """One traced fixed-point solve: ``(x, iterations, last relative update, code)``."""
+    import jax.numpy as jnp
+    from jax import lax
+
+    F: Callable[[Traced], Traced] = getattr(problem, it.kind)
+    x0 = problem.x0
+    judge = _Judge.of(it.solver.rule, x0, problem.core_ndim)
+
+    def body(carry: tuple[Any, ...]) -> tuple[Any, ...]:
+        x, _, k, res, size0, _, _ = carry
+        g = F(x)
+        res, size0, code, r = judge(g, x, res, size0, k)
+        return g, g, k + 1, res, size0, code, r
+
+    res0, size0, k0 = judge.start(x0)
+    go = jnp.asarray(GO, jnp.int64)
+    start = (x0, x0, k0, res0, size0, go, jnp.asarray(0.0, jnp.float64))
+    _, g, k, _, _, code, r = lax.while_loop(lambda c: c[5] == GO, body, start)
+    return g, k, r, code
+
+
+def _newton(problem: ImplicitProblem, it: Iteration) -> tuple[Traced, Traced, Traced, Traced]:
+    """One traced solve by :class:`~lieflow.solvers.Newton`'s iteration (its
+    :meth:`~lieflow.solvers.Newton.solve`, with the loops of the line search and of GMRES
+    traced too): ``(x, linear solves, last relative residual, code)``."""
+    import jax.numpy as jnp
+    from jax import lax
+
+    newton: Newton = it.solver
+    core = problem.core_ndim
+    x0 = problem.x0
+    judge = _Judge.of(newton.rule, x0, core)
+    m_real = real_size(x0, core)
+    dense = newton.linear == "dense" or (newton.linear == "auto" and m_real <= newton.dense_max)
+    trials = max(newton.max_halvings, 1)
+
+    def checked(x: Traced, Fx: Traced, res: Traced, size0: Traced, k: Traced) -> tuple:
+        res, size0, code, r = judge(Fx, x, res, size0, k)
+        # below the roundoff floor and no longer converging quadratically: at roundoff
+        previous = res[jnp.maximum(k - 1, 0)]
+        flat = (code == GO) & (k >= 1) & (judge.floor >= r) & (r >= 0.5 * previous)
+        return res, size0, jnp.where(flat, ROUNDOFF, code), r
+
+    def body(carry: tuple[Any, ...]) -> tuple[Any, ...]:
+        x, Fx, k, res, size0, _, r = carry
+        rhs = Fx - x
+        if dense:
+            d = dense_direction(problem, x, rhs)
+        else:  # forcing term min(0.1, ||R||): quadratic convergence is kept
+            forcing = jnp.maximum(jnp.minimum(0.1, r), 1e-15)
+            d = gmres_direction(problem, x, rhs, forcing=forcing, while_loop=lax.while_loop)
+        xn, Fn, descent = line_search(
+            problem, x, d, total_norm(rhs), trials=trials, while_loop=lax.while_loop
+        )
+
+        def frozen(_: Any) -> tuple[Traced, Traced]:  # outside Newton's basin: one frozen step
+            y = problem.frozen_map(x)
+            return y, problem.map(y)
+
+        x, Fx = lax.cond(descent, lambda _: (xn, Fn), frozen, None)
+        res, size0, code, r = checked(x, Fx, res, size0, k)
+        return x, Fx, k + 1, res, size0, code, r
+
+    res0, size0, k0 = judge.start(x0)
+    F0 = problem.map(x0)
+    res0, size0, code0, r0 = checked(x0, F0, res0, size0, k0)
+    start = (x0, F0, k0 + 1, res0, size0, code0, r0)
+    _, Fx, k, _, _, code, r = lax.while_loop(lambda c: c[5] == GO, body, start)
+    return Fx, k - 1, r, code
+
+
+def _solve(problem: ImplicitProblem, it: Iteration) -> tuple[Traced, Traced, Traced, Traced]:
+    return _newton(problem, it) if it.kind == "newton" else _fixed_point(problem, it)
 
 
 def ok(code: Traced) -> Traced:
@@ -203,14 +307,14 @@ class TracedSolver:
         from jax import lax
 
         first = self._chain[0]
-        x, k, r, code = _fixed_point(problem, first)
+        x, k, r, code = _solve(problem, first)
         which = jnp.asarray(0, jnp.int64)
         for index, it in enumerate(self._chain[1:], start=1):
 
             def again(
                 carry: tuple[Any, ...], it: Iteration = it, index: int = index
             ) -> tuple[Any, ...]:
-                x2, k2, r2, code2 = _fixed_point(problem, it)
+                x2, k2, r2, code2 = _solve(problem, it)
                 return x2, carry[1] + k2, r2, code2, jnp.asarray(index, jnp.int64)
 
             x, k, r, code, which = lax.cond(
