@@ -115,8 +115,12 @@ def test_a_traced_run_takes_the_eager_engines_steps(scheme: str) -> None:
 
 @pytest.mark.parametrize(
     "solver",
-    [lf.solvers.Newton(), lf.solvers.Newton(linear="gmres"), lf.solvers.FrozenB(),
-     lf.solvers.Auto(lf.solvers.FixedPoint(max_iter=6))],  # fmt: skip
+    [
+        lf.solvers.Newton(),
+        lf.solvers.Newton(linear="gmres"),
+        lf.solvers.FrozenB(),
+        lf.solvers.Auto(lf.solvers.FixedPoint(max_iter=6)),
+    ],
     ids=["newton-dense", "newton-gmres", "frozen-b", "auto"],
 )
 def test_every_solver_runs_traced_with_the_eager_engines_updates(solver: Any) -> None:
