@@ -21,7 +21,7 @@ from ..backends import (
     vdot,
 )
 from ..errors import InputError
-from . import arguments
+from . import anderson, arguments
 from .base import (
     DOT_SIZE,
     ImplicitProblem,
@@ -355,27 +355,6 @@ def _eps(dtype: np.dtype) -> float:
     return float(np.finfo(dtype).eps) if dtype.kind in "fc" else _EPS
 
 
-def _anderson_step(
-    xs: list[np.ndarray], gs: list[np.ndarray], regularization: float = 1e-12
-) -> np.ndarray:
-    """Anderson (type II) update from the last iterates ``x_j`` and values ``g_j = F(x_j)``.
-
-    Minimise ``||sum_j alpha_j (g_j - x_j)||`` subject to ``sum alpha_j = 1`` via the
-    differences of residuals, and return ``sum_j alpha_j g_j``.
-    """
-    f = [g - x for g, x in zip(gs, xs, strict=False)]
-    dF = np.stack([f[j + 1] - f[j] for j in range(len(f) - 1)], axis=1)
-    dG = np.stack([gs[j + 1] - gs[j] for j in range(len(gs) - 1)], axis=1)
-    # Real least squares on stacked real/imaginary parts (works for complex unknowns).
-    lhs = np.concatenate([dF.real, dF.imag]) if np.iscomplexobj(dF) else dF
-    rhs = np.concatenate([f[-1].real, f[-1].imag]) if np.iscomplexobj(dF) else f[-1]
-    scale = float(batch_norm(lhs, lhs.ndim)) + np.finfo(float).tiny
-    lhs_reg = np.vstack([lhs, regularization * scale * np.eye(lhs.shape[1])])
-    rhs_reg = np.concatenate([rhs, np.zeros(lhs.shape[1])])
-    gamma = np.linalg.lstsq(lhs_reg, rhs_reg, rcond=None)[0]
-    return gs[-1] - dG @ gamma
-
-
 @attrs.frozen
 class FixedPoint:
     """Fixed-point iteration ``x <- F(x)`` with the stopping rule of :class:`StoppingRule`.
@@ -444,22 +423,36 @@ class FixedPoint:
         if check is None:
             monitor = IterationMonitor(self.rule, problem.core_ndim, x, self.check_every)
             check, res = monitor.check, monitor.residuals
-        xs: list[np.ndarray] = []
-        gs: list[np.ndarray] = []
-        anderson = self.anderson
+        # Anderson acceleration (lieflow.solvers.anderson), where it can pay (problems of
+        # anderson.MIN_SIZE numbers or more): one problem starts its history only once the
+        # contraction is slow enough for it to engage, replaying the last map values (the
+        # plain updates before cost nothing extra); a batch starts it at once
+        depth = self.anderson
+        if depth and not anderson.accelerates(x, problem.core_ndim):
+            depth = 0
+        state: anderson.AndersonState | None = None
+        pairs: list[tuple[Array, Array]] = []
+        one = x.ndim == problem.core_ndim
         while True:
             g = F(x)
             reason = check(g, x)
             if reason is not None:
                 ok = reason in ("converged", "roundoff")
                 return SolveResult(g if ok else x, ok, len(res), tuple(res), reason, self.name)
-            if anderson:
-                xs.append(x.ravel())
-                gs.append(g.ravel())
-                del xs[: -self.anderson - 1], gs[: -self.anderson - 1]
-                x = _anderson_step(xs, gs).reshape(g.shape) if len(xs) > 1 else g
-            else:
+            if not depth:
                 x = g
+            elif state is not None:
+                state, x = anderson.update(state, x, g)
+            elif one and not (len(res) > 1 and res[-1] > anderson.ENGAGE * res[-2]):
+                pairs.append((x, g))
+                del pairs[: -depth - 1]
+                x = g
+            else:
+                state = anderson.start(x, depth, problem.core_ndim)
+                for old in pairs:
+                    state, _ = anderson.update(state, *old)
+                pairs.clear()
+                state, x = anderson.update(state, x, g)
 
 
 @attrs.frozen
