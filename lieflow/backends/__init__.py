@@ -166,7 +166,7 @@ def put(stack: Any, index: Any, value: Any, minus: Any = None) -> tuple[Any, Any
     if compat.is_torch_array(stack) or compat.is_cupy_array(stack):
         stack[index] = entry  # a 0-d device index: no synchronisation
     else:
-        stack[int(index)] = entry
+        stack[int(index), ...] = entry
     return stack, entry
 
 

@@ -71,12 +71,17 @@ REGULARIZATION = 1e-10
 #: ``log(1e-13) / log(ENGAGE)`` plain updates per solve from scratch.
 ENGAGE = 0.2
 
-#: Problems of fewer real numbers than this (a complex number counts two) are never
-#: accelerated: there a map evaluation costs about as little as an update of the history
-#: (the eager engines' per-call overhead, ~0.15 ms in NumPy), so Anderson cannot pay for
-#: itself (measured: Euler–Zeitlin N = 32 at h = 1/4, 35 → 23 updates, 1.2× slower; N = 64
-#: at h = 1/8, 34 → 22 updates, break-even; a 4 × 4 Toda lattice 5× slower).
-MIN_SIZE = 16384
+#: Problems of fewer real numbers than this (a complex number counts two: Euler–Zeitlin
+#: from N = 128, a real n × n problem from n = 182) are never accelerated. Below it, an
+#: update of the history costs too much against a map evaluation (the eager engines' fixed
+#: cost per call, ~0.15 ms in NumPy, and its O(m · size) passes against the map's
+#: products), so Anderson does not pay for itself even where it cuts updates (measured,
+#: NumPy engine: Euler–Zeitlin N = 32 at h = 1/4, 35 → 23 updates and 1.2× slower; N = 64 at
+#: h = 1/8, 34 → 22 updates, break-even; N = 128 at h = 1/32, 16 → 11, within noise of
+#: even; a 4 × 4 Toda lattice at h = 0.5, 5× slower). The compiled (numba) engine, which
+#: ``engine="auto"`` picks only below this size, therefore runs ``FixedPoint(anderson=m)``
+#: as the plain iteration it is there.
+MIN_SIZE = 32768
 
 #: No mixing where the relative residual ``‖f‖ / ‖g‖`` is below this many machine
 #: epsilons of the unknowns' precision (rounding errors of the map dominate the
