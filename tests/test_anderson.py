@@ -86,7 +86,7 @@ def test_a_batch_is_accelerated_per_problem() -> None:
         return np.einsum("kij,kj->ki", Ms, x) + bs
 
     both, updates = _iterate(F, np.zeros((2, 60)), 5, core_ndim=1)
-    alone, alone_updates = _iterate(lambda x: M1 @ x + b1, np.zeros(60), 5)
+    _, alone_updates = _iterate(lambda x: M1 @ x + b1, np.zeros(60), 5)
     for got, exact in ((both[0], e1), (both[1], e2)):
         assert np.linalg.norm(got - exact) <= 20 * RTOL * np.linalg.norm(exact)
     # the slow problem's own coefficients: as fast as alone (the fast one does not mix in)
@@ -96,7 +96,7 @@ def test_a_batch_is_accelerated_per_problem() -> None:
 @pytest.mark.usefixtures("everywhere")
 def test_array_api_strict_runs_the_same_source() -> None:
     xps = pytest.importorskip("array_api_strict")
-    M, b, exact = _contraction(80, 0.9, seed=4, complex_data=True)
+    M, b, _ = _contraction(80, 0.9, seed=4, complex_data=True)
     Ma, ba = xps.asarray(M), xps.asarray(b)
     on_numpy, k = _iterate(lambda x: M @ x + b, np.zeros_like(b), 4)
     on_strict, ka = _iterate(lambda x: Ma @ x + ba, xps.zeros_like(ba), 4)
@@ -261,17 +261,13 @@ def test_no_stall_at_roundoff(monkeypatch: pytest.MonkeyPatch, engage: float) ->
     assert np.max(np.abs(fast.W_final - plain.W_final)) <= 1e-13 * scale
 
 
-@pytest.mark.parametrize(
-    ("name", "h"), [("generalized_rigid_body", 0.1), ("periodic_toda", 0.5)]
-)
+@pytest.mark.parametrize(("name", "h"), [("generalized_rigid_body", 0.1), ("periodic_toda", 0.5)])
 def test_small_problems_run_the_plain_iteration(name: str, h: float) -> None:
     system = lf.systems.get(name)
     W0 = system.random_state(seed=1)
-    runs = [
-        lf.integrate(system, lf.schemes.get("gauss2"), W0, h, steps=20, engine="numpy",
-                     solver=FixedPoint(anderson=depth))  # fmt: skip
-        for depth in (0, 5)
-    ]
+    scheme = lf.schemes.get("gauss2")
+    solvers = FixedPoint(), FixedPoint(anderson=5)
+    runs = [lf.integrate(system, scheme, W0, h, 20, solver=s, engine="numpy") for s in solvers]
     np.testing.assert_array_equal(runs[1].W, runs[0].W)
     np.testing.assert_array_equal(runs[1].iterations, runs[0].iterations)
 
