@@ -603,6 +603,11 @@ def plan(
         return "complex128 data are compiled on skew-Hermitian algebras only (u(n), su(N))"
     if dtype.char not in ("d", "D") or not dtype.isnative:
         return f"only float64 and complex128 data are compiled, got {dtype}"
+    if system.underflow_guard:
+        return (
+            "the underflow guard (system.underflow_guard, lieflow.underflow) runs on the "
+            "numpy engine only: set it to 0 for the compiled engine"
+        )
     form = scheme.compiled_form()
     if form is None:
         return (
