@@ -267,7 +267,9 @@ def test_small_problems_run_the_plain_iteration(name: str, h: float) -> None:
     W0 = system.random_state(seed=1)
     scheme = lf.schemes.get("gauss2")
     solvers = FixedPoint(), FixedPoint(anderson=5)
-    runs = [lf.integrate(system, scheme, W0, h, 20, solver=s, engine="numpy") for s in solvers]
+    runs = [
+        lf.integrate(system, scheme, W0, h, steps=20, solver=s, engine="numpy") for s in solvers
+    ]
     np.testing.assert_array_equal(runs[1].W, runs[0].W)
     np.testing.assert_array_equal(runs[1].iterations, runs[0].iterations)
 

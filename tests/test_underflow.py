@@ -99,6 +99,7 @@ def test_no_product_of_kept_numbers_is_subnormal() -> None:
     Ag, Bg = flush_tiny(A, TAU), flush_tiny(B, TAU)
     assert subnormal_products(Ag, Bg) == 0
     assert smallest_product(Ag, Bg) >= PRODUCT_FLOOR  # the bound of the module docs
+
     # and the product changes (in extended precision: exactly enough) by at most
     # 2 n tau max|A| max|B|: 2^-280 of its normwise rounding bound n eps max|A| max|B|
     def exact(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
@@ -131,8 +132,7 @@ def test_guarded_steps_are_within_roundoff_and_isospectral() -> None:
     for name in ("midpoint", "gauss2"):
         scheme = lf.schemes.get(name)
         runs = [
-            lf.integrate(_system(g), scheme, W0, 0.05, steps=20, engine="numpy")
-            for g in (0.0, TAU)
+            lf.integrate(_system(g), scheme, W0, 0.05, steps=20, engine="numpy") for g in (0.0, TAU)
         ]
         off, on = runs
         scale = np.max(np.abs(off.W_final))
