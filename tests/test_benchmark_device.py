@@ -43,4 +43,4 @@ def test_the_cpu_floor_benchmark_prints_its_ratio(capsys: pytest.CaptureFixture[
     assert floor.main(["--sizes", "16", "--steps", "2", "--repeats", "1", "--cpu-time"]) == 0
     row = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| 16 ")]
     cells = [c.strip() for c in row[0].split("|")[1:-1]]
-    assert len(cells) == 7 and float(cells[-1]) > 0 and float(cells[1]) >= 1
+    assert len(cells) == 8 and float(cells[-1]) > 0 and float(cells[1]) >= 1

@@ -11,30 +11,33 @@ With residuals ``f_k = g_k - x_k`` of the map values ``g_k = F(x_k)`` and the di
 
 the plain update ``g_k`` corrected by the secant information of the last ``m`` steps. Per
 update this costs ``O(m · size)``: the new columns are written into a ring buffer of ``m``
-slots (:func:`lieflow.backends.put`), one product of the history with ``[Δf, f]`` gives the
-new row of the Gram matrix ``ΔFᵀΔF`` and the right-hand side ``ΔFᵀ f_k`` (the ``m × m`` Gram
-matrix is kept, one row and column replaced per update), and one product of the history
-``ΔG`` with ``γ`` the correction. Inner products are real, ``Re⟨a, b⟩`` (complex unknowns
-are real vectors of twice the length).
+slots (:func:`lieflow.backends.put`); one product of the history with ``Δf`` gives the new
+row and column of the Gram matrix ``ΔFᵀΔF`` (kept, ``m × m``); the right-hand side is
+updated, ``ΔFᵀ f_k = ΔFᵀ f_{k-1} + ΔFᵀ Δf``, with one inner product for the new column; and
+one product of ``γ`` with the history ``ΔG`` gives the correction. Inner products are real,
+``Re⟨a, b⟩`` (complex unknowns are real vectors of twice the length).
 
 **Keeping the small problem well conditioned.** The normal equations square the condition
 number of ``ΔF``, which grows as the columns become dependent (the iteration converges, or
-settles on a few slow modes). They are solved scaled to a unit diagonal (every column
-normalized, an ``O(m²)`` operation on the Gram matrix) with a Tikhonov term
-:data:`REGULARIZATION`: directions in which the normalized columns are dependent to below
+settles on a few slow modes). They carry a Tikhonov term :data:`REGULARIZATION` relative to
+each column's squared norm — the system of the normalized columns plus
+``REGULARIZATION · I``, solved without the scaling, to which Gaussian elimination is
+indifferent: directions in which the normalized columns are dependent to below
 ``sqrt(REGULARIZATION)`` are damped instead of amplified, so noise in nearly dependent
 columns cannot produce a large ``γ``. Old columns leave the ring as new ones arrive.
 
 **Safeguards.** (a) *Restart*: a problem whose residual grew after a mixed update
 (``‖f_k‖ > ‖f_{k-1}‖``, the extrapolation was bad) drops its whole history and takes the
-plain update ``g_k``. (b) *Roundoff*: no mixing once the relative residual
-``‖f_k‖ / ‖g_k‖`` is below :data:`QUIET` machine epsilons: there the differences are
-dominated by the rounding errors of ``F`` and an extrapolation amplifies them; the plain
-update is as good as any and the stopping rule ends the iteration. (c) *Pay only where it
-pays*: a problem is accelerated (*engaged*) from the first update whose residual shrank by
-less than :data:`ENGAGE` (``‖f_k‖ > ENGAGE ‖f_{k-1}‖``); a fast contraction (a rigid body,
-Toda, Euler–Zeitlin at small ``N h``: a few updates per step) is left plain, since
-Anderson gains nothing there. Once engaged, a problem stays engaged for the solve.
+plain update ``g_k``; after a plain one growth is the map's own, and the history stays (it
+is what lets Anderson converge where the plain iteration does not). (b) *Roundoff*: no
+mixing once the relative residual ``‖f_k‖ / ‖g_k‖`` is below :data:`QUIET` machine
+epsilons: there the differences are dominated by the rounding errors of ``F`` and an
+extrapolation amplifies them; the plain update is as good as any and the stopping rule
+ends the iteration. (c) *Only where it pays*: a problem is accelerated (*engaged*) from the
+first update whose relative residual shrank by less than :data:`ENGAGE`; a fast
+contraction (Euler–Zeitlin at small ``N h``: a few updates per step) is left plain, since
+Anderson gains nothing there. Once engaged, a problem stays engaged for the solve. Problems
+of fewer than :data:`MIN_SIZE` numbers are never engaged (:func:`accelerates`).
 
 Batches: a stack of problems (leading axes before the ``core_ndim`` axes of one unknown) is
 accelerated *per problem*: each has its own Gram matrix, coefficients, restarts and
@@ -66,9 +69,11 @@ from ..backends import device_of, is_numpy, namespace, put, vdot
 #: diagonal, so everything kept is resolved to ``1e-6`` relative or better.
 REGULARIZATION = 1e-10
 
-#: A problem is accelerated from the first update whose residual shrank by less than this
-#: factor (``‖f_k‖ > ENGAGE ‖f_{k-1}‖``): a contraction this slow needs more than about
-#: ``log(1e-13) / log(ENGAGE)`` plain updates per solve from scratch.
+#: A problem is accelerated from the first update whose relative residual ``‖f‖ / ‖g‖``
+#: shrank by less than this factor: a contraction this slow needs more than about
+#: ``log(1e-13) / log(ENGAGE) ≈ 19`` plain updates from scratch (measured: at 0.13 per
+#: update, N = 256 and h = 1/64, Anderson took 11 → 8 updates, about what its overhead
+#: costs; at 0.25–0.5, 19 → 11 and 33 → 12.5).
 ENGAGE = 0.2
 
 #: Problems of fewer real numbers than this (a complex number counts two: Euler–Zeitlin
@@ -77,10 +82,10 @@ ENGAGE = 0.2
 #: cost per call, ~0.15 ms in NumPy, and its O(m · size) passes against the map's
 #: products), so Anderson does not pay for itself even where it cuts updates (measured,
 #: NumPy engine: Euler–Zeitlin N = 32 at h = 1/4, 35 → 23 updates and 1.2× slower; N = 64 at
-#: h = 1/8, 34 → 22 updates, break-even; N = 128 at h = 1/32, 16 → 11, within noise of
-#: even; a 4 × 4 Toda lattice at h = 0.5, 5× slower). The compiled (numba) engine, which
-#: ``engine="auto"`` picks only below this size, therefore runs ``FixedPoint(anderson=m)``
-#: as the plain iteration it is there.
+#: h = 1/8, 34 → 22 updates, break-even; from N = 128 it pays: h = 1/32, 19 → 11 updates,
+#: 0.84× the time per step; a 4 × 4 Toda lattice at h = 0.5: 5× slower). The compiled
+#: (numba) engine, which ``engine="auto"`` picks only below this size, therefore runs
+#: ``FixedPoint(anderson=m)`` as the plain iteration it is there.
 MIN_SIZE = 32768
 
 #: No mixing where the relative residual ``‖f‖ / ‖g‖`` is below this many machine

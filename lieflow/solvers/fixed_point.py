@@ -371,9 +371,12 @@ class FixedPoint:
     rtol, atol, max_iter
         Stopping tolerances and the iteration cap (see :class:`StoppingRule`).
     anderson : int
-        Depth ``m`` of Anderson acceleration; 0 (default) is the plain iteration. With
-        ``m > 0`` each update mixes the last ``m + 1`` map values by a small least-squares
-        problem; iterations still count map evaluations.
+        Depth ``m`` of Anderson acceleration (:mod:`lieflow.solvers.anderson`); 0 (default)
+        is the plain iteration. With ``m > 0`` an update mixes the map value with the
+        differences of the last ``m`` updates, ``O(m · size)`` work, once the contraction
+        is slow (``anderson.ENGAGE``) on problems of at least ``anderson.MIN_SIZE``
+        numbers; anywhere else it is the plain iteration, bit for bit. Iterations still
+        count map evaluations.
     patience, roundoff_floor, divergence_factor
         Stagnation and divergence detection (see :class:`StoppingRule`).
     check_every : int
