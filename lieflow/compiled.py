@@ -17,9 +17,10 @@ of steps per call, for the case where that is simple and exact:
   (:class:`~lieflow.schemes.SyDIRK` and its subclasses, minimal variable form, SPEC
   §4.1–4.2) and the reduced stage form of a symplectic tableau
   (:class:`~lieflow.schemes.BlockGauss` with ``form="reduced"``, SPEC §4.5);
-* the solver is plain :class:`~lieflow.solvers.FixedPoint` iteration (no Anderson, a
-  subclass that keeps its map), or :class:`~lieflow.solvers.Auto` whose first solver is
-  one (SPEC §5);
+* the solver is plain :class:`~lieflow.solvers.FixedPoint` iteration (a subclass that
+  keeps its map; with Anderson acceleration where it never engages, problems below
+  :data:`lieflow.solvers.anderson.MIN_SIZE` numbers: the same iteration), or
+  :class:`~lieflow.solvers.Auto` whose first solver is one (SPEC §5);
 * the data are real ``float64``, or ``complex128`` on a skew-Hermitian algebra (u(n),
   su(N): Euler–Zeitlin), where every transpose of the real loops is a conjugate transpose.
 
@@ -56,6 +57,7 @@ from . import driver
 from .algebras import Array
 from .flows import SchemeFlow, StepStats
 from .schemes.base import Scheme
+from .solvers import anderson
 from .solvers.base import Solver
 from .solvers.fixed_point import FixedPoint
 from .solvers.newton import Auto
@@ -392,22 +394,29 @@ class CompiledSchemeFlow(SchemeFlow):
         )
 
 
-def _fixed_point_of(solver: Solver) -> tuple[FixedPoint, bool] | None:
-    """The plain fixed-point iteration a solver runs first, and whether a failed warm
-    solve is retried cold by that same iteration (``None`` if not supported).
+def _fixed_point_of(
+    solver: Solver, shape: tuple[int, ...], dtype: np.dtype
+) -> tuple[FixedPoint, bool] | None:
+    """The plain fixed-point iteration a solver runs first on one problem's unknowns of
+    ``shape`` and ``dtype``, and whether a failed warm solve is retried cold by that same
+    iteration (``None`` if not supported).
 
     A subclass of :class:`FixedPoint` (or :class:`Auto`) qualifies as long as it keeps the
     iteration: the same ``solve`` and map (:class:`~lieflow.solvers.FrozenB` changes the
-    map, so it does not).
+    map, so it does not); with Anderson acceleration only where it never engages
+    (:func:`lieflow.solvers.anderson.accelerates`: the plain iteration, bit for bit).
     """
     if isinstance(solver, Auto) and type(solver).solve is Auto.solve:
-        fp = _fixed_point_of(solver.first)
+        fp = _fixed_point_of(solver.first, shape, dtype)
         return None if fp is None else (fp[0], False)
     if (
         isinstance(solver, FixedPoint)
         and type(solver).solve is FixedPoint.solve
         and type(solver)._map is FixedPoint._map
-        and solver.anderson == 0
+        and (
+            solver.anderson == 0
+            or not anderson.accelerates(np.broadcast_to(np.zeros((), dtype), shape))
+        )
     ):
         return solver, True
     return None
@@ -594,17 +603,25 @@ def plan(
         return "complex128 data are compiled on skew-Hermitian algebras only (u(n), su(N))"
     if dtype.char not in ("d", "D") or not dtype.isnative:
         return f"only float64 and complex128 data are compiled, got {dtype}"
+    if system.underflow_guard:
+        return (
+            "the underflow guard (system.underflow_guard, lieflow.underflow) runs on the "
+            "numpy engine only: set it to 0 for the compiled engine"
+        )
     form = scheme.compiled_form()
     if form is None:
         return (
             f"scheme {scheme.name!r} is not compiled (only midpoint compositions, SyDIRK, "
             "and the reduced stage form of BlockGauss are)"
         )
-    fp = _fixed_point_of(solver)
+    n = int(W0.shape[-1])
+    stages = 1 if form[0] == "sydirk" else len(form[2])  # one problem: a (sub-)step's unknown
+    fp = _fixed_point_of(solver, (stages, n, n), dtype)
     if fp is None:
         return (
             f"solver {getattr(solver, 'name', type(solver).__name__)!r} is not compiled "
-            "(only FixedPoint without Anderson acceleration, alone or first in Auto)"
+            "(only FixedPoint, alone or first in Auto, without Anderson acceleration on "
+            f"problems of {anderson.MIN_SIZE} numbers or more: use engine='numpy')"
         )
     try:
         kernels()
@@ -623,7 +640,6 @@ def plan(
     fixed, retry_cold = fp
     r = fixed.rule
     conjugation = getattr(scheme, "update", "commutator") == "conjugation"
-    n = int(W0.shape[-1])
     same = (n, kind, A.tobytes(), b.tobytes(), A.shape, conjugation, fixed.name, retry_cold, r)
     key = ("compiled plan", dtype)
     kept = system._derived.get(key)

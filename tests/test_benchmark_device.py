@@ -51,4 +51,17 @@ def test_the_cpu_floor_benchmark_prints_its_ratio(capsys: pytest.CaptureFixture[
     assert floor.main(["--sizes", "16", "--steps", "2", "--repeats", "1", "--cpu-time"]) == 0
     row = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| 16 ")]
     cells = [c.strip() for c in row[0].split("|")[1:-1]]
-    assert len(cells) == 7 and float(cells[-1]) > 0 and float(cells[1]) >= 1
+    assert len(cells) == 8 and float(cells[-1]) > 0 and float(cells[1]) >= 1
+
+
+def test_the_anderson_benchmark_prints_its_rows(capsys: pytest.CaptureFixture[str]) -> None:
+    from benchmarks import anderson
+
+    argv = ["--sizes", "16", "--inv-h", "32", "--steps", "1", "--repeats", "1", "--no-small"]
+    assert anderson.main(argv) == 0
+    out = capsys.readouterr().out
+    row = [line for line in out.splitlines() if line.startswith("| Euler–Zeitlin N = 16 ")]
+    cells = [c.strip() for c in row[0].split("|")[1:-1]]
+    # below anderson.MIN_SIZE: the same updates as plain
+    assert len(cells) == 7 and cells[2] == cells[3] and float(cells[-2]) > 0
+    assert "slowest row per step" in out

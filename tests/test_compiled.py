@@ -184,7 +184,6 @@ def test_progress_bar_advances_per_chunk() -> None:
     [
         ({"solver": lf.solvers.Newton()}, "solver 'newton'"),
         ({"solver": lf.solvers.FrozenB()}, "solver 'frozen_b'"),
-        ({"solver": lf.solvers.FixedPoint(anderson=2)}, "Anderson"),
         ({"solver": lf.solvers.Auto(first=lf.solvers.FrozenB())}, "solver 'auto'"),
         ({"scheme": lf.schemes.get("gauss2", form="block")}, "not compiled"),
         ({"scheme": lf.schemes.get("modin_viviani")}, "not compiled"),
@@ -202,6 +201,32 @@ def test_compiled_refuses_unsupported_cases(case: dict[str, Any], match: str) ->
         lf.integrate(system, scheme, W0, 0.1, steps=2, solver=solver, engine="compiled")
     auto = lf.integrate(system, scheme, W0, 0.1, steps=2, solver=solver)  # falls back to numpy
     assert auto.success
+
+
+@pytest.mark.usefixtures("numba")
+def test_compiled_runs_anderson_where_it_never_engages() -> None:
+    # below anderson.MIN_SIZE numbers FixedPoint(anderson=m) is the plain iteration, bit for
+    # bit, on either engine; the compiled engine runs it as such
+    system = HADAMARD["generalized_rigid_body"]
+    W0 = _state(system)
+    solver = lf.solvers.FixedPoint(anderson=3)
+    numpy_run, compiled_run = _both(system, lf.schemes.get("gauss2"), W0, 0.1, steps=50,
+                                    solver=solver)  # fmt: skip
+    plain = lf.integrate(system, lf.schemes.get("gauss2"), W0, 0.1, steps=50, engine="numpy")
+    np.testing.assert_array_equal(numpy_run.W, plain.W)
+    np.testing.assert_array_equal(numpy_run.iterations, plain.iterations)
+    np.testing.assert_allclose(compiled_run.W, numpy_run.W, rtol=0, atol=1e-13)
+    np.testing.assert_array_equal(compiled_run.iterations, numpy_run.iterations)
+
+
+@pytest.mark.usefixtures("numba")
+def test_compiled_refuses_anderson_where_it_engages() -> None:
+    n = 200  # 40,000 numbers per problem: at least anderson.MIN_SIZE
+    system = lf.systems.GeneralizedRigidBody.random_inertia(n, seed=0)
+    W0 = np.zeros((n, n))
+    reason = compiled.plan(system, lf.schemes.get("midpoint"),
+                           lf.solvers.FixedPoint(anderson=2), W0)  # fmt: skip
+    assert isinstance(reason, str) and "Anderson" in reason and "engine='numpy'" in reason
 
 
 @pytest.mark.usefixtures("numba")

@@ -135,7 +135,10 @@ def test_stopping_rule_verdicts() -> None:
     assert lf.solvers.StoppingRule(project=False).verdict(slow, False, 1.0) is None
 
 
-def test_anderson_cuts_iterations() -> None:
+def test_anderson_cuts_iterations(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Anderson on a 4 x 4 problem (below anderson.MIN_SIZE, where it does not pay and the
+    # plain iteration runs): the algorithm itself on a slow contraction (~20 updates a step)
+    monkeypatch.setattr(lf.solvers.anderson, "MIN_SIZE", 0)
     plain = lf.integrate(TODA, lf.schemes.get("midpoint"), W0, 0.1, steps=50)
     anderson = lf.integrate(
         TODA,

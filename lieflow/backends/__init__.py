@@ -38,6 +38,7 @@ __all__ = [
     "machine_epsilon",
     "namespace",
     "place",
+    "put",
     "to_numpy",
 ]
 
@@ -164,6 +165,37 @@ def identity(n: int, like: Any) -> Any:
     if is_numpy(like):
         return np.eye(n, dtype=like.dtype)
     return namespace(like).eye(n, dtype=like.dtype, device=device_of(like))
+
+
+def put(stack: Any, index: Any, value: Any, minus: Any = None) -> tuple[Any, Any]:
+    """``stack`` with ``stack[index]`` set to ``value`` (or ``value - minus``), and that
+    entry: ``(stack, stack[index])``. ``index`` (a Python or 0-d integer array) indexes the
+    first axis. The one way lieflow writes into an array a traced program carries (the
+    Anderson history, :mod:`lieflow.solvers.anderson`).
+
+    In place for NumPy (the difference computed into the entry, no temporary; the entry
+    returned is a view), CuPy and PyTorch (the ``stack`` passed in is changed); a new
+    array ``stack.at[index].set(...)`` for JAX (immutable arrays: under ``jax.jit`` the
+    compiler updates the buffer in place); other libraries (``array_api_strict``) assign
+    in place at ``int(index)`` (eager only). The entry returned for all but NumPy is the
+    value written (``value - minus`` computed once).
+    """
+    if is_numpy(stack):
+        entry = stack[int(index)]
+        if minus is None:
+            entry[...] = value
+        else:
+            np.subtract(value, minus, out=entry)
+        return stack, entry
+    entry = value if minus is None else value - minus
+    compat = _compat()
+    if compat.is_jax_array(stack):
+        return stack.at[index].set(entry), entry
+    if compat.is_torch_array(stack) or compat.is_cupy_array(stack):
+        stack[index] = entry  # a 0-d device index: no synchronisation
+    else:
+        stack[int(index), ...] = entry
+    return stack, entry
 
 
 def device_norms(x: Any, core_ndim: int) -> Any:

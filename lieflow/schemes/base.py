@@ -15,6 +15,7 @@ from ..errors import ConvergenceError
 from ..solvers.base import ImplicitProblem, Solver, SolveResult, einsum
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau
+from ..underflow import flush_tiny
 
 P = TypeVar("P", bound=ImplicitProblem)
 
@@ -172,11 +173,19 @@ class StageProblem:
     no-op at the fixed point, so the scheme is unchanged; away from it, ``B`` is never
     evaluated off the phase space's span — e.g. on a non-symmetric matrix for the Toda
     lattice, whose ``B`` is a gradient only on symmetric ones).
+
+    It is also where the system's underflow guard (:attr:`tau`, :mod:`lieflow.underflow`)
+    meets the products: :meth:`B` guards the stage values and ``B``, the commutator update
+    its operands, and the maps of the schemes guard their own operands through
+    :meth:`guard`. Off (``tau = 0``, the default) nothing is called: the same bits as
+    without it.
     """
 
     def __init__(self, system: IsospectralSystem, W0: Array) -> None:
         self.system = system
         self.W0 = W0
+        #: the relative threshold of the underflow guard (0: off): the system's
+        self.tau = float(system.underflow_guard)
         algebra = system.algebra
         self.skew = algebra.skew
         # how the maps compute, decided once per problem rather than per call: on NumPy
@@ -191,9 +200,19 @@ class StageProblem:
         self._project_stage = algebra.project if default else system.project_stage
         self._stage_B = system.stage_B
 
+    def guard(self, X: Array, in_place: bool = False) -> Array:
+        """``X`` through the underflow guard (:func:`lieflow.underflow.flush_tiny` with
+        :attr:`tau`): entries below ``tau`` times their matrix's largest set to zero, before
+        ``X`` enters a product. ``in_place``: ``X`` is a NumPy array the map owns (scratch)
+        and may be overwritten. ``X`` itself when the guard is off."""
+        return flush_tiny(X, self.tau, in_place) if self.tau else X
+
     def B(self, stages: Array) -> Array:
         """``B(P(W_i))`` for stage values ``W_i`` (any leading axes): the system's
-        :meth:`~lieflow.IsospectralSystem.stage_B`."""
+        :meth:`~lieflow.IsospectralSystem.stage_B` (with the underflow guard on: of the
+        guarded stage values, guarded)."""
+        if self.tau:
+            return self.guard(self._stage_B(self.guard(stages)))
         return self._stage_B(stages)
 
     def B_derivative(self, stages: Array, dstages: Array) -> Array:
@@ -218,6 +237,8 @@ class StageProblem:
         one = stages.ndim == W0.ndim
         W = self._project_stage(stages)
         B = self._B(W)
+        if self.tau:  # the underflow guard (lieflow.underflow) on the product's operands
+            W, B = self.guard(W), self.guard(B)
         if self.skew:
             C = B.dot(W) if one and self._small else B @ W
             del W, B

@@ -68,16 +68,27 @@ class MidpointProblem(StageProblem):
         # allocates only B and its result. Arrays of another library
         # (lieflow.backends): the same operations on fresh arrays. B is :meth:`B`, the
         # system's stage_B called directly (one Python frame less per update).
-        B = self._stage_B(M)
+        guard = self.tau  # the underflow guard (lieflow.underflow): M, B and BM before products
+        if guard:
+            M = self.guard(M)
+            B = self.guard(self._stage_B(M))
+        else:
+            B = self._stage_B(M)
         if self._small:
             BM = B.dot(M)
+            if guard:
+                BM = self.guard(BM, in_place=True)
             BMB = BM.dot(B)
         elif self._host:
             BM, BMB = self._scratch = scratch(self._scratch, 2, M.shape, np.result_type(B, M))
             np.matmul(B, M, out=BM)
+            if guard:
+                self.guard(BM, in_place=True)
             np.matmul(BM, B, out=BMB)
         else:
             BM = B @ M
+            if guard:
+                BM = self.guard(BM)
             BMB = BM @ B
         if self.skew:  # MB = (BM)^†: BM - MB without a transposed temporary
             del B

@@ -90,6 +90,10 @@ class CasimirShifted(IsospectralSystem):
         return self.base.algebra
 
     @property
+    def underflow_guard(self) -> float:  # type: ignore[override]
+        return self.base.underflow_guard
+
+    @property
     def casimir_powers(self) -> tuple[int, ...]:  # type: ignore[override]
         return self.base.casimir_powers
 

@@ -66,6 +66,7 @@ from numpy.typing import ArrayLike, DTypeLike, NDArray
 
 import lieflow
 from lieflow.backends import from_host, is_foreign_array, is_numpy, namespace
+from lieflow.underflow import TAU
 
 from . import _recurrences as _rec
 from .laplacian import HoppeYauLaplacian, matrix_size
@@ -157,6 +158,28 @@ def _flag(value: bool) -> bool:
     return bool(value)
 
 
+#: From this N on, :class:`EulerZeitlin` turns its underflow guard on by default.
+GUARD_FROM_N = 512
+
+
+def _guard_default(self: Any) -> float:
+    return TAU if self.N >= GUARD_FROM_N else 0.0
+
+
+def _guard(value: float) -> float:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        out = math.nan
+    if not 0.0 <= out <= 2.0**-100:
+        raise lieflow.InputError(
+            f"underflow_guard must be 0 (off) or a threshold in (0, 2^-100] far below "
+            f"roundoff (default {TAU:.3g} from N = {GUARD_FROM_N}), "
+            f"got {value!r}"
+        )
+    return out
+
+
 def _time_default(self: Any) -> str:
     return "fluid" if self.hbar_scaled is None or self.hbar_scaled else "matrix"
 
@@ -198,6 +221,16 @@ class EulerZeitlin(lieflow.IsospectralSystem):
         ``False`` keeps the spectra, energy and enstrophy only (``lieflow plot`` then takes
         the levels of the saved states, :func:`~lieflow_zeitlin.vorticity_levels` computes
         them for any).
+    underflow_guard : float
+        Relative threshold of the underflow guard (:mod:`lieflow.underflow`): before each
+        product of the schemes' maps, entries below it times their matrix's largest are set
+        to zero (``2^-280`` of roundoff), so that no product goes subnormal — on Intel
+        cores each subnormal operation costs a microcode assist (the smooth field of
+        ``benchmarks.device`` at N = 1024 holds entries down to ``1e-280``: its products
+        ran 6× slower). Default :data:`lieflow.underflow.TAU` from N = 512 (the field's
+        smallest entries reach the subnormal range of a product from there: ``2e-209`` at
+        N = 512, ``1e-116`` at N = 256), ``0`` (off: every number as it is) below; off, the
+        bits are those without the guard.
 
     Notes
     -----
@@ -222,6 +255,9 @@ class EulerZeitlin(lieflow.IsospectralSystem):
     lamb: float = attrs.field(default=0.0, converter=_lamb, kw_only=True)
     diagnostics_every: int | None = attrs.field(default=None, converter=_every, kw_only=True)
     diagnostics_levels: bool = attrs.field(default=True, converter=_flag, kw_only=True)
+    underflow_guard: float = attrs.field(
+        default=attrs.Factory(_guard_default, takes_self=True), converter=_guard, kw_only=True
+    )
     laplacian: HoppeYauLaplacian = attrs.field(init=False, repr=False)
     planetary: Array = attrs.field(init=False, repr=False)
     # built once: every projection of a stage value goes through it
