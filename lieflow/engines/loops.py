@@ -31,6 +31,7 @@ from typing import Any
 import attrs
 import numpy as np
 
+from ..solvers import anderson
 from ..solvers.base import ImplicitProblem, Solver, SolveResult
 from ..solvers.fixed_point import (
     _EPS,
@@ -121,7 +122,7 @@ def _iteration(solver: Solver) -> Iteration | None:
     ``solve`` or the map has none)."""
     if isinstance(solver, Newton):
         return Iteration("newton", solver) if type(solver).solve is Newton.solve else None
-    if type(solver).solve is not FixedPoint.solve or getattr(solver, "anderson", False):
+    if type(solver).solve is not FixedPoint.solve:
         return None
     if isinstance(solver, FrozenB) and type(solver)._map is FrozenB._map:
         return Iteration("frozen_map", solver)
@@ -137,7 +138,7 @@ def supported(solver: Solver) -> str | None:
     if _iteration(solver) is None:
         return (
             f"solver {getattr(solver, 'name', type(solver).__name__)!r} has no traced form "
-            "(FixedPoint, FrozenB, Newton, and Auto of them)"
+            "(FixedPoint, with Anderson acceleration or without, FrozenB, Newton, and Auto of them)"
         )
     return None
 
@@ -203,18 +204,28 @@ def _fixed_point(problem: ImplicitProblem, it: Iteration) -> tuple[Traced, Trace
 
     F: Callable[[Traced], Traced] = getattr(problem, it.kind)
     x0 = problem.x0
-    judge = _Judge.of(it.solver.rule, x0, problem.core_ndim)
+    core = problem.core_ndim
+    judge = _Judge.of(it.solver.rule, x0, core)
+    # Anderson acceleration (FixedPoint(anderson=m)): its history carried by the loop, the
+    # next iterate its update of (x, F(x)); never where it never mixes (small problems)
+    depth = int(getattr(it.solver, "anderson", 0)) if it.kind == "map" else 0
+    mixing = depth > 0 and anderson.accelerates(x0, core)
 
     def body(carry: tuple[Any, ...]) -> tuple[Any, ...]:
-        x, _, k, res, size0, _, _ = carry
+        x, _, k, res, size0, _, _, history = carry
         g = F(x)
         res, size0, code, r = judge(g, x, res, size0, k)
-        return g, g, k + 1, res, size0, code, r
+        if mixing:
+            history, x_next = anderson.update(history, x, g)
+        else:
+            x_next = g
+        return x_next, g, k + 1, res, size0, code, r, history
 
     res0, size0, k0 = judge.start(x0)
     go = jnp.asarray(GO, jnp.int64)
-    start = (x0, x0, k0, res0, size0, go, jnp.asarray(0.0, jnp.float64))
-    _, g, k, _, _, code, r = lax.while_loop(lambda c: c[5] == GO, body, start)
+    history0 = anderson.start(x0, depth, core) if mixing else None
+    start = (x0, x0, k0, res0, size0, go, jnp.asarray(0.0, jnp.float64), history0)
+    _, g, k, _, _, code, r, _ = lax.while_loop(lambda c: c[5] == GO, body, start)
     return g, k, r, code
 
 
