@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
+from processes import Children
 
 from lieflow.app import io
 
@@ -53,31 +54,26 @@ def _started(out: Path) -> int:
 
 @pytest.mark.parametrize("executor", ["local", "dask"])
 def test_ctrl_c_stops_every_run_where_it_is_and_the_hint_is_the_command(
-    tmp_path: Path, executor: str
+    tmp_path: Path, executor: str, children: Children
 ) -> None:
     if executor == "dask":
         pytest.importorskip("distributed")
     grid, out = tmp_path / "long.toml", tmp_path / "out"
     grid.write_text(GRID, encoding="utf-8")
     args = ["sweep", str(grid), "--executor", executor, "--workers", "2", "--out", str(out)]
-    proc = subprocess.Popen(
+    proc = children.popen(  # its own process group, as a shell job has
         [sys.executable, "-m", "lieflow", *args, "--no-progress"],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
-        start_new_session=True,  # its own process group, as a shell job has
     )
-    try:
-        deadline = time.monotonic() + 240
-        while _started(out) < 2:
-            assert proc.poll() is None, proc.communicate()[0]
-            assert time.monotonic() < deadline, "no two runs reported steps in 240 s"
-            time.sleep(0.05)
-        os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C on a terminal does
-        text, _ = proc.communicate(timeout=240)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
+    deadline = time.monotonic() + 240
+    while _started(out) < 2:
+        assert proc.poll() is None, proc.communicate()[0]
+        assert time.monotonic() < deadline, "no two runs reported steps in 240 s"
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C on a terminal does
+    text, _ = proc.communicate(timeout=240)
     assert proc.returncode == 130, text
     for word in ("Traceback", "KeyboardInterrupt", "CancelledError", "killing"):
         assert word not in text, text
