@@ -742,7 +742,8 @@ def _run(raw: Mapping[str, Any], source: str, base: Path, default_output: str) -
                 "checkpoint", f"must be >= 0 seconds, got {checkpoint!r}",
                 'write checkpoint = 1.0 (seconds between checkpoints) or "saves"',
             )  # fmt: skip
-    device = sec.string("device", required=False, hint='"cpu"') or "cpu"
+    device = sec.string("device", required=False, hint='"cpu"')
+    device = "cpu" if device is None else device  # an empty string is refused, not the CPU
     try:
         check_device(device)
     except InputError as exc:
