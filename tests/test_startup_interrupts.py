@@ -73,6 +73,18 @@ elif point == "bar_start":
         original_start(self, done, total)  # the cursor is hidden now
         interrupt()
     progress.ProgressBar.start = start
+elif point in ("rich_set_live", "rich_hide_cursor"):  # inside rich's Live.start
+    from rich.console import Console
+    name = {"rich_set_live": "set_live", "rich_hide_cursor": "show_cursor"}[point]
+    original_method = getattr(Console, name)
+    def method(self, *a, **k):
+        if point == "rich_set_live":  # before the Live is on the console's stack
+            interrupt()
+        result = original_method(self, *a, **k)
+        if point == "rich_hide_cursor" and a == (False,):  # its render hook not pushed yet
+            interrupt()
+        return result
+    setattr(Console, name, method)
 elif point == "swallowed":
     original_advance = driver.advance
     class Finalizer:
@@ -147,9 +159,15 @@ def test_an_interrupt_before_the_file_exists_says_nothing_was_written(
     assert sorted(p.name for p in config.parent.iterdir()) == ["run.toml"]
 
 
-def test_the_progress_bar_gives_the_cursor_back(config: Path, children: Children) -> None:
-    """Interrupted right after the bar hid the cursor (rich: ESC[?25l)."""
-    code, text = _child(children, "bar_start", str(config), terminal=True)
+@pytest.mark.parametrize("point", ["bar_start", "rich_set_live", "rich_hide_cursor"])
+def test_the_progress_bar_gives_the_cursor_back(
+    config: Path, children: Children, point: str
+) -> None:
+    """Interrupted right after the bar hid the cursor (rich: ESC[?25l), or inside rich's
+    start of the bar (Ctrl-C in the first milliseconds: the bar's stop then failed with
+    rich's ``IndexError: pop from empty list``, exit 1, the cursor left hidden)."""
+    code, text = _child(children, point, str(config), terminal=True)
+    assert "Traceback" not in text and "IndexError" not in text, text
     assert code == 130, text
     assert "\x1b[?25l" in text  # the bar was drawn
     assert text.rfind("\x1b[?25h") > text.rfind("\x1b[?25l"), text

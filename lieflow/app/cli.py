@@ -38,7 +38,7 @@ from typing import TextIO
 
 from .. import __version__
 from ..errors import InputError, LieflowError, shorten
-from ..progress import ProgressBar
+from ..progress import ProgressBar, start_live, stop_live
 
 __all__ = ["main"]
 
@@ -248,10 +248,14 @@ def _plot_movie(file: Path, out: Path, live: bool) -> Path:
     from rich.console import Console
     from rich.progress import Progress
 
-    with Progress(console=Console(stderr=True)) as bar:
-        task = bar.add_task("movie frames", total=None)
+    bar = Progress(console=Console(stderr=True))
+    task = bar.add_task("movie frames", total=None)
+    start_live(bar)
+    try:
         return Path(movie(traj, out, lambda done, total: bar.update(task, completed=done,
                                                                     total=total)))  # fmt: skip
+    finally:
+        stop_live(bar)
 
 
 EXIT_RUNS_FAILED = 1  # lieflow sweep: it finished, but some runs failed (see the manifest)

@@ -56,6 +56,7 @@ import attrs
 import numpy as np
 
 from ..errors import InputError, LieflowError
+from ..progress import start_live, stop_live
 from .config import (
     _SECTIONS,
     Config,
@@ -936,7 +937,7 @@ class SweepProgress(SweepMonitor):
             self._line(f"{skipped} of {runs} runs complete already (skipped)")
         if self._progress is not None:
             self._task = self._progress.add_task("sweep", total=None, runs="")
-            self._progress.start()
+            start_live(self._progress)
 
     def update(self, counts: Mapping[str, int], steps: int, total_steps: int) -> None:
         if self._progress is None:
@@ -965,7 +966,7 @@ class SweepProgress(SweepMonitor):
 
     def stop(self) -> None:
         if self._progress is not None:
-            self._progress.stop()
+            stop_live(self._progress)
 
 
 def _write_json(path: Path, data: Any) -> None:
