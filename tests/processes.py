@@ -19,6 +19,16 @@ from collections.abc import Callable
 from typing import Any
 
 
+def alive(pid: int) -> bool:
+    """Whether process ``pid`` is running (a zombie, dead but not yet reaped, is not; reads
+    ``/proc``)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
 class Children:
     """The processes one test started (:meth:`popen`), each leading its own process group."""
 

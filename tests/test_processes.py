@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+from processes import alive
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX process groups")
 
@@ -44,14 +45,6 @@ def test_fails(children):
 """
 
 
-def _alive(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"  # a zombie is dead
-    except FileNotFoundError:
-        return False
-
-
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc")
 def test_a_failing_test_leaves_no_child_or_grandchild_running(tmp_path: Path) -> None:
     for helper in ("conftest.py", "processes.py"):
@@ -71,9 +64,9 @@ def test_a_failing_test_leaves_no_child_or_grandchild_running(tmp_path: Path) ->
     started = [int(p) for p in pids.read_text().split()]
     assert len(started) == 2
     deadline = time.monotonic() + 30  # the orphaned grandchild is reaped by init
-    while any(_alive(pid) for pid in started) and time.monotonic() < deadline:
+    while any(alive(pid) for pid in started) and time.monotonic() < deadline:
         time.sleep(0.05)
-    left = [pid for pid in started if _alive(pid)]
+    left = [pid for pid in started if alive(pid)]
     for pid in left:  # never leave them, even when this test fails
         os.kill(pid, 9)
     assert not left, f"still running after the test ended: {left}"

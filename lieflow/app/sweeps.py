@@ -575,6 +575,32 @@ def _worker_init() -> None:
                 raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, on_term)
+    threading.Thread(target=_exit_with_parent, name="lieflow-parent-watch", daemon=True).start()
+
+
+#: Seconds a worker whose coordinator died waits for its run to stop (at its next step)
+#: before it exits anyway (the file is then resumable from its last checkpoint, as after a
+#: kill).
+_ORPHAN_GRACE = 60.0
+
+
+def _exit_with_parent() -> None:
+    """A default-pool worker's watch of its coordinator: once the coordinator is gone (a
+    ``kill -9`` runs no cleanup, and its workers used to live on, blocked on the task queue
+    for ever, a running run stepping to its end), stop the run at its next step as SIGTERM
+    does (its file marked "interrupted"), then exit. Waits on the spawn start method's
+    parent sentinel (readable once the parent process has died), so it costs nothing."""
+    import multiprocessing.connection
+
+    parent = multiprocessing.parent_process()
+    if parent is None:  # pragma: no cover - not a spawned worker
+        return
+    multiprocessing.connection.wait([parent.sentinel])
+    os.kill(os.getpid(), signal.SIGTERM)  # the run stops at its next step (on_term)
+    deadline = time.monotonic() + _ORPHAN_GRACE
+    while _BUSY and time.monotonic() < deadline:
+        time.sleep(0.05)
+    os._exit(1)
 
 
 class _ProgressFile:
