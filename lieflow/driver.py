@@ -487,7 +487,11 @@ class Cadence:
             or not isinstance(seconds, (int, float, np.floating, np.integer))
             or not (math.isfinite(seconds) and seconds >= 0)
         ):
-            raise InputError(f"checkpoint seconds must be >= 0 and finite, got {self.seconds!r}")
+            raise InputError(
+                f"checkpoint seconds must be >= 0 and finite, got {self.seconds!r}. To fix: "
+                "pass a number of seconds, or None to checkpoint at every saved state (the "
+                'configuration\'s checkpoint = "saves")'
+            )
 
     @property
     def at_saves(self) -> bool:

@@ -373,7 +373,7 @@ def integrate(
     out: str | os.PathLike[str] | Sink | None = None,
     resume: bool = False,
     replace: bool = False,
-    checkpoint_seconds: float = 1.0,
+    checkpoint_seconds: float | None = 1.0,
     casimir_shift: float | Literal["auto"] = 0.0,
 ) -> Solution:
     """Integrate ``dW/dt = [B(W), W]`` from ``W0`` with a fixed step ``h``.
@@ -457,7 +457,8 @@ def integrate(
         With ``out``: seconds between checkpoints — the resume point, written with the
         buffered states and diagnostics, flushed and fsync'd (a run killed outright loses at
         most this much work; Ctrl-C, a failed step or the end checkpoint everything). ``0``:
-        after every chunk of steps.
+        after every chunk of steps; ``None``: after every chunk that holds a saved state
+        (``lieflow run``'s ``[run] checkpoint = "saves"``).
     casimir_shift : float or "auto"
         Step the scheme on the Hamiltonian plus a Casimir, :math:`B(W) - cW`
         (:class:`~lieflow.systems.shifted.CasimirShifted`): the same flow, and an

@@ -441,6 +441,9 @@ class _Section:
         return _fail(self.source, self.key(key), problem, fix)
 
     def has(self, key: str) -> bool:
+        """Whether ``key`` is given (a key the section asks about is one it accepts: an
+        unknown key's message lists it, given or not)."""
+        self.seen.add(key)
         return key in self.data
 
     def _raw(self, key: str, required: bool, hint: str) -> Any:
