@@ -499,10 +499,25 @@ def integrate(
         or save_every < 1
     ):
         raise InputError(f"save_every must be a positive integer, got {save_every!r}")
+    if save_every > MAX_STEPS:  # files store it as a 64-bit integer
+        raise InputError(
+            f"save_every = {save_every} is more than {MAX_STEPS} (2**53) steps. To fix: pass "
+            "save_every=steps to keep the first and last states only"
+        )
     if on_failure not in ("raise", "truncate"):
         raise InputError(f"on_failure must be 'raise' or 'truncate', got {on_failure!r}")
     if out is None and (resume or replace):
         raise InputError("resume and replace apply to a run streamed to a file: pass out=PATH")
+    if resume and replace:
+        raise InputError(
+            "resume=True continues the file and replace=True starts it afresh: pass one of them"
+        )
+    if isinstance(out, type):
+        raise InputError(
+            f"out must be a file path or a Sink object, got the class {out.__name__}. To fix: "
+            f"pass an instance (out={out.__name__}(...)), or leave out out= to keep the "
+            "states in memory"
+        )
     if not isinstance(scheme, Scheme) and isinstance(scheme, Flow):
         if solver is not None or not warm_start or engine != "auto" or _nonzero(casimir_shift):
             raise InputError(

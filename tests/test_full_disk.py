@@ -97,6 +97,9 @@ def test_a_full_disk_is_one_error_and_the_same_command_continues(
     _one_clear_error(capsys.readouterr().err)
     kept = io.read_checkpoint(out).step
     assert 0 < kept < 800
+    if margin:  # stopped before writing, with room left for its status (it used to say "running")
+        stopped = io.read_trajectory(out)
+        assert stopped.status == "interrupted" and stopped.completed_steps == kept
     monkeypatch.setattr(_writer, "_SPACE_MARGIN", 1 << 20)
     before = out.read_bytes()
     assert main(["run", str(config), "--no-progress", "--resume"]) == 2  # still full

@@ -55,9 +55,9 @@ import numpy as np
 
 from ..algebras import Array
 from ..backends import check_device
-from ..errors import InputError, LieflowError, PluginError, quote, shorten
+from ..errors import InputError, LieflowError, PluginError, quote, shorten, with_fix, without_fix
 from ..flows import Flow, Splitting
-from ..integration import Engine, scheme_flow
+from ..integration import MAX_STEPS, Engine, scheme_flow
 from ..plugins import Kind, Registry, default_registry
 from ..schemes.base import Scheme
 from ..sinks import run_identity
@@ -681,11 +681,16 @@ def _steps(sec: _Section, h: float) -> tuple[int, float | None]:
     if given[0] == "steps":
         steps = sec.integer("steps")
         assert steps is not None
+        if steps > MAX_STEPS:  # as lieflow.integrate: indices and times exact in 64 bits
+            raise sec.error(
+                "steps", f"{steps} is more than {MAX_STEPS} (2**53) steps, too many to count",
+                "use fewer steps or a larger h",
+            )  # fmt: skip
         return steps, None
     t_final = sec.number("t_final")
     assert t_final is not None
     ratio = t_final / h
-    if not math.isfinite(ratio) or ratio > 2**62:
+    if not math.isfinite(ratio) or ratio > MAX_STEPS:
         raise sec.error(
             "t_final",
             f"t_final / h = {t_final!r} / {h!r} is too many steps to count",
@@ -926,7 +931,7 @@ def _create(
         entry = registry.entry(kind, comp.name)
     except LieflowError as exc:
         raise ConfigError(
-            f"{source}: {entry_key}: {exc}. To fix: use a known name.", entry_key
+            with_fix(f"{source}: {entry_key}: {exc}", "use a known name"), entry_key
         ) from None
     params_key = f"{section} params"
     try:
@@ -1002,7 +1007,7 @@ def _initial_state(config: Config, system: IsospectralSystem) -> Array:
             if init.kind == "random" and init.scale != 1.0
             else f"give an initial condition for {system.name} on {system.algebra}"
         )
-        raise ConfigError(f"{source}: {key}: {exc}. To fix: {fix}.", key) from None
+        raise ConfigError(with_fix(f"{source}: {key}: {exc}", fix), key) from None
     return W if init.perturb is None else _perturbed(W, init.perturb, system, source, random_state)
 
 
@@ -1022,7 +1027,8 @@ def _perturbed(W: Array, rule: Perturbation, system: IsospectralSystem, source: 
         return system.validate(members.astype(W.dtype, copy=False))
     except LieflowError as exc:
         raise ConfigError(
-            f"{source}: {key}: a perturbed state is not a valid initial condition ({exc}). "
+            f"{source}: {key}: a perturbed state is not a valid initial condition "
+            f"({without_fix(exc)}). "
             f"To fix: {system.name} may not accept additive perturbations; make the ensemble "
             "from seeds = [...] instead, or use a smaller size.",
             key,

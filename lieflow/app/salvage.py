@@ -63,6 +63,12 @@ __all__ = ["SalvageReport", "salvage"]
 
 _FIX = "give a file written by `lieflow run` or `lieflow.integrate(out=...)`"
 
+#: Salvage writes next to the file: its lock, the salvaged copy, the damaged original's name.
+_WRITABLE_FIX = (
+    "salvage writes in the file's directory (a lock, the salvaged copy, the backup): make it "
+    "writable, or copy the file to a directory you can write to and salvage the copy"
+)
+
 
 @attrs.frozen
 class SalvageReport:
@@ -132,7 +138,7 @@ def salvage(path: Path | str) -> SalvageReport:
     """
     p = _as_path(path)
     _check_signature(p, _FIX)
-    lock = _OutputLock.acquire(p)
+    lock = _OutputLock.acquire(p, _WRITABLE_FIX)
     tmp = p.with_name(f".{p.name}.{os.getpid()}.salvage")
     try:
         intact = _intact_steps(p)
@@ -150,7 +156,7 @@ def salvage(path: Path | str) -> SalvageReport:
     except OSError as exc:
         raise LieflowError(
             f"cannot salvage {_where(p)}: {exc.strerror or exc}. To fix: salvage needs as much "
-            "free space as the file and a directory you can write to."
+            f"free space as the file; {_WRITABLE_FIX}."
         ) from None
     finally:
         tmp.unlink(missing_ok=True)

@@ -25,7 +25,7 @@ from ...driver import Chunk, ChunkDiagnostics, Diagnostics
 from ...errors import ConvergenceError, LieflowError
 from ...sinks import Ending, RunInfo, to_host
 from ...solution import Solution, Status
-from ..config import ConfigError, RunSetup
+from ..config import ConfigError, RunSetup, check_output_path
 from ._format import (
     _DAMAGE,
     _DIGEST,
@@ -92,6 +92,10 @@ if TYPE_CHECKING:  # pragma: no cover
 #: file's superblock pointing past its end (measured: a resume on a full disk made the file
 #: unopenable, "addr overflow"). Enough for the metadata and new chunks of a few commits.
 _SPACE_MARGIN = 1 << 20
+
+
+#: Free space enough to rewrite a file's status attributes (a full disk's last write).
+_ATTRIBUTES_ROOM = 1 << 16
 
 
 def _ensure_space(path: Path, nbytes: int = 0) -> None:
@@ -167,16 +171,21 @@ def _file_id(f: h5py.File) -> tuple[int, int]:
     return st.st_dev, st.st_ino
 
 
-def _exists_error(out: Path) -> ConfigError:
+def _exists_error(out: Path, from_config: bool) -> ConfigError:
+    """``out`` exists; the fix in the words of the caller (``lieflow run``'s flags, or
+    :func:`lieflow.integrate`'s arguments)."""
+    how = ("pass --resume to continue it, --force to replace it, or choose another output"
+           if from_config else
+           "pass resume=True to continue it, replace=True to replace it, or choose another "
+           "out")  # fmt: skip
     return ConfigError(
         f"{_where(out)} already exists (another run may have created it since this one "
-        "started). To fix: pass --resume to continue it, --force to replace it, or choose "
-        "another output.",
+        f"started). To fix: {how}.",
         "[run] output",
     )
 
 
-def _publish(tmp: Path, out: Path, replace: bool) -> None:
+def _publish(tmp: Path, out: Path, replace: bool, from_config: bool) -> None:
     """Give the finished file ``tmp`` the name ``out``: atomically replacing an existing file
     if ``replace``, else only if ``out`` does not exist (a hard link is an atomic exclusive
     create; where links are not supported, an O_EXCL placeholder is replaced)."""
@@ -186,14 +195,14 @@ def _publish(tmp: Path, out: Path, replace: bool) -> None:
     try:
         os.link(tmp, out)
     except FileExistsError:
-        raise _exists_error(out) from None
+        raise _exists_error(out, from_config) from None
     except OSError as exc:
         if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK):
             raise
         try:
             os.close(os.open(out, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644))
         except FileExistsError:
-            raise _exists_error(out) from None
+            raise _exists_error(out, from_config) from None
         os.replace(tmp, out)
     else:
         tmp.unlink()
@@ -323,7 +332,7 @@ class TrajectoryWriter:
         lock = _OutputLock.acquire(out)
         try:
             if not setup.replace and os.path.lexists(out):
-                raise _exists_error(out)
+                raise _exists_error(out, bool(setup.config_source))
             tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
             try:
                 f = h5py.File(tmp, "w", rdcc_nbytes=_CHUNK_CACHE_BYTES)
@@ -333,7 +342,7 @@ class TrajectoryWriter:
                     _close_quietly(f)
                     raise
                 f.close()
-                _publish(tmp, out, setup.replace)
+                _publish(tmp, out, setup.replace, bool(setup.config_source))
             except _WRITE_ERRORS as exc:
                 if _no_space(exc):
                     raise _disk_full(out) from None
@@ -464,8 +473,24 @@ class TrajectoryWriter:
         except _WRITE_ERRORS as exc:
             if not _no_space(exc):
                 raise
+            self._mark_stopped()
             self.abandon()
             raise _disk_full(self._path, self._step) from None
+
+    def _mark_stopped(self) -> None:
+        """On a full disk: record status "interrupted" at the last checkpoint (what the file
+        is: resumable from it), where the space kept in reserve (:data:`_SPACE_MARGIN`) left
+        room for a few attributes; else (HDF5's own write failed) it stays "running", as a
+        killed run's file does."""
+        try:
+            st = os.statvfs(self._path.parent)
+            if st.f_bavail * st.f_frsize < _ATTRIBUTES_ROOM:
+                return
+            self._f.attrs["completed_steps"] = self._step
+            self._f.attrs["status"] = "interrupted"
+            self._f.flush()
+        except (*_WRITE_ERRORS, ValueError, AttributeError):
+            pass
 
     def _write_rows(self, *, keep_last: bool = False) -> None:
         """Append the buffered diagnostics, saved states and extra diagnostics (and the last
@@ -629,7 +654,8 @@ def trajectory_sink(
     checkpoint with ``resume`` (if it exists), else creating it (an existing file only with
     ``replace``)."""
     fields = {f.name: getattr(run, f.name) for f in attrs.fields(RunInfo)}
-    header = TrajectoryHeader(**fields, output=_as_path(path, "out"), replace=replace)
+    output = check_output_path(_as_path(path, "out"), "out")  # not a directory, writable
+    header = TrajectoryHeader(**fields, output=output, replace=replace)
     return TrajectoryWriter.open(header, resume=resume)
 
 
