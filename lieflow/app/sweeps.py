@@ -575,7 +575,11 @@ def _worker_init() -> None:
                 raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, on_term)
-    threading.Thread(target=_exit_with_parent, name="lieflow-parent-watch", daemon=True).start()
+    threading.Thread(target=_exit_with_parent, name=_WATCH, daemon=True).start()
+
+
+#: The name of a pool worker's thread that watches its coordinator (:func:`_exit_with_parent`).
+_WATCH = "lieflow-parent-watch"
 
 
 #: Seconds a worker whose coordinator died waits for its run to stop (at its next step)
@@ -672,8 +676,9 @@ def run_task(task: Mapping[str, Any]) -> dict[str, Any]:
 
     started = time.time()
     out: dict[str, Any] = {"host": socket.gethostname(), "pid": os.getpid(), "started": started}
-    if _POOL_WORKER and os.path.isdir("/proc/self/task"):
-        out["threads"] = len(os.listdir("/proc/self/task"))  # 1: one BLAS thread, no pool
+    if _POOL_WORKER and os.path.isdir("/proc/self/task"):  # 1: one BLAS thread, no pool
+        watch = sum(t.name == _WATCH for t in threading.enumerate())  # lieflow's own
+        out["threads"] = len(os.listdir("/proc/self/task")) - watch
     stop = Path(task["stop"]) if task.get("stop") else None
     if _STOP or (stop is not None and stop.exists()):  # interrupted before it started
         return {**out, "status": "pending", "error": "", "finished": started}

@@ -150,8 +150,8 @@ _HDF5_LOCKED = re.compile(r"unable to lock file", re.IGNORECASE)
 def salvage_fix(path: Path) -> str:
     """The fix offered for a damaged trajectory file: :func:`lieflow.app.salvage.salvage`."""
     return (
-        f"`lieflow salvage {path}` cuts it back to its last verified checkpoint (the damaged "
-        "original is kept next to it), then continue it with --resume"
+        f"`lieflow salvage {path}` keeps every row that reads back and repairs what has a "
+        "copy (the damaged original is kept next to it), then continue it with --resume"
     )
 
 

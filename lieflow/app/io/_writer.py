@@ -30,6 +30,7 @@ from ._format import (
     _DAMAGE,
     _DIGEST,
     _EXTRA,
+    _HEADER_COPY,
     _PER_STEP,
     _PER_UPDATE,
     _SCALARS,
@@ -45,6 +46,7 @@ from ._format import (
     _dimension,
     _growable,
     _h5py,
+    _header_copy,
     _is_netcdf,
     _is_scale,
     _Layout,
@@ -858,30 +860,54 @@ def _initialise(f: h5py.File, header: TrajectoryHeader) -> None:
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         **environment(),
     }
+    H0 = np.asarray(system.hamiltonian(W0), dtype=np.float64)
+    C0 = np.asarray(system.casimirs(W0), dtype=np.float64)
+    batch = W0.shape[:-2]
+    labels = [
+        _ensemble_labels(header.config_text, n) if len(batch) == 1 else np.arange(n) for n in batch
+    ]
+    casimir_labels = np.asarray(powers if len(powers) == C0.shape[-1] else
+                                np.arange(C0.shape[-1]), dtype=np.int64)  # fmt: skip
+    _lay_out(f, meta, W0, H0, C0, labels, casimir_labels)
+    extra, _ = driver.extra_hook(system, header.save_every)
+    if extra is not None:
+        _append_extra(f, [(0, 0.0, extra(W0))])
+
+
+def _lay_out(
+    f: h5py.File,
+    meta: Mapping[str, Any],
+    W0: Array,
+    H0: Array,
+    C0: Array,
+    labels: list[Array],
+    casimir_labels: Array,
+) -> None:
+    """Write the header attributes ``meta``, the dimensions, the variables and step 0 of a
+    new file (format version 2): the initial state ``W0``, its energy ``H0`` and Casimirs
+    ``C0``, the labels of its ensemble axes and of its Casimirs; both checkpoint slots hold
+    ``W0`` at step 0. What :meth:`TrajectoryWriter.create` writes, and what
+    :func:`lieflow.app.salvage.salvage` rebuilds a damaged file on."""
     for key, value in meta.items():
         f.attrs[key] = value
     h5py = _h5py()
     props = (
-        f"version=2,lieflow={meta['lieflow_version']},hdf5={h5py.version.hdf5_version},"
-        f"h5py={h5py.__version__}"
+        f"version=2,lieflow={meta.get('lieflow_version', '')},"
+        f"hdf5={h5py.version.hdf5_version},h5py={h5py.__version__}"
     )
     f.attrs["_NCProperties"] = np.array(props, dtype=h5py.string_dtype("ascii", len(props)))
-    H0 = np.asarray(system.hamiltonian(W0), dtype=np.float64)
-    C0 = np.asarray(system.casimirs(W0), dtype=np.float64)
-    batch = W0.shape[:-2]
     # dimensions: the two unlimited axes first (ids 0, 1), then the fixed ones
     time = _coordinate(_growable(f, "time", np.float64(0), np.float64), 0)
     step = _coordinate(_growable(f, "step", np.int64(0), np.int64), 1)
     dimid = 2
     ens = []
-    for name, n in zip(_batch_dims(len(batch)), batch, strict=True):
-        labels = _ensemble_labels(header.config_text, n) if len(batch) == 1 else np.arange(n)
-        ens.append(_coordinate(f.create_dataset(name, data=labels, **_checked(labels)), dimid))
+    for name, values in zip(_batch_dims(len(labels)), labels, strict=True):
+        values = np.asarray(values, dtype=np.int64)
+        ens.append(_coordinate(f.create_dataset(name, data=values, **_checked(values)), dimid))
         dimid += 1
     row = _dimension(f, "row", W0.shape[-2], dimid=dimid)
     col = _dimension(f, "col", W0.shape[-1], dimid=dimid + 1)
-    casimir_labels = np.asarray(powers if len(powers) == C0.shape[-1] else
-                                np.arange(C0.shape[-1]), dtype=np.int64)  # fmt: skip
+    casimir_labels = np.asarray(casimir_labels, dtype=np.int64)
     casimir = _coordinate(
         f.create_dataset("casimir", data=casimir_labels, **_checked(casimir_labels)), dimid + 2
     )
@@ -903,6 +929,7 @@ def _initialise(f: h5py.File, header: TrajectoryHeader) -> None:
         "W0", data=W0, dtype=_stored_dtype(f, W0.dtype), **_checked(W0)
     )
     _attach(initial, state)
+    initial.attrs[_HEADER_COPY] = np.bytes_(_header_copy(meta).encode())
     rows = {
         time: 0.0, step: 0, saved: 0, W: W0,
         variables["energy"]: H0, variables["energy_error"]: np.zeros_like(H0),
@@ -912,9 +939,6 @@ def _initialise(f: h5py.File, header: TrajectoryHeader) -> None:
     for ds, value in rows.items():
         ds.resize(1, axis=0)
         ds[0] = value
-    extra, _ = driver.extra_hook(system, header.save_every)
-    if extra is not None:
-        _append_extra(f, [(0, 0.0, extra(W0))])
     ck = f.create_group("checkpoint")
     for i in (0, 1):
         _write_slot(ck.create_group(f"slot{i}"), 0, 0.0, {"W": W0}, {})
