@@ -492,3 +492,26 @@ def test_a_chunk_lost_from_the_index_is_not_read_as_zeros(
     config.write_text(config_text(steps=STEPS + 100, name="run"), encoding="utf-8")
     assert main(["run", str(config), "--no-progress", "--resume"]) == 0
     _same_but(io.read_trajectory(out), reference, {"energy": rows})
+
+
+def test_salvage_in_a_read_only_directory_says_what_it_writes(tmp_path: Path) -> None:
+    """Issue 37 item 9: salvage in a read-only folder spoke of "/proc" (the output's fix).
+    On a real read-only filesystem (a tmpfs remounted read-only; skipped where this process
+    may not mount)."""
+    import subprocess
+
+    where = tmp_path / "ro"
+    where.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(where)],
+                          capture_output=True, check=False)  # fmt: skip
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip()}")
+    try:
+        _, out = _run(where, "run", 60)
+        damage_last_chunk(out, "iterations")
+        subprocess.run(["mount", "-o", "remount,ro", str(where)], check=True)
+        with pytest.raises(lf.LieflowError, match="salvage writes in the file's directory") as e:
+            salvage(out)
+        assert "/proc" not in str(e.value) and "Read-only file system" in str(e.value)
+    finally:
+        subprocess.run(["umount", "-l", str(where)], check=False)

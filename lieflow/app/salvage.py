@@ -432,7 +432,8 @@ class _Plan:
         # step 0: W0 (or its copy, the saved state of step 0), its energy and Casimirs
         W_ds, saved_ds, time_ds = _get(f, at["W"]), _get(f, at["saved_step"]), _get(f, at["time"])
         saved_steps, saved_ok = _saved_steps(saved_ds, time_ds, h, end, lost, repaired)
-        W_lost = [] if W_ds is None else _lost_rows(W_ds, saved_steps.size, end)
+        n_saved = saved_steps.size
+        W_lost = [(0, n_saved)] if W_ds is None else _lost_rows(W_ds, n_saved, end)
         W0 = _initial(f, at, W_ds, saved_steps, W_lost, repaired, path)
         H0, C0 = _step0(f, at, path)
         # the per-step rows: how many, and which are lost
@@ -595,6 +596,8 @@ def _saved_steps(saved: Any, time: Any, h: float, end: int, lost: list[str],
             fixed += int(mend.sum())
         if fixed:
             repaired.append(f"the steps of {fixed} saved states (from their times)")
+    if n:  # the first saved state is always step 0's
+        steps[0], known[0] = 0, True
     unknown = int((~known).sum())
     if unknown:
         lost.append(f"{unknown} saved states whose step and time are both lost (left out)")
@@ -656,7 +659,7 @@ def _restart(f: Any, W: Any, saved_steps: Array, known: Array, W_lost: list[tupl
     if slots:
         step, items = max(slots, key=lambda s: s[0])
         return step, items, True
-    for i in range(saved_steps.size - 1, 0, -1):
+    for i in range(saved_steps.size - 1 if W is not None else 0, 0, -1):
         s = int(saved_steps[i])
         if known[i] and 0 < s <= last and not _inside(i, W_lost) and not _inside(s, invariant):
             return s, {"W": np.asarray(W[i])}, False
