@@ -21,10 +21,16 @@ numba recompile them in every process), and an integer costs the call no Python-
 typing. ``B`` is the stage-value ``B`` of
 :class:`~lieflow.schemes.base.StageProblem`, i.e. ``B(project_stage(W))``.
 
-numba's cache tracks this file only, not the files of the functions it inlines; the two
-entry points (:func:`entry`: ``"sydirk_advance"``, ``"reduced_advance"``) are therefore keyed
-by a hash of the stopping rule's source (:data:`RULE_KEY`), so editing the rule recompiles
-them.
+numba's cache tracks this file only, not the files of the functions it inlines; the entry
+points (:func:`entry`: ``"sydirk_advance"``, ``"reduced_advance"``, each for the commutator
+update and for the update in conjugation form) are therefore keyed by a hash of the stopping
+rule's source (:data:`RULE_KEY`), so editing the rule recompiles them.
+
+Compile time (a user's first run compiles its entry point: issue 37 item 11): each entry
+point holds one formulation, one data type and one update, so a run compiles only the code
+it runs; every function between an entry point and the map is inlined into it once (one call
+site each: a failed warm solve is retried by the same call to the iteration), since numba's
+inlining copies a function's code into every call site.
 
 Conventions: ``float64`` or ``complex128`` data (one compilation of the loops for each; the
 complex one for skew-Hermitian algebras such as su(N), where every transpose of the real code
@@ -595,9 +601,13 @@ def _reduced_map(
 
 
 # ------------------------------------------------------------------ conjugation updates
-# The compiled forms of :mod:`lieflow.schemes.conjugation` (SPEC §4.7), selected by
-# ``irule[6]``: the same formulas, with Gauss–Jordan elimination in loops for the solves
-# (compiled code here cannot allocate, so LAPACK's solve is not available).
+# The compiled forms of :mod:`lieflow.schemes.conjugation` (SPEC §4.7), in the entry points
+# of that update (:func:`entry`'s ``conjugation``): the same formulas, with Gauss–Jordan
+# elimination in loops for the solves (compiled code here cannot allocate, so LAPACK's
+# solve is not available).
+
+#: The updates' names, by ``conjugation``.
+_UPDATES = ("commutator", "conjugation")
 
 #: Newton–Schulz steps allowed (as :data:`lieflow.schemes.conjugation.NEWTON_SCHULZ_STEPS`).
 _NS_STEPS = 12
@@ -821,21 +831,17 @@ def _solver(fmap: Any) -> Any:
         negative number. ``xf``, ``x0f``: flat views of ``x`` and the cold guess."""
         m = xf.size
         total = 0
-        its = 0
-        if guessing:
+        warm = guessing
+        while True:  # the warm attempt (when guessing), then the cold one if it failed
             for e in range(m):
-                xf[e] = x0f[e] + pred[off + e]
+                xf[e] = x0f[e] + pred[off + e] if warm else x0f[e]
             its = iterate(W0, coef, x, xf, m0, m1, m2, m3, B, params, skew, gemm, res, rule, irule)
-            if its < 0 and not retry_cold:
+            total += abs(its)
+            if its > 0:
+                break
+            if not (warm and retry_cold):
                 return -1
-            total = abs(its)
-        if its <= 0:
-            for e in range(m):
-                xf[e] = x0f[e]
-            its = iterate(W0, coef, x, xf, m0, m1, m2, m3, B, params, skew, gemm, res, rule, irule)
-            if its < 0:
-                return -1
-            total += its
+            warm = False
         for e in range(m):
             solved[off + e] = xf[e] - x0f[e]
         return total
@@ -856,37 +862,43 @@ def _sydirk_views(work: Any, scratch: Any) -> Any:
     return x, x0, x.reshape(x.size), x0.reshape(x0.size), m0, m1, m2, m3
 
 
-@_inner
-def _sydirk_step(
-    cur: Any, out: Any, pred: Any, solved: Any, guessing: bool, retry_cold: bool, hA: Any,
-    hb: Any, x: Any, x0: Any, xf: Any, x0f: Any, m0: Any, m1: Any, m2: Any, m3: Any, B: Any,
-    params: Any, skew: bool, gemm: Any, res: Any, rule: Any, irule: Any,
-) -> int:  # fmt: skip
-    """One step of a composition of midpoint steps of sizes ``hb`` (SPEC §4.2) from
-    ``cur`` into ``out``; ``solved``/``pred``: the ``(s, n, n)`` offsets, flattened."""
-    n = cur.shape[0]
-    nn = n * n
-    for a in range(n):
-        for c in range(n):
-            out[a, c] = cur[a, c]
-    total = 0
-    for i in range(hb.shape[0]):
+def _sydirk_step_of(conjugation: bool) -> Any:
+    """:func:`_sydirk_step` for one update (SPEC §4.7): ``conjugation`` is a constant of the
+    compiled code, so the other update is neither typed nor compiled (numba prunes the
+    branch on a closure constant)."""
+
+    def _sydirk_step(
+        cur: Any, out: Any, pred: Any, solved: Any, guessing: bool, retry_cold: bool, hA: Any,
+        hb: Any, x: Any, x0: Any, xf: Any, x0f: Any, m0: Any, m1: Any, m2: Any, m3: Any, B: Any,
+        params: Any, skew: bool, gemm: Any, res: Any, rule: Any, irule: Any,
+    ) -> int:  # fmt: skip
+        """One step of a composition of midpoint steps of sizes ``hb`` (SPEC §4.2) from
+        ``cur`` into ``out``; ``solved``/``pred``: the ``(s, n, n)`` offsets, flattened."""
+        n = cur.shape[0]
+        nn = n * n
         for a in range(n):
             for c in range(n):
-                x0[a, c] = out[a, c]
-        its = _solve_midpoint(
-            x0, 0.5 * hb[i], x, xf, x0f, pred, solved, i * nn, guessing, retry_cold, m0, m1,
-            m2, m3, B, params, skew, gemm, res, rule, irule,
-        )  # fmt: skip
-        if its < 0:
-            return -1
-        total += its
-        if irule[6] != 0:
-            if not _cayley_into(out, 0.5 * hb[i], skew, x, B, params, m0, m1, m2, m3, gemm):
+                out[a, c] = cur[a, c]
+        total = 0
+        for i in range(hb.shape[0]):
+            for a in range(n):
+                for c in range(n):
+                    x0[a, c] = out[a, c]
+            its = _solve_midpoint(
+                x0, 0.5 * hb[i], x, xf, x0f, pred, solved, i * nn, guessing, retry_cold, m0,
+                m1, m2, m3, B, params, skew, gemm, res, rule, irule,
+            )  # fmt: skip
+            if its < 0:
                 return -1
-        else:
-            _commutator_add(out, hb[i], skew, x, B, params, m0, m1, m3, gemm)
-    return total
+            total += its
+            if conjugation:
+                if not _cayley_into(out, 0.5 * hb[i], skew, x, B, params, m0, m1, m2, m3, gemm):
+                    return -1
+            else:
+                _commutator_add(out, hb[i], skew, x, B, params, m0, m1, m3, gemm)
+        return total
+
+    return _inner(_sydirk_step, f"_sydirk_step_{_UPDATES[conjugation]}")
 
 
 @_inner
@@ -899,36 +911,40 @@ def _reduced_views(work: Any, scratch: Any) -> Any:
     return x, x0, xf, x0f, scratch[0], scratch[1], scratch[2], scratch[3]
 
 
-@_inner
-def _reduced_step(
-    cur: Any, out: Any, pred: Any, solved: Any, guessing: bool, retry_cold: bool, hA: Any,
-    hb: Any, x: Any, x0: Any, xf: Any, x0f: Any, m0: Any, m1: Any, m2: Any, m3: Any, B: Any,
-    params: Any, skew: bool, gemm: Any, res: Any, rule: Any, irule: Any,
-) -> int:  # fmt: skip
-    """One step of the reduced stage form of a symplectic tableau (SPEC §4.5) from ``cur``
-    into ``out``: unknowns ``(G, P)``, cold guess ``(I, cur)``; ``solved``/``pred``: the
-    ``(2, s, n, n)`` offsets, flattened. ``out = cur + sum_i hb_i [B(W_i), W_i]``,
-    ``W_i = G_i^† P_i``."""
-    s, n = hb.shape[0], cur.shape[0]
-    for i in range(s):
+def _reduced_step_of(conjugation: bool) -> Any:
+    """:func:`_reduced_step` for one update (as :func:`_sydirk_step_of`)."""
+
+    def _reduced_step(
+        cur: Any, out: Any, pred: Any, solved: Any, guessing: bool, retry_cold: bool, hA: Any,
+        hb: Any, x: Any, x0: Any, xf: Any, x0f: Any, m0: Any, m1: Any, m2: Any, m3: Any, B: Any,
+        params: Any, skew: bool, gemm: Any, res: Any, rule: Any, irule: Any,
+    ) -> int:  # fmt: skip
+        """One step of the reduced stage form of a symplectic tableau (SPEC §4.5) from
+        ``cur`` into ``out``: unknowns ``(G, P)``, cold guess ``(I, cur)``;
+        ``solved``/``pred``: the ``(2, s, n, n)`` offsets, flattened.
+        ``out = cur + sum_i hb_i [B(W_i), W_i]``, ``W_i = G_i^† P_i``."""
+        s, n = hb.shape[0], cur.shape[0]
+        for i in range(s):
+            for a in range(n):
+                for c in range(n):
+                    x0[0, i, a, c] = 1.0 if a == c else 0.0
+                    x0[1, i, a, c] = cur[a, c]
+        its = _solve_reduced(cur, hA, x, xf, x0f, pred, solved, 0, guessing, retry_cold, m0,
+                             m1, m2, m3, B, params, skew, gemm, res, rule, irule)  # fmt: skip
+        if its < 0:
+            return -1
+        Wi, Bi, BW, WB = m0[0], m1[0], m2[0], m3[0]
         for a in range(n):
             for c in range(n):
-                x0[0, i, a, c] = 1.0 if a == c else 0.0
-                x0[1, i, a, c] = cur[a, c]
-    its = _solve_reduced(cur, hA, x, xf, x0f, pred, solved, 0, guessing, retry_cold, m0, m1,
-                         m2, m3, B, params, skew, gemm, res, rule, irule)  # fmt: skip
-    if its < 0:
-        return -1
-    Wi, Bi, BW, WB = m0[0], m1[0], m2[0], m3[0]
-    for a in range(n):
-        for c in range(n):
-            out[a, c] = cur[a, c]
-    if irule[6] != 0:
-        return its if _lifted_into(out, hb, skew, x, B, params, Wi, Bi, BW, WB, gemm) else -1
-    for i in range(s):
-        _matmul_hn(x[0, i], x[1, i], Wi, WB, gemm)
-        _commutator_add(out, hb[i], skew, Wi, B, params, Bi, BW, WB, gemm)
-    return its
+                out[a, c] = cur[a, c]
+        if conjugation:
+            return its if _lifted_into(out, hb, skew, x, B, params, Wi, Bi, BW, WB, gemm) else -1
+        for i in range(s):
+            _matmul_hn(x[0, i], x[1, i], Wi, WB, gemm)
+            _commutator_add(out, hb[i], skew, Wi, B, params, Bi, BW, WB, gemm)
+        return its
+
+    return _inner(_reduced_step, f"_reduced_step_{_UPDATES[conjugation]}")
 
 
 @_helper
@@ -998,8 +1014,8 @@ def _driver(fstep: Any, fviews: Any) -> Any:
         trajectory, flattened, most recent first), ``flags = (filled, trusted)`` and the
         extrapolation weights (row ``p - 1``: from ``p`` points) are the warm-start state
         (:class:`~lieflow.flows.WarmStart`), updated in place after every completed step.
-        ``irule`` holds ``(max_iter, patience, window, project, retry_cold, use_warm,
-        conjugation)`` (the last: the update in conjugation form, SPEC §4.7).
+        ``irule`` holds ``(max_iter, patience, window, project, retry_cold, use_warm)``;
+        the update (SPEC §4.7) is the step's own (:func:`_sydirk_step_of`).
         Each new state is mapped by ``P`` (the system's compiled projection) when
         ``project``. ``gemm``: the products above ``n = _SMALL`` (:func:`gemm`); ``buf``,
         ``fbuf``: the work arrays (:func:`workspace`). Writes each step's states and its
@@ -1049,8 +1065,13 @@ def _driver(fstep: Any, fviews: Any) -> Any:
     return _inner(advance, f"_advance_{fstep.__name__}")
 
 
-_advance_sydirk = _driver(_sydirk_step, _sydirk_views)
-_advance_reduced = _driver(_reduced_step, _reduced_views)
+#: The chunk loops of each formulation, for the commutator update and the conjugation one.
+_advance_sydirk, _advance_sydirk_conjugation = (
+    _driver(_sydirk_step_of(c), _sydirk_views) for c in (False, True)
+)
+_advance_reduced, _advance_reduced_conjugation = (
+    _driver(_reduced_step_of(c), _reduced_views) for c in (False, True)
+)
 
 
 def _at(signature_of: Callable[[np.dtype], Any]) -> Any:
@@ -1088,11 +1109,12 @@ if numba is not None:
     _product_at = _at(lambda dtype: _PRODUCT_SIGNATURES[np.dtype(dtype)])
 
 
-def _entry_points(key: str) -> tuple[Any, Any]:
-    """The two entry points, closures over ``key`` (:data:`RULE_KEY`) so that numba's
-    cache key (which hashes closure variables) changes with the stopping rule. They take
-    the system's maps and the product by address (``B``, ``P``, ``gemm``: ``int64``, see
-    :func:`_at`)."""
+def _entry_points(key: str, conjugation: bool) -> tuple[Any, Any]:
+    """The two entry points for one update, closures over ``key`` (:data:`RULE_KEY`) and
+    ``conjugation``, so that numba's cache key (which hashes closure variables) changes with
+    the stopping rule and tells the updates apart; the update's loop is the one compiled
+    (the branch on the constant ``conjugation`` is pruned). They take the system's maps and
+    the product by address (``B``, ``P``, ``gemm``: ``int64``, see :func:`_at`)."""
 
     def sydirk_advance(
         W: Any, hA: Any, hb: Any, skew: bool, B: Any, params: Any, P: Any, pparams: Any,
@@ -1101,6 +1123,11 @@ def _entry_points(key: str) -> tuple[Any, Any]:
     ) -> int:  # fmt: skip
         """The chunk loop of compositions of midpoint steps, ``hb = h b``."""
         key  # noqa: B018 - part of the cache key
+        if conjugation:
+            return _advance_sydirk_conjugation(
+                W, hA, hb, skew, _map_at(B, W), params, _map_at(P, W), pparams, project, rule,
+                irule, hist, weights, flags, states, iters, _product_at(gemm, W), buf, fbuf,
+            )  # fmt: skip
         return _advance_sydirk(W, hA, hb, skew, _map_at(B, W), params, _map_at(P, W), pparams,
                                project, rule, irule, hist, weights, flags, states, iters,
                                _product_at(gemm, W), buf, fbuf)  # fmt: skip
@@ -1112,10 +1139,17 @@ def _entry_points(key: str) -> tuple[Any, Any]:
     ) -> int:  # fmt: skip
         """The chunk loop of the reduced stage form, ``hA = h A``, ``hb = h b``."""
         key  # noqa: B018 - part of the cache key
+        if conjugation:
+            return _advance_reduced_conjugation(
+                W, hA, hb, skew, _map_at(B, W), params, _map_at(P, W), pparams, project, rule,
+                irule, hist, weights, flags, states, iters, _product_at(gemm, W), buf, fbuf,
+            )  # fmt: skip
         return _advance_reduced(W, hA, hb, skew, _map_at(B, W), params, _map_at(P, W),
                                 pparams, project, rule, irule, hist, weights, flags, states,
                                 iters, _product_at(gemm, W), buf, fbuf)  # fmt: skip
 
+    for f in (sydirk_advance, reduced_advance):  # one cache file per update
+        f.__name__ = f.__qualname__ = f"{f.__name__}{'_conjugation' if conjugation else ''}"
     return sydirk_advance, reduced_advance
 
 
@@ -1140,9 +1174,14 @@ def _compile_entry(func: F, dtype: np.dtype) -> F:
     return cast(F, numba_cache.cached_njit(func, signature=sig, **options))
 
 
-_SYDIRK, _REDUCED = _entry_points(RULE_KEY)
-_ENTRY_SOURCES = {"sydirk_advance": _SYDIRK, "reduced_advance": _REDUCED}
-_ENTRIES: dict[tuple[str, np.dtype], Any] = {}
+_ENTRY_SOURCES = {
+    (name, conjugation): f
+    for conjugation in (False, True)
+    for name, f in zip(
+        ("sydirk_advance", "reduced_advance"), _entry_points(RULE_KEY, conjugation), strict=True
+    )
+}
+_ENTRIES: dict[Any, Any] = {}
 
 
 def gemm(dtype: np.dtype) -> Any:
@@ -1170,12 +1209,13 @@ def workspace(
     )
 
 
-def entry(name: str, dtype: np.dtype = DTYPES[0]) -> Any:
+def entry(name: str, dtype: np.dtype = DTYPES[0], conjugation: bool = False) -> Any:
     """The entry point ``name`` (``"sydirk_advance"`` or ``"reduced_advance"``) for data of
-    ``dtype`` (one of :data:`DTYPES`), compiled (or loaded from the disk cache) on first use,
-    so that importing this module (as :func:`lieflow.compiled.plan` does to check a system's
-    maps) loads no loops, and a real run never loads the complex ones."""
-    key = (name, np.dtype(dtype))
+    ``dtype`` (one of :data:`DTYPES`) and the update in conjugation form or not, compiled
+    (or loaded from the disk cache) on first use, so that importing this module (as
+    :func:`lieflow.compiled.plan` does to check a system's maps) loads no loops, and a run
+    compiles and loads only the loop of its own formulation, data type and update."""
+    key = (name, np.dtype(dtype), bool(conjugation))
     if key not in _ENTRIES:
-        _ENTRIES[key] = _compile_entry(_ENTRY_SOURCES[name], key[1])
+        _ENTRIES[key] = _compile_entry(_ENTRY_SOURCES[name, key[2]], key[1])
     return _ENTRIES[key]

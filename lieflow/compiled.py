@@ -316,16 +316,16 @@ class CompiledPlan:
 
     def _arguments(self, depth: int) -> tuple[Any, ...]:
         """The loops' module and entry point, and the arguments that depend on the
-        warm-start ``depth`` alone: ``irule`` extended by ``(depth > 0, conjugation)``, the
+        warm-start ``depth`` alone: ``irule`` extended by ``depth > 0``, the
         extrapolation weights (a writable copy: the loops' type), and the addresses of
         ``B``, the projection (``B``'s when there is none: not called) and the product,
         each checked to be a resolved function of the signature the loops call it with
         (:func:`lieflow._kernels.address`; the loops take bare integers). The loops write
         none of them; with the warm offsets' core shape and size and ``max_iter``."""
         k = kernels()
-        irule = np.concatenate((self.irule, np.array([depth > 0, self.conjugation], np.int64)))
+        irule = np.concatenate((self.irule, np.array([depth > 0], np.int64)))
         weights = np.array(extrapolation_matrix(max(depth, 1)))
-        run = k.entry(f"{self.kind}_advance", self.dtype)
+        run = k.entry(f"{self.kind}_advance", self.dtype, self.conjugation)
         signature = k.map_signature(self.dtype)
         B = k.address(self.B, signature)
         P = B if self.project is None else k.address(self.project, signature)

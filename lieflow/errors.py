@@ -33,6 +33,27 @@ def shorten(text: object, limit: int = 1000) -> str:
     return f"{text[:keep]} ... [{len(text) - 2 * keep} characters left out] ... {text[-keep:]}"
 
 
+def with_fix(message: object, fix: str) -> str:
+    """``message`` and what to do about it, said once: a wrapped error's own "To fix: ..."
+    (the more specific advice) if it has one, else ``fix``.
+
+    Examples
+    --------
+    >>> with_fix("W0 is not symmetric. To fix: pass (W0 + W0.T) / 2", "give another W0")
+    'W0 is not symmetric. To fix: pass (W0 + W0.T) / 2.'
+    >>> with_fix("steps is missing", "add steps = 100")
+    'steps is missing. To fix: add steps = 100.'
+    """
+    problem, said, own = str(message).strip().partition(" To fix: ")
+    return f"{problem.rstrip().rstrip('.')}. To fix: {(own if said else fix).rstrip('.')}."
+
+
+def without_fix(message: object) -> str:
+    """``message`` without its "To fix: ..." advice (to quote a wrapped error whose advice
+    does not apply where it is quoted)."""
+    return str(message).strip().partition(" To fix: ")[0].rstrip().rstrip(".")
+
+
 class LieflowError(Exception):
     """Base class of every error raised by lieflow."""
 

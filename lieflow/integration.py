@@ -324,7 +324,7 @@ def integrate(
     out: str | os.PathLike[str] | Sink | None = None,
     resume: bool = False,
     replace: bool = False,
-    checkpoint_seconds: float = 1.0,
+    checkpoint_seconds: float | None = 1.0,
     casimir_shift: float | Literal["auto"] = 0.0,
 ) -> Solution:
     """Integrate ``dW/dt = [B(W), W]`` from ``W0`` with a fixed step ``h``.
@@ -414,7 +414,8 @@ def integrate(
         With ``out``: seconds between checkpoints — the resume point, written with the
         buffered states and diagnostics, flushed and fsync'd (a run killed outright loses at
         most this much work; Ctrl-C, a failed step or the end checkpoint everything). ``0``:
-        after every chunk of steps.
+        after every chunk of steps; ``None``: after every chunk that holds a saved state
+        (``lieflow run``'s ``[run] checkpoint = "saves"``).
     casimir_shift : float or "auto"
         Step the scheme on the Hamiltonian plus a Casimir, :math:`B(W) - cW`
         (:class:`~lieflow.systems.shifted.CasimirShifted`): the same flow, and an
@@ -455,10 +456,25 @@ def integrate(
         or save_every < 1
     ):
         raise InputError(f"save_every must be a positive integer, got {save_every!r}")
+    if save_every > MAX_STEPS:  # files store it as a 64-bit integer
+        raise InputError(
+            f"save_every = {save_every} is more than {MAX_STEPS} (2**53) steps. To fix: pass "
+            "save_every=steps to keep the first and last states only"
+        )
     if on_failure not in ("raise", "truncate"):
         raise InputError(f"on_failure must be 'raise' or 'truncate', got {on_failure!r}")
     if out is None and (resume or replace):
         raise InputError("resume and replace apply to a run streamed to a file: pass out=PATH")
+    if resume and replace:
+        raise InputError(
+            "resume=True continues the file and replace=True starts it afresh: pass one of them"
+        )
+    if isinstance(out, type):
+        raise InputError(
+            f"out must be a file path or a Sink object, got the class {out.__name__}. To fix: "
+            f"pass an instance (out={out.__name__}(...)), or leave out out= to keep the "
+            "states in memory"
+        )
     if not isinstance(scheme, Scheme) and isinstance(scheme, Flow):
         if solver is not None or not warm_start or engine != "auto" or _nonzero(casimir_shift):
             raise InputError(

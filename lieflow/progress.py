@@ -6,7 +6,24 @@ from __future__ import annotations
 import time
 from typing import Any
 
+from . import _signals
 from .errors import InputError
+
+
+def start_live(display: Any) -> None:
+    """Start a rich live display (a ``Progress``) with Ctrl-C and SIGTERM held until it is
+    done (:func:`lieflow._signals.deferred`): rich starts one in several steps (its console's
+    stack of live displays, the hidden cursor, its render hook), and stopping a half-started
+    one fails (``IndexError: pop from empty list``, the cursor left hidden)."""
+    with _signals.deferred():
+        display.start()
+
+
+def stop_live(display: Any) -> None:
+    """Stop a rich live display with Ctrl-C and SIGTERM held: the cursor is always shown
+    again (:func:`start_live`)."""
+    with _signals.deferred():
+        display.stop()
 
 
 class ProgressBar:
@@ -16,6 +33,7 @@ class ProgressBar:
     A :class:`~lieflow.driver.Monitor`: the bar appears at :meth:`start` and stays on the
     terminal after :meth:`stop`. The numbers are refreshed at most every 0.1 s (the bar
     itself on every call), so a fast run does not spend its time drawing.
+    An interrupt in a run's first milliseconds stops a whole bar (:func:`start_live`).
 
     Raises
     ------
@@ -56,7 +74,7 @@ class ProgressBar:
         )
         self._completed = done
         self._start = self._last_refresh = time.perf_counter()
-        self._progress.start()
+        start_live(self._progress)
 
     def advance(self, steps: int, iterations: int, energy_error: float | None = None) -> None:
         """Record ``steps`` more steps that took ``iterations`` in all, and (optionally) the
@@ -81,4 +99,4 @@ class ProgressBar:
 
     def stop(self) -> None:
         """Stop drawing (the bar stays on the terminal)."""
-        self._progress.stop()
+        stop_live(self._progress)

@@ -1,8 +1,12 @@
-"""Shared fixtures: every registered system and scheme (plugins included) is tested."""
+"""Shared fixtures: every registered system and scheme (plugins included) is tested, and
+every child process a test starts ends with it (``children``)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import pytest
+from processes import Children
 
 import lieflow as lf
 
@@ -24,3 +28,14 @@ def system(request: pytest.FixtureRequest) -> lf.IsospectralSystem:
 @pytest.fixture(params=SCHEMES)
 def scheme(request: pytest.FixtureRequest) -> lf.Scheme:
     return lf.schemes.get(request.param)
+
+
+@pytest.fixture
+def children() -> Iterator[Children]:
+    """Start child processes with ``children.popen(args, ...)``: each in its own process
+    group, all killed (with what they started) when the test ends, pass or fail."""
+    started = Children()
+    try:
+        yield started
+    finally:
+        started.end()

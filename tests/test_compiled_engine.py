@@ -4,6 +4,7 @@ rule, deterministic chunks and bit-for-bit resume of ``lieflow run`` on the comp
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import textwrap
@@ -538,3 +539,31 @@ def test_the_bare_loop_call_is_the_engines_first_step() -> None:
         assert run(*args) == 1
         np.testing.assert_array_equal(body.project(args[14][0, 0]), sol.W[-1])
         assert int(args[15][0]) == sol.iterations[0]
+
+
+@pytest.mark.slow  # compiles one entry point from an empty cache (~20 s)
+def test_a_run_compiles_only_the_loop_of_its_own_update(tmp_path: Path) -> None:
+    """Issue 37 item 11: the first compiled run of a fresh installation compiled the loops of
+    both updates (the update was a flag read at run time), doubling its compile time. Now
+    each update has its entry point: a commutator run, from an empty cache, never compiles
+    the conjugation update's helpers (the Gauss–Jordan solve, Newton–Schulz), and a
+    conjugation run loads only its own entry point."""
+    code = textwrap.dedent(
+        """
+        import lieflow as lf
+        from lieflow import _kernels
+        body = lf.systems.RigidBody()
+        for update in ("commutator", "conjugation"):
+            lf.integrate(body, lf.schemes.get("midpoint", update=update), body.random_state(0),
+                         0.1, steps=5, engine="compiled")
+            print(update, len(_kernels._gauss_jordan.signatures),
+                  len(_kernels._orthonormalize.signatures),
+                  sorted(k[2] for k in _kernels._ENTRIES if k[0] == "sydirk_advance"))
+        """
+    )
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}  # an empty cache: all compiled
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, timeout=900, env=env)  # fmt: skip
+    lines = out.stdout.splitlines()
+    assert lines[-2] == "commutator 0 0 [False]"
+    assert lines[-1] == "conjugation 1 1 [False, True]"

@@ -14,6 +14,7 @@ import h5py
 import numpy as np
 import pytest
 from helpers import damage_last_chunk, rigid_body_config
+from processes import Children
 
 import lieflow as lf
 from lieflow.app import io
@@ -43,8 +44,8 @@ def lieflow_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "lieflow", *args]
 
 
-def start(config: Path, *args: str) -> subprocess.Popen[str]:
-    return subprocess.Popen(
+def start(children: Children, config: Path, *args: str) -> subprocess.Popen[str]:
+    return children.popen(
         lieflow_cmd("run", str(config), "--no-progress", *args),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -75,11 +76,13 @@ def finish(proc: subprocess.Popen[str], sig: int | None = None) -> tuple[int, st
 # -- one writer per file (item 4) ------------------------------------------------------------
 
 
-def test_a_second_writer_is_refused_while_a_run_holds_the_file(tmp_path: Path) -> None:
+def test_a_second_writer_is_refused_while_a_run_holds_the_file(
+    tmp_path: Path, children: Children
+) -> None:
     first = write_config(tmp_path, seed=1, steps=FOREVER, name="first")
     second = write_config(tmp_path, seed=2, steps=FOREVER, name="second")
     out = tmp_path / "traj.h5"
-    a = start(first)
+    a = start(children, first)
     try:
         wait_until_written(a, out)
         for extra in ((), ("--force",), ("--resume",)):
@@ -105,10 +108,12 @@ def test_a_second_writer_is_refused_while_a_run_holds_the_file(tmp_path: Path) -
     assert not out.with_name(f".{out.name}.lock").exists()
 
 
-def test_two_runs_started_together_on_a_new_path_one_wins(tmp_path: Path) -> None:
+def test_two_runs_started_together_on_a_new_path_one_wins(
+    tmp_path: Path, children: Children
+) -> None:
     """Both used to exit 0 and print '-> race.h5'; the file held one of them."""
     configs = [write_config(tmp_path, seed=s, steps=300, name=f"c{s}") for s in (1, 2)]
-    procs = [start(c) for c in configs]
+    procs = [start(children, c) for c in configs]
     results = [finish(p) for p in procs]
     codes = sorted(rc for rc, _, _ in results)
     assert codes == [0, 2], results
@@ -120,10 +125,12 @@ def test_two_runs_started_together_on_a_new_path_one_wins(tmp_path: Path) -> Non
     assert f"seed = {winner + 1}" in traj.meta["config"]
 
 
-def test_a_run_whose_file_was_deleted_does_not_report_success(tmp_path: Path) -> None:
+def test_a_run_whose_file_was_deleted_does_not_report_success(
+    tmp_path: Path, children: Children
+) -> None:
     config = write_config(tmp_path, steps=FOREVER)
     out = tmp_path / "traj.h5"
-    a = start(config)
+    a = start(children, config)
     try:
         wait_until_written(a, out)
         out.unlink()  # what `rm` (or an old lieflow's --force) does to a running output
@@ -172,10 +179,12 @@ def test_exclusive_create_refuses_an_existing_file(tmp_path: Path) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.toml", "traj.h5"]
 
 
-def test_sigterm_marks_the_file_interrupted_and_it_resumes(tmp_path: Path) -> None:
+def test_sigterm_marks_the_file_interrupted_and_it_resumes(
+    tmp_path: Path, children: Children
+) -> None:
     config = write_config(tmp_path, steps=FOREVER)
     out = tmp_path / "traj.h5"
-    a = start(config)
+    a = start(children, config)
     wait_until_written(a, out)
     rc, _, err = finish(a, signal.SIGTERM)
     assert rc == 143, err

@@ -5,8 +5,6 @@ an uninterrupted one bit for bit."""
 
 from __future__ import annotations
 
-import os
-import pty
 import re
 import signal
 import subprocess
@@ -16,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from processes import Children, on_a_terminal
 
 from lieflow.app import io
 
@@ -44,55 +43,32 @@ STEPS = 1200  # the run's steps in CONFIG
 _COUNT = re.compile(rb"(\d+)/%d" % STEPS)
 
 
-def _run_on_a_terminal(args: list[str], interrupt_after: int | None = None) -> tuple[int, str]:
-    """Run ``lieflow`` with stdin/stdout/stderr on a pseudo-terminal (so the progress bar
-    draws). With ``interrupt_after``: send SIGINT as soon as the bar shows at least that many
-    steps done — an event the run itself reports, so the point of the interrupt is a step
-    count, not a time that a busy machine stretches. Returns the exit code and the
-    terminal's output."""
-    leader, follower = pty.openpty()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "lieflow", *args],
-        stdin=follower,
-        stdout=follower,
-        stderr=follower,
-        close_fds=True,
-    )
-    os.close(follower)
-    chunks: list[bytes] = []
+def _run_on_a_terminal(
+    children: Children, args: list[str], interrupt_after: int | None = None
+) -> tuple[int, str]:
+    """Run ``lieflow`` on a pseudo-terminal (so the progress bar draws). With
+    ``interrupt_after``: send SIGINT as soon as the bar shows at least that many steps done
+    — an event the run itself reports, so the point of the interrupt is a step count, not a
+    time that a busy machine stretches. Returns the exit code and the terminal's output."""
     reached = threading.Event()
 
-    def drain() -> None:  # keep reading, or a full terminal buffer would block the run
-        tail = b""
-        while True:
-            try:
-                data = os.read(leader, 1 << 16)
-            except OSError:  # the terminal closed: the process is gone
-                return
-            if not data:
-                return
-            chunks.append(data)
-            tail = (tail + data)[-256:]
-            if interrupt_after is not None and not reached.is_set():
-                if any(int(m) >= interrupt_after for m in _COUNT.findall(tail)):
-                    proc.send_signal(signal.SIGINT)
-                    reached.set()
+    def watch(tail: bytes, proc: subprocess.Popen[bytes]) -> None:
+        if interrupt_after is not None and not reached.is_set():
+            if any(int(m) >= interrupt_after for m in _COUNT.findall(tail)):
+                proc.send_signal(signal.SIGINT)
+                reached.set()
 
-    reader = threading.Thread(target=drain, daemon=True)
-    reader.start()
-    code = proc.wait(timeout=600)
-    reader.join(timeout=10)
-    os.close(leader)
+    code, out = on_a_terminal(children, [sys.executable, "-m", "lieflow", *args], watch)
     if interrupt_after is not None:
         assert reached.is_set(), "the progress bar never showed the step to interrupt at"
-    return code, b"".join(chunks).decode(errors="replace")
+    return code, out
 
 
-def test_sigint_at_random_points_on_a_terminal(tmp_path: Path) -> None:
+def test_sigint_at_random_points_on_a_terminal(tmp_path: Path, children: Children) -> None:
     config = tmp_path / "run.toml"
     config.write_text(CONFIG)
     ref = tmp_path / "ref.h5"
-    code, out = _run_on_a_terminal(["run", str(config), "--out", str(ref)])
+    code, out = _run_on_a_terminal(children, ["run", str(config), "--out", str(ref)])
     assert code == 0, out
     reference = io.read_trajectory(ref)
 
@@ -101,14 +77,16 @@ def test_sigint_at_random_points_on_a_terminal(tmp_path: Path) -> None:
     # at random steps of the first half: the run cannot finish before the signal arrives
     for trial, step in enumerate(rng.integers(0, STEPS // 2, size=5)):
         path = tmp_path / f"t{trial}.h5"
-        code, out = _run_on_a_terminal(["run", str(config), "--out", str(path)], int(step))
+        code, out = _run_on_a_terminal(
+            children, ["run", str(config), "--out", str(path)], int(step)
+        )
         assert code in (0, 130), out  # never the internal-error exit code
         assert "Traceback" not in out and "internal error" not in out, out
         first = io.read_trajectory(path)
         assert first.status == ("interrupted" if code == 130 else "complete")
         interrupted += code == 130
         code, out = _run_on_a_terminal(
-            ["run", str(config), "--out", str(path), "--resume", "--no-progress"]
+            children, ["run", str(config), "--out", str(path), "--resume", "--no-progress"]
         )
         assert code == 0, out
         resumed = io.read_trajectory(path)

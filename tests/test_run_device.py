@@ -5,6 +5,8 @@ Expected values come from the NumPy engine on the host, run from the same config
 
 from __future__ import annotations
 
+import importlib.util
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -87,6 +89,7 @@ def test_resume_on_a_device_continues_from_the_checkpoint(
     [
         ({"device": "gpu"}, "unknown device 'gpu'"),
         ({"device": "cpu:1"}, "unknown device 'cpu:1'"),
+        ({"device": ""}, "unknown device ''"),  # used to be taken as the CPU, silently
         ({"device": "array_api_strict", "engine": "compiled"}, "runs on the CPU only"),
     ],
 )
@@ -98,6 +101,43 @@ def test_bad_devices_are_refused_before_anything_is_written(
     err = capsys.readouterr().err
     assert expected in err and "[run]" in err
     assert not (tmp_path / "x.h5").exists()
+
+
+class _TorchWithoutCuda:
+    """What ``import torch`` gives on a machine without a GPU: a CPU tensor that refuses
+    ``.to("cuda")`` (PyTorch's own message)."""
+
+    class Tensor:
+        def to(self, device: str) -> Any:
+            raise AssertionError("Torch not compiled with CUDA enabled")
+
+    def from_numpy(self, a: np.ndarray) -> Any:
+        return self.Tensor()
+
+
+@pytest.mark.parametrize("device", ["cupy", "torch:cuda:0"])
+def test_a_device_that_is_not_there_writes_nothing_and_the_corrected_run_needs_no_force(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    device: str,
+) -> None:
+    """Issue 37 item 4: a device missing at run time (its library not installed, or no GPU
+    for it) used to leave a 0-step "interrupted" file, so the rerun with ``device = "cpu"``
+    was refused as "already exists" (13 of 13 cases)."""
+    if device.startswith("torch"):
+        monkeypatch.setitem(sys.modules, "torch", _TorchWithoutCuda())
+    elif importlib.util.find_spec("cupy") is not None:  # pragma: no cover
+        pytest.skip("CuPy is installed")
+    out = str(tmp_path / "x.h5")
+    config = _config(tmp_path, "gpu", device=device)
+    assert main(["run", str(config), "--no-progress", "--out", out]) == 2
+    err = capsys.readouterr().err
+    assert device.split(":")[0] in err and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["gpu.toml"]  # nothing written
+    config = _config(tmp_path, "cpu", device="cpu")
+    assert main(["run", str(config), "--no-progress", "--out", out]) == 0
+    assert io.read_trajectory(out).status == "complete"
 
 
 def test_a_device_whose_library_is_missing_says_what_to_install() -> None:

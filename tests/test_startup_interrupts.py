@@ -6,14 +6,12 @@ lost."""
 
 from __future__ import annotations
 
-import os
-import pty
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import pytest
+from processes import Children, on_a_terminal
 
 from lieflow.app import io
 
@@ -75,6 +73,18 @@ elif point == "bar_start":
         original_start(self, done, total)  # the cursor is hidden now
         interrupt()
     progress.ProgressBar.start = start
+elif point in ("rich_set_live", "rich_hide_cursor"):  # inside rich's Live.start
+    from rich.console import Console
+    name = {"rich_set_live": "set_live", "rich_hide_cursor": "show_cursor"}[point]
+    original_method = getattr(Console, name)
+    def method(self, *a, **k):
+        if point == "rich_set_live":  # before the Live is on the console's stack
+            interrupt()
+        result = original_method(self, *a, **k)
+        if point == "rich_hide_cursor" and a == (False,):  # its render hook not pushed yet
+            interrupt()
+        return result
+    setattr(Console, name, method)
 elif point == "swallowed":
     original_advance = driver.advance
     class Finalizer:
@@ -91,32 +101,13 @@ sys.exit(main(sys.argv[2:]))
 """
 
 
-def _child(point: str, *args: str, terminal: bool = False) -> tuple[int, str]:
+def _child(children: Children, point: str, *args: str, terminal: bool = False) -> tuple[int, str]:
     command = [sys.executable, "-c", CHILD, point, "run", *args]
-    if not terminal:
-        done = subprocess.run(command, capture_output=True, text=True, timeout=300)
-        return done.returncode, done.stdout + done.stderr
-    leader, follower = pty.openpty()
-    proc = subprocess.Popen(command, stdin=follower, stdout=follower, stderr=follower)
-    os.close(follower)
-    chunks: list[bytes] = []
-
-    def drain() -> None:
-        while True:
-            try:
-                data = os.read(leader, 1 << 16)
-            except OSError:
-                return
-            if not data:
-                return
-            chunks.append(data)
-
-    reader = threading.Thread(target=drain, daemon=True)
-    reader.start()
-    code = proc.wait(timeout=300)
-    reader.join(timeout=10)
-    os.close(leader)
-    return code, b"".join(chunks).decode(errors="replace")
+    if terminal:
+        return on_a_terminal(children, command, timeout=300)
+    proc = children.popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    text, _ = proc.communicate(timeout=300)
+    return proc.returncode, text
 
 
 @pytest.fixture
@@ -128,45 +119,55 @@ def config(tmp_path: Path) -> Path:
 
 @pytest.mark.parametrize("point", ["inside_create", "after_create", "swallowed"])
 def test_an_interrupt_once_the_file_exists_marks_it_and_gives_the_hint(
-    config: Path, point: str
+    config: Path, point: str, children: Children
 ) -> None:
     """``after_create`` used to leave the file "running" with only "lieflow: interrupted";
     ``swallowed`` (the KeyboardInterrupt raised in a finalizer, which Python only prints)
     used to run to completion, exit 0."""
     out = config.parent / "traj.h5"
-    code, text = _child(point, str(config), "--no-progress")
+    code, text = _child(children, point, str(config), "--no-progress")
     assert code == 130, text
     assert io.read_trajectory(out).status == "interrupted"
     assert f"continue with: lieflow run {config} --no-progress --resume" in text, text
     if point != "swallowed":  # there Python itself prints the swallowed exception
         assert "Traceback (most recent call last)" not in text
-    code, text = _child("none", str(config), "--no-progress", "--resume")
+    code, text = _child(children, "none", str(config), "--no-progress", "--resume")
     assert code == 0, text
     assert io.read_trajectory(out).completed_steps == 400
 
 
-def test_an_interrupt_while_resuming_keeps_the_file_resumable(config: Path) -> None:
+def test_an_interrupt_while_resuming_keeps_the_file_resumable(
+    config: Path, children: Children
+) -> None:
     out = config.parent / "traj.h5"
-    assert _child("none", str(config), "--no-progress")[0] == 0
+    assert _child(children, "none", str(config), "--no-progress")[0] == 0
     config.write_text(CONFIG.replace("steps = 400", "steps = 500"), encoding="utf-8")
-    code, text = _child("after_reopen", str(config), "--no-progress", "--resume")
+    code, text = _child(children, "after_reopen", str(config), "--no-progress", "--resume")
     assert code == 130, text
     traj = io.read_trajectory(out)
     assert (traj.status, traj.completed_steps) == ("interrupted", 400)
     assert f"continue with: lieflow run {config} --no-progress --resume" in text
 
 
-def test_an_interrupt_before_the_file_exists_says_nothing_was_written(config: Path) -> None:
-    code, text = _child("load_config", str(config), "--out", "other.h5", "--force")
+def test_an_interrupt_before_the_file_exists_says_nothing_was_written(
+    config: Path, children: Children
+) -> None:
+    code, text = _child(children, "load_config", str(config), "--out", "other.h5", "--force")
     assert code == 130, text
     assert "lieflow: interrupted before the run started: nothing was written" in text
     assert not (config.parent / "traj.h5").exists()
     assert sorted(p.name for p in config.parent.iterdir()) == ["run.toml"]
 
 
-def test_the_progress_bar_gives_the_cursor_back(config: Path) -> None:
-    """Interrupted right after the bar hid the cursor (rich: ESC[?25l)."""
-    code, text = _child("bar_start", str(config), terminal=True)
+@pytest.mark.parametrize("point", ["bar_start", "rich_set_live", "rich_hide_cursor"])
+def test_the_progress_bar_gives_the_cursor_back(
+    config: Path, children: Children, point: str
+) -> None:
+    """Interrupted right after the bar hid the cursor (rich: ESC[?25l), or inside rich's
+    start of the bar (Ctrl-C in the first milliseconds: the bar's stop then failed with
+    rich's ``IndexError: pop from empty list``, exit 1, the cursor left hidden)."""
+    code, text = _child(children, point, str(config), terminal=True)
+    assert "Traceback" not in text and "IndexError" not in text, text
     assert code == 130, text
     assert "\x1b[?25l" in text  # the bar was drawn
     assert text.rfind("\x1b[?25h") > text.rfind("\x1b[?25l"), text

@@ -59,6 +59,58 @@ def tokens(text: str) -> list[str]:
     return text.split()
 
 
+#: A printed decimal number (``0.541``, ``5.8e-14``, ``-3``, ``26.2`` of ``26.2%``).
+NUMBER = re.compile(r"[-+]?\d+(?:\.(\d*))?(?:[eE]([-+]?\d+))?")
+
+
+#: Errors below this are roundoff (the page says so): their digits are the machine's.
+ROUNDOFF = 1e-12
+
+
+def printed_as_shown(printed: str, shown: str) -> bool:
+    """Whether ``printed`` is the page's ``shown`` output: the same words, and every number
+    within 2 units of the last digit the page shows (another machine's BLAS and libm round
+    differently: 5.8e-14 here is 5.9e-14 there), or within a factor of 2 for an error at
+    roundoff (below :data:`ROUNDOFF`); a number shown without decimals (a count, a size,
+    numpy's ``4.``) exactly."""
+    a, b = tokens(printed), tokens(shown)
+    if len(a) != len(b):
+        return False
+    for got, want in zip(a, b, strict=True):
+        if NUMBER.sub("#", got) != NUMBER.sub("#", want):  # the words around the numbers
+            return False
+        for g, w in zip(NUMBER.finditer(got), NUMBER.finditer(want), strict=True):
+            x, y = float(g.group()), float(w.group())
+            digits, exponent = len(w.group(1) or ""), int(w.group(2) or 0)
+            unit = 10.0 ** (exponent - digits) if digits else 0.0
+            close = abs(x - y) <= 2 * unit * (1 + 1e-9)
+            if not close and not (0 < abs(y) < ROUNDOFF and 0.5 <= x / y <= 2):
+                return False
+    return True
+
+
+@pytest.mark.parametrize(
+    ("printed", "shown", "same"),
+    [
+        ("gauss3 1.6e-08 5.9e-14", "gauss3 1.6e-08 5.8e-14", True),
+        ("gauss3 1.6e-08 1.1e-13", "gauss3 1.6e-08 5.8e-14", True),  # roundoff
+        ("gauss2 3.5e-05", "gauss2 3.2e-05", False),  # not roundoff: 3 units off
+        ("midpoint 1.98", "midpoint 1.99", True),
+        ("midpoint 1.95", "midpoint 1.99", False),
+        ("nu = 0.002: 12.4% above", "nu = 0.002: 12.5% above", True),
+        ("nu = 0.002: 12.4% below", "nu = 0.002: 12.4% above", False),
+        ("[0.4 0.2]", "[0.4 0.2 0.1]", False),
+        ("16 0.0 0.033", "16 0.0 0.034", True),
+        ("[16 24] [4. 4.899]", "[16 24] [4. 4.899]", True),
+        ("[16 25]", "[16 24]", False),  # counts exactly
+    ],
+)
+def test_printed_numbers_are_compared_to_their_shown_digits(
+    printed: str, shown: str, same: bool
+) -> None:
+    assert printed_as_shown(printed, shown) is same
+
+
 def without_header(grid: str) -> str:
     """A grid file without its leading comment lines (the page shows the rest)."""
     lines = grid.splitlines()
@@ -113,7 +165,7 @@ def test_page_runs_and_prints_what_it_shows(
         ran += 1
         following = blocks[j + 1] if j + 1 < len(blocks) else None
         if following is not None and following[1] == "text" and out.getvalue():
-            assert tokens(out.getvalue()) == tokens(following[2]), (
+            assert printed_as_shown(out.getvalue(), following[2]), (
                 f"docs/study.md:{line} printed\n{out.getvalue()}\nthe page shows\n{following[2]}"
             )
         else:

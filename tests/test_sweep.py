@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 from helpers import damage_last_chunk
+from processes import Children
 
 import lieflow as lf
 from lieflow.app import io
@@ -448,7 +449,9 @@ def test_ensemble_grid_and_progress_monitor(tmp_path: Path) -> None:
     assert tr.W.shape == (5, 3, 3, 3) and tr.energy_error.shape == (41, 3)
 
 
-def test_ctrl_c_stops_the_sweep_resumably_and_rerunning_finishes_it(tmp_path: Path) -> None:
+def test_ctrl_c_stops_the_sweep_resumably_and_rerunning_finishes_it(
+    tmp_path: Path, children: Children
+) -> None:
     """``lieflow sweep`` in its own process group, SIGINT to the group as a terminal's Ctrl-C
     sends it: exit 130 soon, runs marked interrupted; the same command then completes them,
     bit for bit equal to uninterrupted runs."""
@@ -461,19 +464,13 @@ def test_ctrl_c_stops_the_sweep_resumably_and_rerunning_finishes_it(tmp_path: Pa
         tmp_path, '"initial.seed" = [0, 1, 2, 3]', base.replace("h = 0.1", "h = 0.01")
     )
     cmd = [sys.executable, "-m", "lieflow", "sweep", str(grid), "--workers", "2", "--no-progress"]
-    proc = subprocess.Popen(cmd, cwd=tmp_path, start_new_session=True, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE)  # fmt: skip
-    try:
-        progress = tmp_path / "grid" / ".progress"
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and len(list(progress.glob("*.json"))) < 2:
-            time.sleep(0.05)
-        os.killpg(proc.pid, signal.SIGINT)
-        _, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+    proc = children.popen(cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    progress = tmp_path / "grid" / ".progress"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and len(list(progress.glob("*.json"))) < 2:
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGINT)  # its own process group, as a terminal's Ctrl-C
+    _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err.decode()
     assert b"sweep interrupted; run the same command again" in err
     manifest = json.loads((tmp_path / "grid" / "manifest.json").read_text())

@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
+from processes import Children, alive
 
 from lieflow.app import io
 
@@ -53,31 +54,26 @@ def _started(out: Path) -> int:
 
 @pytest.mark.parametrize("executor", ["local", "dask"])
 def test_ctrl_c_stops_every_run_where_it_is_and_the_hint_is_the_command(
-    tmp_path: Path, executor: str
+    tmp_path: Path, executor: str, children: Children
 ) -> None:
     if executor == "dask":
         pytest.importorskip("distributed")
     grid, out = tmp_path / "long.toml", tmp_path / "out"
     grid.write_text(GRID, encoding="utf-8")
     args = ["sweep", str(grid), "--executor", executor, "--workers", "2", "--out", str(out)]
-    proc = subprocess.Popen(
+    proc = children.popen(  # its own process group, as a shell job has
         [sys.executable, "-m", "lieflow", *args, "--no-progress"],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
-        start_new_session=True,  # its own process group, as a shell job has
     )
-    try:
-        deadline = time.monotonic() + 240
-        while _started(out) < 2:
-            assert proc.poll() is None, proc.communicate()[0]
-            assert time.monotonic() < deadline, "no two runs reported steps in 240 s"
-            time.sleep(0.05)
-        os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C on a terminal does
-        text, _ = proc.communicate(timeout=240)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
+    deadline = time.monotonic() + 240
+    while _started(out) < 2:
+        assert proc.poll() is None, proc.communicate()[0]
+        assert time.monotonic() < deadline, "no two runs reported steps in 240 s"
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C on a terminal does
+    text, _ = proc.communicate(timeout=240)
     assert proc.returncode == 130, text
     for word in ("Traceback", "KeyboardInterrupt", "CancelledError", "killing"):
         assert word not in text, text
@@ -98,3 +94,39 @@ def test_ctrl_c_stops_every_run_where_it_is_and_the_hint_is_the_command(
             assert traj.status == "interrupted"
             assert traj.completed_steps == r["completed_steps"]
     assert not (out / ".progress" / "stop").exists()
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc")
+def test_workers_stop_their_runs_and_exit_when_the_coordinator_is_killed(
+    tmp_path: Path, children: Children
+) -> None:
+    """Issue 37 item 7: ``kill -9`` of a local-pool sweep's coordinator (no cleanup runs)
+    used to orphan its pool workers, stepping on and then blocked for ever. Each worker
+    watches its coordinator: its run stops at its next step, marked "interrupted" (resumable,
+    as after Ctrl-C), and the worker exits."""
+    grid, out = tmp_path / "long.toml", tmp_path / "out"
+    grid.write_text(GRID, encoding="utf-8")
+    args = ["sweep", str(grid), "--workers", "2", "--out", str(out), "--no-progress"]
+    proc = children.popen([sys.executable, "-m", "lieflow", *args], stdout=subprocess.DEVNULL,
+                          stderr=subprocess.DEVNULL)  # fmt: skip
+    deadline = time.monotonic() + 240
+    while _started(out) < 2:
+        assert proc.poll() is None, "the sweep ended before two runs reported steps"
+        assert time.monotonic() < deadline, "no two runs reported steps in 240 s"
+        time.sleep(0.05)
+    workers = {}
+    for path in (out / ".progress").glob("*.json"):
+        info = json.loads(path.read_text())
+        workers[info["pid"]] = path.stem
+    assert len(workers) == 2 and proc.pid not in workers
+    os.kill(proc.pid, signal.SIGKILL)  # the coordinator alone: its workers are orphaned
+    proc.wait()
+    deadline = time.monotonic() + 120
+    while any(alive(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not [pid for pid in workers if alive(pid)], "workers outlived their coordinator"
+    stopped = [io.read_trajectory(p) for p in out.rglob("*.h5")]
+    assert len(stopped) >= 2
+    assert all(t.status == "interrupted" and t.completed_steps > 0 for t in stopped), [
+        (t.status, t.completed_steps) for t in stopped
+    ]

@@ -5,8 +5,8 @@ Subcommands::
     lieflow list                      systems, schemes and solvers (plugins included)
     lieflow run CONFIG.toml           integrate a TOML configuration into an HDF5 file
             [--resume] [--out FILE] [--force] [--no-progress]
-    lieflow salvage FILE.h5           cut a damaged trajectory file back to its last
-                                      verified checkpoint (then run --resume)
+    lieflow salvage FILE.h5           rebuild a damaged trajectory file from every row
+                                      that reads back (then run --resume)
     lieflow reproduce [STUDY]         the paper's experiments (default) or a published study
             [--out DIR] [--quick] [--seed N]  (modin-viviani-2020): figures, report.md,
             [--executor ...] [--workers N]    results.csv
@@ -40,7 +40,7 @@ from typing import TextIO
 
 from .. import __version__
 from ..errors import InputError, LieflowError, shorten
-from ..progress import ProgressBar
+from ..progress import ProgressBar, start_live, stop_live
 
 __all__ = ["main"]
 
@@ -253,10 +253,14 @@ def _plot_movie(file: Path, out: Path, live: bool) -> Path:
     from rich.console import Console
     from rich.progress import Progress
 
-    with Progress(console=Console(stderr=True)) as bar:
-        task = bar.add_task("movie frames", total=None)
+    bar = Progress(console=Console(stderr=True))
+    task = bar.add_task("movie frames", total=None)
+    start_live(bar)
+    try:
         return Path(movie(traj, out, lambda done, total: bar.update(task, completed=done,
                                                                     total=total)))  # fmt: skip
+    finally:
+        stop_live(bar)
 
 
 EXIT_RUNS_FAILED = 1  # lieflow sweep: it finished, but some runs failed (see the manifest)
@@ -323,8 +327,8 @@ def _parser() -> argparse.ArgumentParser:
             "interrupted run can be continued bit-for-bit with --resume. Paths inside CONFIG "
             "are relative to its directory; --out is relative to the current directory. "
             "A damaged output (a process killed while it wrote, a truncated copy, flipped "
-            "bits) is refused by --resume; `lieflow salvage FILE` cuts it back to its last "
-            "verified checkpoint, and --resume then continues from there."
+            "bits) is refused by --resume; `lieflow salvage FILE` rebuilds it from every "
+            "row that reads back, and --resume then continues it."
         ),
     )
     p.add_argument("config", type=Path, metavar="CONFIG.toml")
@@ -338,14 +342,16 @@ def _parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "salvage",
-        help="cut a damaged trajectory file back to its last verified checkpoint",
+        help="rebuild a damaged trajectory file from every row that reads back",
         description=(
             "Make a damaged trajectory file (refused by `lieflow run --resume` and the "
-            "readers) resumable again: keep every step up to the latest one whose data all "
-            "read back with verified checksums and that has a verified checkpoint (resumed "
-            "bit for bit) or saved state (resumed with a cold solver start), drop the rest, "
-            "and mark the file interrupted. The damaged original is kept as FILE.damaged. "
-            "Then continue it with `lieflow run CONFIG --resume`."
+            "readers) resumable again: keep every row that reads back with verified "
+            "checksums (a damaged chunk costs its own rows, at most 128 steps, left as NaN), "
+            "repair what has a copy (initial/W0, header attributes, steps of saved states), "
+            "restart from the latest verified checkpoint (resumed bit for bit) or saved "
+            "state (resumed with a cold solver start), and mark the file interrupted; it "
+            "prints what was lost and repaired. The damaged original is kept as "
+            "FILE.damaged. Then continue it with `lieflow run CONFIG --resume`."
         ),
     )
     p.add_argument("file", type=Path, metavar="FILE.h5")

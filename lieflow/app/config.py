@@ -56,8 +56,9 @@ import numpy as np
 from ..algebras import Array
 from ..backends import check_device, place
 from ..engines import ENGINES, Engine, scheme_flow
-from ..errors import InputError, LieflowError, PluginError, quote, shorten
+from ..errors import InputError, LieflowError, PluginError, quote, shorten, with_fix, without_fix
 from ..flows import Flow, Splitting
+from ..integration import MAX_STEPS
 from ..plugins import Kind, Registry, default_registry
 from ..schemes.base import Scheme
 from ..sinks import run_identity
@@ -444,6 +445,9 @@ class _Section:
         return _fail(self.source, self.key(key), problem, fix)
 
     def has(self, key: str) -> bool:
+        """Whether ``key`` is given (a key the section asks about is one it accepts: an
+        unknown key's message lists it, given or not)."""
+        self.seen.add(key)
         return key in self.data
 
     def _raw(self, key: str, required: bool, hint: str) -> Any:
@@ -681,11 +685,16 @@ def _steps(sec: _Section, h: float) -> tuple[int, float | None]:
     if given[0] == "steps":
         steps = sec.integer("steps")
         assert steps is not None
+        if steps > MAX_STEPS:  # as lieflow.integrate: indices and times exact in 64 bits
+            raise sec.error(
+                "steps", f"{steps} is more than {MAX_STEPS} (2**53) steps, too many to count",
+                "use fewer steps or a larger h",
+            )  # fmt: skip
         return steps, None
     t_final = sec.number("t_final")
     assert t_final is not None
     ratio = t_final / h
-    if not math.isfinite(ratio) or ratio > 2**62:
+    if not math.isfinite(ratio) or ratio > MAX_STEPS:
         raise sec.error(
             "t_final",
             f"t_final / h = {t_final!r} / {h!r} is too many steps to count",
@@ -745,7 +754,8 @@ def _run(raw: Mapping[str, Any], source: str, base: Path, default_output: str) -
                 "checkpoint", f"must be >= 0 seconds, got {checkpoint!r}",
                 'write checkpoint = 1.0 (seconds between checkpoints) or "saves"',
             )  # fmt: skip
-    device = sec.string("device", required=False, hint='"cpu"') or "cpu"
+    device = sec.string("device", required=False, hint='"cpu"')
+    device = "cpu" if device is None else device  # an empty string is refused, not the CPU
     try:
         check_device(device)
     except InputError as exc:
@@ -922,7 +932,7 @@ def _create(
         entry = registry.entry(kind, comp.name)
     except LieflowError as exc:
         raise ConfigError(
-            f"{source}: {entry_key}: {exc}. To fix: use a known name.", entry_key
+            with_fix(f"{source}: {entry_key}: {exc}", "use a known name"), entry_key
         ) from None
     params_key = f"{section} params"
     try:
@@ -998,7 +1008,7 @@ def _initial_state(config: Config, system: IsospectralSystem) -> Array:
             if init.kind == "random" and init.scale != 1.0
             else f"give an initial condition for {system.name} on {system.algebra}"
         )
-        raise ConfigError(f"{source}: {key}: {exc}. To fix: {fix}.", key) from None
+        raise ConfigError(with_fix(f"{source}: {key}: {exc}", fix), key) from None
     return W if init.perturb is None else _perturbed(W, init.perturb, system, source, random_state)
 
 
@@ -1018,7 +1028,8 @@ def _perturbed(W: Array, rule: Perturbation, system: IsospectralSystem, source: 
         return system.validate(members.astype(W.dtype, copy=False))
     except LieflowError as exc:
         raise ConfigError(
-            f"{source}: {key}: a perturbed state is not a valid initial condition ({exc}). "
+            f"{source}: {key}: a perturbed state is not a valid initial condition "
+            f"({without_fix(exc)}). "
             f"To fix: {system.name} may not accept additive perturbations; make the ensemble "
             "from seeds = [...] instead, or use a smaller size.",
             key,

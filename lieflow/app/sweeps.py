@@ -56,6 +56,7 @@ import attrs
 import numpy as np
 
 from ..errors import InputError, LieflowError
+from ..progress import start_live, stop_live
 from .config import (
     _SECTIONS,
     Config,
@@ -574,6 +575,36 @@ def _worker_init() -> None:
                 raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, on_term)
+    threading.Thread(target=_exit_with_parent, name=_WATCH, daemon=True).start()
+
+
+#: The name of a pool worker's thread that watches its coordinator (:func:`_exit_with_parent`).
+_WATCH = "lieflow-parent-watch"
+
+
+#: Seconds a worker whose coordinator died waits for its run to stop (at its next step)
+#: before it exits anyway (the file is then resumable from its last checkpoint, as after a
+#: kill).
+_ORPHAN_GRACE = 60.0
+
+
+def _exit_with_parent() -> None:
+    """A default-pool worker's watch of its coordinator: once the coordinator is gone (a
+    ``kill -9`` runs no cleanup, and its workers used to live on, blocked on the task queue
+    for ever, a running run stepping to its end), stop the run at its next step as SIGTERM
+    does (its file marked "interrupted"), then exit. Waits on the spawn start method's
+    parent sentinel (readable once the parent process has died), so it costs nothing."""
+    import multiprocessing.connection
+
+    parent = multiprocessing.parent_process()
+    if parent is None:  # pragma: no cover - not a spawned worker
+        return
+    multiprocessing.connection.wait([parent.sentinel])
+    os.kill(os.getpid(), signal.SIGTERM)  # the run stops at its next step (on_term)
+    deadline = time.monotonic() + _ORPHAN_GRACE
+    while _BUSY and time.monotonic() < deadline:
+        time.sleep(0.05)
+    os._exit(1)
 
 
 class _ProgressFile:
@@ -645,8 +676,9 @@ def run_task(task: Mapping[str, Any]) -> dict[str, Any]:
 
     started = time.time()
     out: dict[str, Any] = {"host": socket.gethostname(), "pid": os.getpid(), "started": started}
-    if _POOL_WORKER and os.path.isdir("/proc/self/task"):
-        out["threads"] = len(os.listdir("/proc/self/task"))  # 1: one BLAS thread, no pool
+    if _POOL_WORKER and os.path.isdir("/proc/self/task"):  # 1: one BLAS thread, no pool
+        watch = sum(t.name == _WATCH for t in threading.enumerate())  # lieflow's own
+        out["threads"] = len(os.listdir("/proc/self/task")) - watch
     stop = Path(task["stop"]) if task.get("stop") else None
     if _STOP or (stop is not None and stop.exists()):  # interrupted before it started
         return {**out, "status": "pending", "error": "", "finished": started}
@@ -936,7 +968,7 @@ class SweepProgress(SweepMonitor):
             self._line(f"{skipped} of {runs} runs complete already (skipped)")
         if self._progress is not None:
             self._task = self._progress.add_task("sweep", total=None, runs="")
-            self._progress.start()
+            start_live(self._progress)
 
     def update(self, counts: Mapping[str, int], steps: int, total_steps: int) -> None:
         if self._progress is None:
@@ -965,7 +997,7 @@ class SweepProgress(SweepMonitor):
 
     def stop(self) -> None:
         if self._progress is not None:
-            self._progress.stop()
+            stop_live(self._progress)
 
 
 def _write_json(path: Path, data: Any) -> None:

@@ -143,7 +143,8 @@ class PeriodicToda(IsospectralSystem):
                 f"W0: the periodic Toda lattice needs a symmetric W0 (Flaschka's phase "
                 f"space), but its antisymmetric part has relative size {distance:.2e} "
                 f"(tolerance {limit:.0e}). To fix: pass a symmetric matrix, e.g. "
-                "(W0 + W0.T) / 2, or use gl_gradient=True for the flow on all of gl(n)"
+                "(W0 + W0.T) / 2, or set gl_gradient=True (in a configuration: [system] "
+                "params = { gl_gradient = true }) for the flow on all of gl(n)"
             )
         return W
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import json
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -177,8 +178,38 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def _chunk_rows(row_bytes: int, target: int = 1 << 16) -> int:
-    return max(1, min(1024, target // max(row_bytes, 1)))
+#: Rows per chunk of the growing datasets: at most this many rows ...
+CHUNK_ROWS = 128
+#: ... and at most this many bytes (at least one row): a damaged chunk (one flipped bit,
+#: the chunk a killed process was rewriting) costs at most 128 steps of one diagnostic, or
+#: 4 KiB of saved states (one state, if larger); everything else of the file stays readable.
+CHUNK_BYTES = 1 << 12
+
+
+#: The root attributes a run changes (its length, status and time); every other one is
+#: fixed when the file is created, and copied then (:func:`_header_copy`).
+_MUTABLE = ("requested_steps", "completed_steps", "status", "wall_time", "failure", "resumes",
+            "salvaged")  # fmt: skip
+
+#: The attribute of ``initial/W0`` holding that copy: a fixed-length string, stored in the
+#: dataset's object header, which HDF5 checksums and never moves (the root attributes are
+#: rewritten at every resume, their values are not checksummed, and a file cut short can
+#: lose them): :func:`lieflow.app.salvage.salvage` restores a root attribute from it.
+_HEADER_COPY = "header"
+
+
+def _header_copy(meta: Mapping[str, Any]) -> str:
+    """JSON of the root attributes a run never changes (``meta``: the attributes as
+    written; arrays as lists)."""
+    fixed = {k: _plain(v) for k, v in meta.items() if k not in _MUTABLE and k != "_NCProperties"}
+    return json.dumps(
+        {k: v.tolist() if isinstance(v, np.ndarray) else v for k, v in fixed.items()},
+        sort_keys=True,
+    )
+
+
+def _chunk_rows(row_bytes: int) -> int:
+    return max(1, min(CHUNK_ROWS, CHUNK_BYTES // max(row_bytes, 1)))
 
 
 def _growable(

@@ -150,8 +150,8 @@ _HDF5_LOCKED = re.compile(r"unable to lock file", re.IGNORECASE)
 def salvage_fix(path: Path) -> str:
     """The fix offered for a damaged trajectory file: :func:`lieflow.app.salvage.salvage`."""
     return (
-        f"`lieflow salvage {path}` cuts it back to its last verified checkpoint (the damaged "
-        "original is kept next to it), then continue it with --resume"
+        f"`lieflow salvage {path}` keeps every row that reads back and repairs what has a "
+        "copy (the damaged original is kept next to it), then continue it with --resume"
     )
 
 
@@ -187,10 +187,23 @@ class _Reading:
 # -- one writer per output file ------------------------------------------------------------
 
 
+#: What to do when an output's file or lock cannot be created.
+_OUTPUT_FIX = (
+    "choose an output path in a directory you can write to (not under /proc, /sys or /dev)"
+)
+
+
 def _cannot_create(path: Path, exc: OSError) -> LieflowError:
     return LieflowError(
-        f"cannot create {_where(path)}: {exc.strerror or exc}. To fix: choose an output path "
-        "in a directory you can write to (not under /proc, /sys or /dev)."
+        f"cannot create {_where(path)}: {exc.strerror or exc}. To fix: {_OUTPUT_FIX}."
+    )
+
+
+def _cannot_lock(path: Path, exc: OSError, fix: str) -> LieflowError:
+    """The lock of ``path`` (a file beside it) cannot be created or taken."""
+    return LieflowError(
+        f"cannot lock {_where(path)} (its lock file beside it): {exc.strerror or exc}. To "
+        f"fix: {fix}."
     )
 
 
@@ -219,7 +232,8 @@ class _OutputLock:
         self._fd = fd
 
     @classmethod
-    def acquire(cls, output: Path) -> _OutputLock:
+    def acquire(cls, output: Path, fix: str = _OUTPUT_FIX) -> _OutputLock:
+        """Lock ``output`` (``fix``: what to do if its lock cannot be created there)."""
         real = Path(os.path.realpath(output))  # one lock whatever symlink names the file
         lock_path = real.with_name(f".{real.name}.lock")
         if fcntl is None:  # pragma: no cover - not POSIX
@@ -228,7 +242,7 @@ class _OutputLock:
             try:
                 fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
             except OSError as exc:
-                raise _cannot_create(output, exc) from None
+                raise _cannot_lock(output, exc, fix) from None
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError as exc:
@@ -241,7 +255,7 @@ class _OutputLock:
                         "one is refused (--force and --resume too). To fix: wait until that "
                         "run has finished or stop it, or write to another output (--out)."
                     ) from None
-                raise _cannot_create(output, exc) from None
+                raise _cannot_lock(output, exc, fix) from None
             if _same_file(fd, lock_path):
                 os.ftruncate(fd, 0)
                 os.write(fd, f"pid {os.getpid()} on {socket.gethostname()}\n".encode())

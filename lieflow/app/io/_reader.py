@@ -25,6 +25,7 @@ from ._format import (
     _DAMAGE,
     _DIGEST,
     _EXTRA,
+    _HEADER_COPY,
     _LABELS,
     _LAYOUTS,
     _PER_STEP,
@@ -37,6 +38,7 @@ from ._format import (
     FORMAT_VERSION,
     _as_path,
     _h5py,
+    _header_copy,
     _is_scale,
     _Layout,
     _plain,
@@ -129,8 +131,15 @@ class Trajectory:
 
 
 def _check_format(f: h5py.File, path: Path) -> _Layout:
-    """The layout of a lieflow trajectory file, or LieflowError for any other file."""
-    if _plain(f.attrs.get("format")) != FORMAT:
+    """The layout of a lieflow trajectory file, or LieflowError for any other file (and
+    DamagedOutputError for one whose header attributes do not read back)."""
+    try:
+        found = _plain(f.attrs.get("format"))
+    except _DAMAGE as exc:
+        raise _unreadable_header(path, exc) from None
+    if found is None and _has_header_copy(f):  # ours, its attributes unreadable
+        raise _unreadable_header(path, KeyError("format"))
+    if found != FORMAT:
         raise LieflowError(
             f"{_where(path)} is not a lieflow trajectory file (no format = {FORMAT!r} "
             "attribute). To fix: pass a file written by `lieflow run`."
@@ -261,7 +270,9 @@ def _check_coordinates(f: h5py.File, k: int, path: Path, layout: _Layout) -> Non
 
 def _readable_rows(ds: h5py.Dataset, rows: int | None = None) -> int:
     """How many of the first ``rows`` rows of ``ds`` (default: all) read back, every chunk's
-    Fletcher-32 checksum verified: read chunk by chunk, so memory holds one chunk."""
+    Fletcher-32 checksum verified and every chunk there in HDF5's chunk index (a damaged
+    index entry makes a chunk read as zeros, silently): read chunk by chunk, so memory holds
+    one chunk."""
     n = ds.shape[0] if rows is None else min(rows, ds.shape[0])
     if not ds.shape:
         try:
@@ -272,10 +283,20 @@ def _readable_rows(ds: h5py.Dataset, rows: int | None = None) -> int:
     size = (ds.chunks or (max(n, 1),))[0]
     for start in range(0, n, size):
         try:
+            if ds.chunks:
+                _chunk_at(ds, start)  # in the index, or it would read as zeros
             ds[start : min(start + size, n)]
         except _DAMAGE:
             return start
     return n
+
+
+def _chunk_at(ds: h5py.Dataset, row: int) -> bytes:
+    """The stored bytes of the chunk of ``ds`` holding ``row``, found in HDF5's chunk index
+    as a read finds it: raises if the index has lost it (a flipped bit in a B-tree key:
+    a plain read then returns the fill value, zeros, without an error)."""
+    first = row // ds.chunks[0] * ds.chunks[0]
+    return bytes(ds.id.read_direct_chunk((first,) + (0,) * (ds.ndim - 1))[1])
 
 
 def _kept_rows(f: h5py.File, k: int, layout: _Layout) -> dict[str, tuple[h5py.Dataset, int]]:
@@ -309,11 +330,49 @@ def _check_kept(f: h5py.File, k: int, path: Path, layout: _Layout) -> None:
         good = _readable_rows(ds, rows)
         if good < rows:
             raise DamagedOutputError(
-                f"{_where(path)} is damaged: {name!r} fails its checksum from row {good} on "
-                f"(the file keeps {rows} rows of it up to its checkpoint at step {k}; its bytes "
+                f"{_where(path)} is damaged: {name!r} does not read back from row {good} on (a "
+                "chunk fails its checksum or is lost from HDF5's chunk index; the file keeps "
+                f"{rows} rows of it up to its checkpoint at step {k}; its bytes "
                 "changed on disk, e.g. after a process was killed while it wrote). To fix: "
                 f"{salvage_fix(path)}; or run the configuration again (--force)."
             )
+
+
+def _has_header_copy(f: h5py.File) -> bool:
+    """Whether ``initial/W0`` holds the copy of a trajectory file's header attributes."""
+    try:
+        return f["initial/W0"].attrs.get(_HEADER_COPY) is not None
+    except _DAMAGE:
+        return False
+
+
+def _unreadable_header(path: Path, exc: BaseException) -> DamagedOutputError:
+    return DamagedOutputError(
+        f"{_where(path)} is damaged: its header attributes do not read back "
+        f"({type(exc).__name__}: {exc}). To fix: {salvage_fix(path)}; or run the "
+        "configuration again (--force)."
+    )
+
+
+def _check_attributes(f: h5py.File, path: Path) -> None:
+    """Every header attribute reads back: a resume rewrites them as it closes the file, so
+    one that does not (a flipped byte in the header) used to fail only after the resumed
+    steps were written, leaving the file marked complete and unreadable."""
+    try:
+        meta = _meta(f)
+        raw = f["initial/W0"].attrs.get(_HEADER_COPY)
+        copy = None if raw is None else json.loads(_plain(raw))
+    except (*_DAMAGE, json.JSONDecodeError) as exc:
+        raise _unreadable_header(path, exc) from None
+    now = json.loads(_header_copy(meta))
+    differ = [] if copy is None else sorted(k for k in now.keys() | copy.keys()
+                                            if now.get(k) != copy.get(k))  # fmt: skip
+    if differ:
+        raise DamagedOutputError(
+            f"{_where(path)} is damaged: its header attributes {', '.join(differ)} differ "
+            f"from their copy written with the file (their bytes changed on disk). To fix: "
+            f"{salvage_fix(path)}; or run the configuration again (--force)."
+        )
 
 
 def _visit_structure(group: h5py.Group) -> None:
@@ -482,6 +541,7 @@ def _verify_for_resume(header: TrajectoryHeader) -> Checkpoint:
     from_config = bool(header.config_source)
     with _open(path, "r", _RESUME_FIX) as f, _Reading(path):
         layout = _check_format(f, path)
+        _check_attributes(f, path)
         stored, now = str(_plain(f.attrs["identity"])), header.identity
         if stored != now:
             changed = "; ".join(identity_changes(stored, now)) or f"{stored} -> {now}"

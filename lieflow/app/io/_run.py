@@ -137,19 +137,23 @@ def _run_flow(
 ) -> tuple[RunSummary, ConvergenceError | None]:
     target = header.requested_steps
     diagnostics = Diagnostics.of(header.system, header.W0, save_every=header.save_every)
+    device = header.device
+    # W0 placed before the file is opened: a device that is not there (its library missing,
+    # no GPU) is refused with nothing written, so the corrected run needs no --force
+    W0 = header.W0 if device == "cpu" else place(header.W0, device)
     writer = TrajectoryWriter.open(header, resume=resume)
     try:
         ck = writer.start
         if ck is None:
-            W, state, done = header.W0, None, 0
+            W, state, done = W0, None, 0
         else:
             W, done = ck.W, ck.step
             state = ck.state(flow.init(W))
-        if header.device != "cpu":  # placed once; chunks come back through the sinks
-            W = place(W, header.device)
-            state = tree.map_leaves(
-                lambda x: place(x, header.device) if isinstance(x, np.ndarray) else x, state
-            )
+            if device != "cpu":  # placed once; chunks come back through the sinks
+                W = place(W, device)
+                state = tree.map_leaves(
+                    lambda x: place(x, device) if isinstance(x, np.ndarray) else x, state
+                )
         sinks = (writer, *(also(writer) if also is not None else ()))
     except BaseException:  # Ctrl-C before stepping: the file says so, and is resumable
         writer.close("interrupted", None, 0.0)

@@ -25,11 +25,12 @@ from ...driver import Chunk, ChunkDiagnostics, Diagnostics
 from ...errors import ConvergenceError, LieflowError
 from ...sinks import Ending, RunInfo, to_host
 from ...solution import Solution, Status
-from ..config import ConfigError, RunSetup
+from ..config import ConfigError, RunSetup, check_output_path
 from ._format import (
     _DAMAGE,
     _DIGEST,
     _EXTRA,
+    _HEADER_COPY,
     _PER_STEP,
     _PER_UPDATE,
     _SCALARS,
@@ -45,6 +46,7 @@ from ._format import (
     _dimension,
     _growable,
     _h5py,
+    _header_copy,
     _is_netcdf,
     _is_scale,
     _Layout,
@@ -92,6 +94,10 @@ if TYPE_CHECKING:  # pragma: no cover
 #: file's superblock pointing past its end (measured: a resume on a full disk made the file
 #: unopenable, "addr overflow"). Enough for the metadata and new chunks of a few commits.
 _SPACE_MARGIN = 1 << 20
+
+
+#: Free space enough to rewrite a file's status attributes (a full disk's last write).
+_ATTRIBUTES_ROOM = 1 << 16
 
 
 def _ensure_space(path: Path, nbytes: int = 0) -> None:
@@ -167,16 +173,21 @@ def _file_id(f: h5py.File) -> tuple[int, int]:
     return st.st_dev, st.st_ino
 
 
-def _exists_error(out: Path) -> ConfigError:
+def _exists_error(out: Path, from_config: bool) -> ConfigError:
+    """``out`` exists; the fix in the words of the caller (``lieflow run``'s flags, or
+    :func:`lieflow.integrate`'s arguments)."""
+    how = ("pass --resume to continue it, --force to replace it, or choose another output"
+           if from_config else
+           "pass resume=True to continue it, replace=True to replace it, or choose another "
+           "out")  # fmt: skip
     return ConfigError(
         f"{_where(out)} already exists (another run may have created it since this one "
-        "started). To fix: pass --resume to continue it, --force to replace it, or choose "
-        "another output.",
+        f"started). To fix: {how}.",
         "[run] output",
     )
 
 
-def _publish(tmp: Path, out: Path, replace: bool) -> None:
+def _publish(tmp: Path, out: Path, replace: bool, from_config: bool) -> None:
     """Give the finished file ``tmp`` the name ``out``: atomically replacing an existing file
     if ``replace``, else only if ``out`` does not exist (a hard link is an atomic exclusive
     create; where links are not supported, an O_EXCL placeholder is replaced)."""
@@ -186,14 +197,14 @@ def _publish(tmp: Path, out: Path, replace: bool) -> None:
     try:
         os.link(tmp, out)
     except FileExistsError:
-        raise _exists_error(out) from None
+        raise _exists_error(out, from_config) from None
     except OSError as exc:
         if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK):
             raise
         try:
             os.close(os.open(out, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644))
         except FileExistsError:
-            raise _exists_error(out) from None
+            raise _exists_error(out, from_config) from None
         os.replace(tmp, out)
     else:
         tmp.unlink()
@@ -323,7 +334,7 @@ class TrajectoryWriter:
         lock = _OutputLock.acquire(out)
         try:
             if not setup.replace and os.path.lexists(out):
-                raise _exists_error(out)
+                raise _exists_error(out, bool(setup.config_source))
             tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
             try:
                 f = h5py.File(tmp, "w", rdcc_nbytes=_CHUNK_CACHE_BYTES)
@@ -333,7 +344,7 @@ class TrajectoryWriter:
                     _close_quietly(f)
                     raise
                 f.close()
-                _publish(tmp, out, setup.replace)
+                _publish(tmp, out, setup.replace, bool(setup.config_source))
             except _WRITE_ERRORS as exc:
                 if _no_space(exc):
                     raise _disk_full(out) from None
@@ -464,8 +475,24 @@ class TrajectoryWriter:
         except _WRITE_ERRORS as exc:
             if not _no_space(exc):
                 raise
+            self._mark_stopped()
             self.abandon()
             raise _disk_full(self._path, self._step) from None
+
+    def _mark_stopped(self) -> None:
+        """On a full disk: record status "interrupted" at the last checkpoint (what the file
+        is: resumable from it), where the space kept in reserve (:data:`_SPACE_MARGIN`) left
+        room for a few attributes; else (HDF5's own write failed) it stays "running", as a
+        killed run's file does."""
+        try:
+            st = os.statvfs(self._path.parent)
+            if st.f_bavail * st.f_frsize < _ATTRIBUTES_ROOM:
+                return
+            self._f.attrs["completed_steps"] = self._step
+            self._f.attrs["status"] = "interrupted"
+            self._f.flush()
+        except (*_WRITE_ERRORS, ValueError, AttributeError):
+            pass
 
     def _write_rows(self, *, keep_last: bool = False) -> None:
         """Append the buffered diagnostics, saved states and extra diagnostics (and the last
@@ -629,7 +656,8 @@ def trajectory_sink(
     checkpoint with ``resume`` (if it exists), else creating it (an existing file only with
     ``replace``)."""
     fields = {f.name: getattr(run, f.name) for f in attrs.fields(RunInfo)}
-    header = TrajectoryHeader(**fields, output=_as_path(path, "out"), replace=replace)
+    output = check_output_path(_as_path(path, "out"), "out")  # not a directory, writable
+    header = TrajectoryHeader(**fields, output=output, replace=replace)
     return TrajectoryWriter.open(header, resume=resume)
 
 
@@ -832,30 +860,54 @@ def _initialise(f: h5py.File, header: TrajectoryHeader) -> None:
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         **environment(),
     }
+    H0 = np.asarray(system.hamiltonian(W0), dtype=np.float64)
+    C0 = np.asarray(system.casimirs(W0), dtype=np.float64)
+    batch = W0.shape[:-2]
+    labels = [
+        _ensemble_labels(header.config_text, n) if len(batch) == 1 else np.arange(n) for n in batch
+    ]
+    casimir_labels = np.asarray(powers if len(powers) == C0.shape[-1] else
+                                np.arange(C0.shape[-1]), dtype=np.int64)  # fmt: skip
+    _lay_out(f, meta, W0, H0, C0, labels, casimir_labels)
+    extra, _ = driver.extra_hook(system, header.save_every)
+    if extra is not None:
+        _append_extra(f, [(0, 0.0, extra(W0))])
+
+
+def _lay_out(
+    f: h5py.File,
+    meta: Mapping[str, Any],
+    W0: Array,
+    H0: Array,
+    C0: Array,
+    labels: list[Array],
+    casimir_labels: Array,
+) -> None:
+    """Write the header attributes ``meta``, the dimensions, the variables and step 0 of a
+    new file (format version 2): the initial state ``W0``, its energy ``H0`` and Casimirs
+    ``C0``, the labels of its ensemble axes and of its Casimirs; both checkpoint slots hold
+    ``W0`` at step 0. What :meth:`TrajectoryWriter.create` writes, and what
+    :func:`lieflow.app.salvage.salvage` rebuilds a damaged file on."""
     for key, value in meta.items():
         f.attrs[key] = value
     h5py = _h5py()
     props = (
-        f"version=2,lieflow={meta['lieflow_version']},hdf5={h5py.version.hdf5_version},"
-        f"h5py={h5py.__version__}"
+        f"version=2,lieflow={meta.get('lieflow_version', '')},"
+        f"hdf5={h5py.version.hdf5_version},h5py={h5py.__version__}"
     )
     f.attrs["_NCProperties"] = np.array(props, dtype=h5py.string_dtype("ascii", len(props)))
-    H0 = np.asarray(system.hamiltonian(W0), dtype=np.float64)
-    C0 = np.asarray(system.casimirs(W0), dtype=np.float64)
-    batch = W0.shape[:-2]
     # dimensions: the two unlimited axes first (ids 0, 1), then the fixed ones
     time = _coordinate(_growable(f, "time", np.float64(0), np.float64), 0)
     step = _coordinate(_growable(f, "step", np.int64(0), np.int64), 1)
     dimid = 2
     ens = []
-    for name, n in zip(_batch_dims(len(batch)), batch, strict=True):
-        labels = _ensemble_labels(header.config_text, n) if len(batch) == 1 else np.arange(n)
-        ens.append(_coordinate(f.create_dataset(name, data=labels, **_checked(labels)), dimid))
+    for name, values in zip(_batch_dims(len(labels)), labels, strict=True):
+        values = np.asarray(values, dtype=np.int64)
+        ens.append(_coordinate(f.create_dataset(name, data=values, **_checked(values)), dimid))
         dimid += 1
     row = _dimension(f, "row", W0.shape[-2], dimid=dimid)
     col = _dimension(f, "col", W0.shape[-1], dimid=dimid + 1)
-    casimir_labels = np.asarray(powers if len(powers) == C0.shape[-1] else
-                                np.arange(C0.shape[-1]), dtype=np.int64)  # fmt: skip
+    casimir_labels = np.asarray(casimir_labels, dtype=np.int64)
     casimir = _coordinate(
         f.create_dataset("casimir", data=casimir_labels, **_checked(casimir_labels)), dimid + 2
     )
@@ -877,6 +929,7 @@ def _initialise(f: h5py.File, header: TrajectoryHeader) -> None:
         "W0", data=W0, dtype=_stored_dtype(f, W0.dtype), **_checked(W0)
     )
     _attach(initial, state)
+    initial.attrs[_HEADER_COPY] = np.bytes_(_header_copy(meta).encode())
     rows = {
         time: 0.0, step: 0, saved: 0, W: W0,
         variables["energy"]: H0, variables["energy_error"]: np.zeros_like(H0),
@@ -886,9 +939,6 @@ def _initialise(f: h5py.File, header: TrajectoryHeader) -> None:
     for ds, value in rows.items():
         ds.resize(1, axis=0)
         ds[0] = value
-    extra, _ = driver.extra_hook(system, header.save_every)
-    if extra is not None:
-        _append_extra(f, [(0, 0.0, extra(W0))])
     ck = f.create_group("checkpoint")
     for i in (0, 1):
         _write_slot(ck.create_group(f"slot{i}"), 0, 0.0, {"W": W0}, {})
