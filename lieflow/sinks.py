@@ -362,7 +362,7 @@ class MemorySink:
         if diag is not None and self._err is None:  # no chunk was recorded
             # (deferred diagnostics, which no chunk started, give the initial state's)
             deferred = getattr(diag, "initial", None)
-            initial = deferred() if callable(deferred) else diag
+            initial: Any = deferred() if callable(deferred) else diag
             self._allocate(np.shape(initial.H0), np.shape(initial.C0))
         extra: dict[str, Array] = {}
         if self._extra:
