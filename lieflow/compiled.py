@@ -519,6 +519,18 @@ def _unchanged(kept: tuple[Any, Any, bytes | None], got: Any) -> bool:
         return False
 
 
+def _by_name(got: Any) -> Any:
+    """A hook's ``(function, params)`` with a function named by a string (one of
+    lieflow's own maps, :data:`MAPS`) replaced by that map; a name that is none of them
+    gives the reason (a string); anything else as it is (the checks that follow name what
+    is wrong with it)."""
+    if isinstance(got, tuple) and len(got) == 2 and isinstance(got[0], str):
+        if got[0] not in MAPS:
+            return f"no compiled map named {got[0]!r} (lieflow's own: {', '.join(MAPS)})"
+        return getattr(kernels(), got[0]), got[1]
+    return got
+
+
 def _system_maps(
     system: IsospectralSystem, W0: Array, dtype: np.dtype
 ) -> tuple[tuple[Any, Array], tuple[Any, Array] | None] | str:
@@ -534,15 +546,19 @@ def _system_maps(
     :meth:`compiled_project` return the same functions and ``params``.
     """
     try:
-        got_B = system.compiled_B()
+        got_B = _by_name(system.compiled_B())
     except Exception as exc:  # a broken plugin: refuse the case, name the failure
         return f"{system.name}.compiled_B() raised {type(exc).__name__}: {exc}"
     if got_B is None:
         hint = " (hadamard_factor is None)" if system.hadamard_factor is None else ""
         return f"{system.name} has no compiled B{hint}: see IsospectralSystem.compiled_B"
+    if isinstance(got_B, str):
+        return f"{system.name}.compiled_B(): {got_B}"
     try:
-        got_P = system.compiled_project()
-        P_error = None
+        got_P = _by_name(system.compiled_project())
+        P_error = (
+            None if not isinstance(got_P, str) else f"{system.name}.compiled_project(): {got_P}"
+        )
     except Exception as exc:  # reported after the check of B, as before
         got_P, P_error = (
             None,

@@ -151,24 +151,28 @@ def _signature(factory: Callable[..., Any]) -> str:
         return "(unknown)"
 
 
-def _check_kind(kind: Kind, obj: Any) -> str | None:
-    """Why ``obj`` is not a valid ``kind`` (or ``None`` if it is)."""
-    from .flows import Flow
-    from .schemes.base import Scheme
-    from .solvers.base import Solver
-    from .systems.base import IsospectralSystem
+#: What each kind of registered object must have (checked by shape, not by class: the
+#: registry sits below the packages whose objects it holds and imports none of them; the
+#: callers that need a class — :func:`lieflow.integrate` — check it themselves): the
+#: attributes of an :class:`~lieflow.IsospectralSystem`, a :class:`~lieflow.Scheme`, a
+#: :class:`~lieflow.solvers.Solver` and a :class:`~lieflow.flows.Flow`.
+_REQUIRED: Mapping[str, tuple[tuple[str, ...], tuple[str, ...], str]] = MappingProxyType({
+    "system": (("algebra",), ("B", "hamiltonian", "casimirs", "validate"), "IsospectralSystem"),
+    "scheme": (("name", "order"), ("step",), "Scheme"),
+    "solver": (("name",), ("solve",), "Solver"),
+    "flow": (("name",), ("init", "step"), "Flow"),
+})  # fmt: skip
 
-    expected: type = {
-        "system": IsospectralSystem,
-        "scheme": Scheme,
-        "solver": Solver,
-        "flow": Flow,
-    }[kind]
-    return (
-        None
-        if isinstance(obj, expected)
-        else (f"its factory made a {type(obj).__name__}, not a {expected.__name__}")
-    )
+
+def _check_kind(kind: Kind, obj: Any) -> str | None:
+    """Why ``obj`` is not a valid ``kind`` (or ``None`` if it is): the attributes and methods
+    every object of that kind has (:data:`_REQUIRED`)."""
+    attributes, methods, what = _REQUIRED[kind]
+    missing = [a for a in attributes if not hasattr(obj, a)]
+    missing += [m for m in methods if not callable(getattr(obj, m, None))]
+    if not missing:
+        return None
+    return f"its factory made a {type(obj).__name__}, not a {what} (missing {', '.join(missing)})"
 
 
 @attrs.frozen

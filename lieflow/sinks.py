@@ -360,9 +360,9 @@ class MemorySink:
         done, n = self._done, self._kept
         diag = self.diagnostics
         if diag is not None and self._err is None:  # no chunk was recorded
-            from .driver import DeferredDiagnostics
-
-            initial = diag.initial() if isinstance(diag, DeferredDiagnostics) else diag
+            # (deferred diagnostics, which no chunk started, give the initial state's)
+            deferred = getattr(diag, "initial", None)
+            initial: Any = deferred() if callable(deferred) else diag
             self._allocate(np.shape(initial.H0), np.shape(initial.C0))
         extra: dict[str, Array] = {}
         if self._extra:

@@ -229,8 +229,10 @@ def test_compiled_B_defaults() -> None:
     got = body.compiled_B()
     assert got is not None
     fn, params = got
-    assert fn is _kernels.hadamard_B_skew
+    assert fn == "hadamard_B_skew"  # lieflow's own map, by name (the system imports no engine)
+    assert compiled._by_name(got)[0] is _kernels.hadamard_B_skew
     np.testing.assert_array_equal(params, body.hadamard_factor.ravel())
+    assert "no compiled map named 'no_such_map'" in compiled._by_name(("no_such_map", params))
     assert body.compiled_project() is None
     assert lf.systems.PeriodicToda(gl_gradient=True).compiled_B() is None
     assert CubicBody().compiled_project() is None

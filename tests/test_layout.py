@@ -37,9 +37,16 @@ def _imports(path: Path, *, anywhere: bool, module: str | None = None) -> list[s
     ``module``: the file's module name (by default from its place in the package)."""
     module = module or _module_name(path)
     package = module if path.name == "__init__.py" else module.rpartition(".")[0]
-    nodes = ast.walk(ast.parse(path.read_text())) if anywhere else ast.parse(path.read_text()).body
+    tree = ast.parse(path.read_text())
+    nodes = ast.walk(tree) if anywhere else tree.body
+    # imports under ``if TYPE_CHECKING:`` are read by type checkers only, never run
+    unrun = {id(n) for block in ast.walk(tree) if isinstance(block, ast.If)
+             and "TYPE_CHECKING" in ast.unparse(block.test)
+             for stmt in block.body for n in ast.walk(stmt)}  # fmt: skip
     names: list[str] = []
     for node in nodes:
+        if id(node) in unrun:
+            continue
         if isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package.split(".")
@@ -117,12 +124,12 @@ def test_import_lieflow_loads_no_application_module() -> None:
     assert out.stdout.strip() == "[]"
 
 
-def test_the_package_has_no_import_circle() -> None:
-    """The graph of module-level imports between lieflow's modules is acyclic (the
-    application's six-module circle through the core is gone)."""
-    modules = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
+def _circle(paths: list[Path], *, anywhere: bool) -> list[str]:
+    """A circle in the graph of imports between the modules of ``paths`` (module-level, or
+    ``anywhere``: inside functions too), ``[]`` if there is none."""
+    modules = {_module_name(p): p for p in paths}
     graph = {
-        name: {m for m in _imports(path, anywhere=False) if m in modules and m != name}
+        name: {m for m in _imports(path, anywhere=anywhere) if m in modules and m != name}
         for name, path in modules.items()
     }
     # a module imports its package's __init__ (the parent) implicitly: not an edge of note
@@ -145,7 +152,30 @@ def test_the_package_has_no_import_circle() -> None:
     for start in sorted(graph):
         if start not in state and visit(start, [start]):
             break
-    assert cycle == []
+    return cycle
+
+
+def test_the_package_has_no_import_circle() -> None:
+    """The graph of module-level imports between lieflow's modules is acyclic (the
+    application's six-module circle through the core is gone)."""
+    assert _circle(list(PACKAGE.rglob("*.py")), anywhere=False) == []
+
+
+def test_the_core_has_no_import_circle_even_inside_functions() -> None:
+    """Issue 36: the core's layers — errors, algebras, tableaus, backends; systems, schemes,
+    solvers; flows, warm starts; engines; driver; sinks, solution; integration — import
+    downwards only, at module level and inside functions (the registry checks what it holds
+    by shape, systems name lieflow's compiled maps instead of importing the engine)."""
+    assert _circle(_core_files(), anywhere=True) == []
+
+
+def test_the_circle_scan_finds_a_circle_inside_functions(tmp_path: Path) -> None:
+    """The scan can fail: two modules that import each other inside functions."""
+    (tmp_path / "a.py").write_text("def f():\n    from . import b\n")
+    (tmp_path / "b.py").write_text("def g():\n    from . import a\n")
+    graph = {name: _imports(tmp_path / f"{name}.py", anywhere=True, module=f"lieflow.{name}")
+             for name in ("a", "b")}  # fmt: skip
+    assert "lieflow.b" in graph["a"] and "lieflow.a" in graph["b"]
 
 
 def test_the_application_reaches_the_core_through_the_registry() -> None:

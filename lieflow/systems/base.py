@@ -145,7 +145,8 @@ class IsospectralSystem(ABC):
         as a typed first-class function, so numba's disk cache of the loops stays valid for
         every system; compile it with ``numba.njit(cache=True)`` at module level (or
         the decorator :func:`lieflow.compiled.compiled_map`) so that it is cached too; lieflow's
-        own maps (:data:`lieflow.compiled.MAPS`) are there to return or call. The engine checks it
+        own maps (:data:`lieflow.compiled.MAPS`) are returned by name (``("hadamard_B",
+        params)``: the system need not import the engine) or called. The engine checks it
         against :meth:`B` and :meth:`project_stage` on the initial state (to roundoff)
         before use, once per system and dtype while this method returns the same function
         and ``params`` (:attr:`_derived`). Importing numba inside this method keeps it
@@ -163,10 +164,7 @@ class IsospectralSystem(ABC):
         kind = type(self.algebra)
         if kind is not SO and kind is not GL:
             return None
-        from .. import compiled
-
-        k = compiled.kernels()  # the maps themselves (the module's __getattr__: 0.5 µs more)
-        fn = k.hadamard_B_skew if kind is SO else k.hadamard_B
+        fn = "hadamard_B_skew" if kind is SO else "hadamard_B"  # lieflow's own, by name
         if shift == 0.0:  # S itself, copied (x - 0.0 is x: the same params, one pass less)
             return fn, np.array(S, dtype=np.float64, order="C").ravel()
         return fn, np.ascontiguousarray(np.asarray(S) - shift, dtype=np.float64).ravel()
@@ -182,9 +180,7 @@ class IsospectralSystem(ABC):
         when :meth:`project` is the algebra's."""
         if type(self).project is not IsospectralSystem.project or not isinstance(self.algebra, U):
             return None
-        from .. import compiled
-
-        return compiled.skew_hermitian_part, np.array([isinstance(self.algebra, SU)], float)
+        return "skew_hermitian_part", np.array([isinstance(self.algebra, SU)], float)
 
     @functools.cached_property
     def _derived(self) -> _Derived:

@@ -173,17 +173,13 @@ class PeriodicToda(IsospectralSystem):
         the stage value where the numpy path uses its symmetric part."""
         if self.gl_gradient or shift != 0.0:
             return None
-        from .. import compiled
-
-        return compiled.hadamard_B_symmetric, self.sign.ravel().copy()
+        return "hadamard_B_symmetric", self.sign.ravel().copy()  # lieflow's own, by name
 
     def compiled_project(self) -> tuple[Any, Array] | None:
         """The symmetric part, compiled: the compiled engine symmetrizes every step."""
         if self.gl_gradient:
             return None
-        from .. import compiled
-
-        return compiled.symmetric_part, np.zeros(0)
+        return "symmetric_part", np.zeros(0)
 
     def hamiltonian(self, W: Array) -> Array:
         """The paper's ``η(W) = 2 tr W² - ½ tr(W^T B(W))`` (``= 2 tr W²`` on symmetric W),
