@@ -136,6 +136,15 @@ class RunInfo:
         same.
     W0 : ndarray
         The initial condition.
+    checkpoint_seconds : float or None
+        Seconds between the run's checkpoints (``0``: after every chunk of steps; ``None``:
+        after every chunk that holds a saved state).
+    device : str
+        Where the run's steps live (:func:`lieflow.backends.place`: ``"cpu"``, ``"jax"``,
+        ``"cupy:1"``, ...).
+    config_text, config_source : str
+        The configuration the run was made from and where it came from (``lieflow run``;
+        empty for :func:`lieflow.integrate`).
     """
 
     system: Any = attrs.field(repr=False)
@@ -147,6 +156,10 @@ class RunInfo:
     requested_steps: int
     identity: str = attrs.field(repr=False)
     W0: Array = attrs.field(repr=False)
+    checkpoint_seconds: float | None = 1.0
+    device: str = "cpu"
+    config_text: str = attrs.field(default="", repr=False)
+    config_source: str = ""
 
 
 def describe(obj: Any, depth: int = 0) -> Any:
@@ -224,9 +237,13 @@ SinkFactory = Callable[..., Sink]
 DEFAULT_SUFFIX = ".h5"
 
 
-def open_sink(path: Path, run: RunInfo, *, resume: bool, replace: bool) -> Sink:
+def open_sink(
+    path: Path, run: RunInfo, *, resume: bool, replace: bool, make_directory: bool = False
+) -> Sink:
     """The sink the registry holds for ``path``'s suffix (for another suffix, or none, the
-    one for :data:`DEFAULT_SUFFIX`), opened for ``run``.
+    one for :data:`DEFAULT_SUFFIX`), opened for ``run``; ``make_directory``: a missing
+    directory of ``path`` is created (``lieflow run``), else refused (a library call creates
+    no directory its caller did not ask for).
 
     Raises
     ------
@@ -244,7 +261,8 @@ def open_sink(path: Path, run: RunInfo, *, resume: bool, replace: bool) -> Sink:
             "To fix: reinstall lieflow so that its entry points are registered "
             "(pip install -e .; the application registers '.h5'), or pass a Sink object"
         )
-    sink: Sink = entry.factory(path, run, resume=resume, replace=replace)
+    options = {"make_directory": True} if make_directory else {}  # (older factories: none)
+    sink: Sink = entry.factory(path, run, resume=resume, replace=replace, **options)
     return sink
 
 

@@ -143,8 +143,9 @@ def test_hard_kill_then_resume_is_bitwise_identical(tmp_path: Path, reference: P
 
         import attrs
         setup = build(load_config({str(config)!r}), output={str(out)!r})
-        header = attrs.evolve(setup.header(), checkpoint_seconds=0.0)  # after every step
-        io.run_flow(header, setup.flow(), monitor=Kill())
+        run = attrs.evolve(setup.config.run, checkpoint=0.0)  # a checkpoint after every step
+        setup = attrs.evolve(setup, config=attrs.evolve(setup.config, run=run))
+        io.run(setup, monitor=Kill())
         """
     )
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=120)

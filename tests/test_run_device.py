@@ -53,12 +53,14 @@ def test_resume_on_a_device_continues_from_the_checkpoint(
     host = _config(tmp_path, "host", engine="numpy")
     device = _config(tmp_path, "device", device="array_api_strict")
     assert main(["run", str(host), "--no-progress", "--out", str(tmp_path / "host.h5")]) == 0
-    placed: list[str] = []
-    real_place, real_advance = backends.place, lf.driver.advance
+    from lieflow import runs
 
-    def counting(a: Any, name: str) -> Any:
-        placed.append(name)
-        return real_place(a, name)
+    placed: list[Any] = []
+    real_place, real_advance = runs.from_host, lf.driver.advance
+
+    def counting(a: Any, like: Any, dtype: Any = None) -> Any:
+        placed.append(a)
+        return real_place(a, like, dtype)
 
     def interrupted(*args: Any, **kwargs: Any) -> Iterator[lf.driver.Chunk]:
         for chunk in real_advance(*args, **kwargs):
@@ -67,9 +69,7 @@ def test_resume_on_a_device_continues_from_the_checkpoint(
             if chunk.stop == 23:
                 raise KeyboardInterrupt
 
-    from lieflow.app.io import _run
-
-    monkeypatch.setattr(_run, "place", counting)
+    monkeypatch.setattr(runs, "from_host", counting)
     monkeypatch.setattr(lf.driver, "advance", interrupted)
     out = str(tmp_path / "dev.h5")
     assert main(["run", str(device), "--no-progress", "--out", out]) == 130

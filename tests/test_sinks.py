@@ -87,7 +87,7 @@ class InMemory(Closing):
 
 def test_interrupts_are_held_while_durable_sinks_close() -> None:
     default = signal.getsignal(signal.SIGINT)
-    flow = lf.integration.scheme_flow(RB, MID, lf.solvers.FixedPoint(), W0, 3, engine="numpy")
+    flow = lf.engines.scheme_flow(RB, MID, lf.solvers.FixedPoint(), W0, 3, engine="numpy")
     for sinks, held in (((Closing(),), True), ((InMemory(),), False),
                         ((InMemory(), Closing()), True)):  # fmt: skip
         lf.driver.run(flow, W0, 0.1, 3, sinks=sinks)

@@ -15,6 +15,7 @@ import lieflow as lf
 from lieflow.app import io
 from lieflow.app.config import ConfigError
 from lieflow.app.reproduce import Case
+from lieflow.runs import RunSpec
 
 
 def _body() -> tuple[lf.IsospectralSystem, np.ndarray]:
@@ -70,7 +71,7 @@ def test_streaming_options_need_out_and_memory_error_names_them() -> None:
     system, W0 = _body()
     with pytest.raises(lf.InputError, match="out=PATH"):
         lf.integrate(system, lf.schemes.get("midpoint"), W0, 0.1, steps=2, resume=True)
-    from lieflow.integration import _check_memory
+    from lieflow.runs import check_memory as _check_memory
 
     with pytest.raises(lf.InputError, match=r'out="run.h5"'):
         _check_memory(2**62, 10, 1)
@@ -96,9 +97,9 @@ def test_writer_takes_a_header(tmp_path: Path) -> None:
                                  scheme="midpoint", solver="fixed_point", h=0.1, save_every=2,
                                  requested_steps=4, identity="{}", W0=W0,
                                  output=tmp_path / "h.h5")  # fmt: skip
-    flow = lf.SchemeFlow(system, lf.schemes.get("midpoint"), lf.solvers.FixedPoint(), True)
-    summary, error = io.run_flow(header, flow)
-    assert error is None and summary.status == "complete"
+    spec = RunSpec.build(system, lf.schemes.get("midpoint"), W0, 0.1, steps=4, save_every=2)
+    outcome = spec.execute((io.TrajectoryWriter.open(header),))
+    assert outcome.failure is None and outcome.status == "complete"
     assert io.read_trajectory(tmp_path / "h.h5").step.tolist() == [0, 2, 4]
 
 

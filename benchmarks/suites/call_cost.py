@@ -68,7 +68,7 @@ import lieflow as lf
 from lieflow.app.reproduce import Case
 from lieflow.compiled import CompiledSchemeFlow
 from lieflow.engines import scheme_flow
-from lieflow.integration import DEFAULT_SOLVER
+from lieflow.runs import DEFAULT_SOLVER
 
 from ..config import BenchContext
 from ..report import Section, Table, TargetCheck, seconds

@@ -54,17 +54,16 @@ import attrs
 import numpy as np
 
 from ..algebras import Array
-from ..backends import check_device, place
-from ..engines import ENGINES, Engine, scheme_flow
+from ..backends import check_device
+from ..engines import ENGINES, Engine
 from ..errors import InputError, LieflowError, PluginError, quote, shorten, with_fix, without_fix
 from ..flows import Flow, Splitting
-from ..integration import MAX_STEPS
 from ..plugins import Kind, Registry, default_registry
+from ..runs import MAX_STEPS, RunSpec
 from ..schemes.base import Scheme
-from ..sinks import run_identity
+from ..sinks import RunInfo, run_identity
 from ..solvers.base import Solver
 from ..systems.base import IsospectralSystem
-from ..systems.shifted import shifted
 
 if TYPE_CHECKING:  # pragma: no cover
     from .io import TrajectoryHeader
@@ -349,26 +348,11 @@ class RunSetup:
     replace: bool = True
     flows: tuple[Flow, ...] = ()
 
-    def flow(self) -> Flow:
-        """What the run advances: the scheme as a :class:`~lieflow.SchemeFlow` on the
-        ``[run] engine``, composed with the ``[splitting]`` flows if there are any."""
-        run = self.config.run
-        stepped = shifted(self.system, self.W0, run.casimir_shift)
-        # on a device the engine is chosen for the state as it will be placed there: the
-        # traced engine where JAX runs on it, else the array library's eager steps
-        sample = self.W0 if run.device == "cpu" else place(self.W0, run.device)
-        inner = scheme_flow(stepped, self.scheme, self.solver, sample, run.steps,
-                            engine=cast(Engine, run.engine))  # fmt: skip
-        if self.config.splitting is None:
-            return inner
-        return Splitting.named(self.config.splitting.method, *self.flows, inner)
-
-    def header(self) -> TrajectoryHeader:
-        """The trajectory file's header for this run (:class:`lieflow.app.io.TrajectoryHeader`)."""
-        from .io import TrajectoryHeader
-
+    def info(self) -> RunInfo:
+        """What the run's file records about it (:class:`~lieflow.sinks.RunInfo`): the
+        configuration's names, identity and text, the run settings and ``W0``."""
         cfg = self.config
-        return TrajectoryHeader(
+        return RunInfo(
             system=self.system,
             system_name=cfg.system.name,
             scheme=cfg.scheme.name,
@@ -378,14 +362,45 @@ class RunSetup:
             requested_steps=cfg.run.steps,
             identity=cfg.identity(),
             W0=self.W0,
-            output=self.output,
-            replace=self.replace,
-            make_directory=True,
-            config_text=cfg.text,
-            config_source=cfg.source,
             checkpoint_seconds=cfg.run.checkpoint,
             device=cfg.run.device,
+            config_text=cfg.text,
+            config_source=cfg.source,
         )
+
+    def spec(self) -> RunSpec:
+        """The run (:class:`lieflow.runs.RunSpec`): ``W0`` placed on ``[run] device`` (a
+        device that is not there is refused here, before anything is written), the scheme's
+        flow on the ``[run] engine`` chosen for it, composed with the ``[splitting]`` flows
+        if there are any."""
+        run = self.config.run
+        info = self.info()
+
+        def compose(inner: Flow) -> Flow:
+            if self.config.splitting is None:
+                return inner
+            return Splitting.named(self.config.splitting.method, *self.flows, inner)
+
+        return RunSpec.build(
+            self.system, self.scheme, self.W0, run.h, steps=run.steps, solver=self.solver,
+            save_every=run.save_every, engine=cast(Engine, run.engine),
+            checkpoint_seconds=run.checkpoint, casimir_shift=cast(Any, run.casimir_shift),
+            device=run.device, compose=compose, identity=info.identity,
+            names=(info.system_name, info.scheme, info.solver),
+        )  # fmt: skip
+
+    def flow(self) -> Flow:
+        """What the run advances (:attr:`spec`'s flow)."""
+        return self.spec().flow
+
+    def header(self) -> TrajectoryHeader:
+        """The trajectory file's header for this run (:class:`lieflow.app.io.TrajectoryHeader`):
+        :meth:`info` written to :attr:`output`, whose directory is made if missing."""
+        from .io import TrajectoryHeader
+
+        fields = {f.name: getattr(self.info(), f.name) for f in attrs.fields(RunInfo)}
+        return TrajectoryHeader(**fields, output=self.output, replace=self.replace,
+                                make_directory=True)  # fmt: skip
 
 
 def _flatten(value: Any, prefix: str, out: dict[str, Any]) -> dict[str, Any]:

@@ -10,11 +10,19 @@ from typing import Any
 from ..plugins import RegistryBuilder, hookimpl
 
 
-def _trajectory_sink(path: Any, run: Any, *, resume: bool = False, replace: bool = False) -> Any:
+def _trajectory_sink(
+    path: Any,
+    run: Any,
+    *,
+    resume: bool = False,
+    replace: bool = False,
+    make_directory: bool = False,
+) -> Any:
     """HDF5 (netCDF-4) trajectory file, as ``lieflow run`` writes (:mod:`lieflow.app.io`)."""
     from .io import trajectory_sink  # h5py and the file machinery on first use only
 
-    return trajectory_sink(path, run, resume=resume, replace=replace)
+    return trajectory_sink(path, run, resume=resume, replace=replace,
+                           make_directory=make_directory)  # fmt: skip
 
 
 @hookimpl

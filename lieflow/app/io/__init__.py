@@ -48,7 +48,7 @@ The package's modules, one concern each: ``_format`` (format name and version, t
 layouts, the checkpoint digest, netCDF-4 dimensions), ``_lock`` (the output lock; busy,
 damaged and full-disk errors), ``_header`` (what a file records about its run), ``_reader``
 (reading and the checks of a resume), ``_writer`` (:class:`TrajectoryWriter`) and ``_run``
-(:func:`run`, :func:`run_flow`). Every public name is imported from here.
+(:func:`run`). Every public name is imported from here.
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ from ._reader import _check_format as _check_format
 from ._reader import _check_lengths as _check_lengths
 from ._reader import _meta as _meta
 from ._reader import _read_checkpoint as _read_checkpoint
-from ._run import RunSummary, run, run_flow
+from ._run import RunSummary, run
 from ._writer import TrajectorySink as TrajectorySink
 from ._writer import TrajectoryWriter, trajectory_sink
 from ._writer import _ensemble_labels as _ensemble_labels
@@ -109,7 +109,6 @@ __all__ = [
     "read_extra",
     "read_trajectory",
     "run",
-    "run_flow",
     "salvage_fix",
     "trajectory_sink",
 ]

@@ -26,12 +26,14 @@ CHECKPOINT_SECONDS = 1.0
 
 @attrs.frozen(eq=False)
 class TrajectoryHeader(RunInfo):
-    """What a :class:`TrajectoryWriter` needs to know about a run: the file's header, the
-    run's :class:`~lieflow.sinks.RunInfo` (system, names, ``h``, ``save_every``,
-    ``requested_steps``, ``identity``, ``W0``) and where and how to write it.
+    """What a :class:`TrajectoryWriter` needs to know about a run: the run's
+    :class:`~lieflow.sinks.RunInfo` (system, names, ``h``, ``save_every``,
+    ``requested_steps``, ``identity``, ``W0``, checkpoint cadence, device, configuration),
+    written as the file's header, and where and how to write it.
 
-    ``lieflow run`` builds it from its configuration (:meth:`lieflow.app.config.RunSetup.header`),
-    :func:`lieflow.integrate` with ``out=`` from its arguments (:func:`trajectory_sink`).
+    The ``.h5`` sink factory builds it (:func:`trajectory_sink`, through
+    :func:`lieflow.sinks.open_sink` for both :func:`lieflow.integrate` with ``out=`` and
+    ``lieflow run``).
 
     Attributes
     ----------
@@ -43,25 +45,11 @@ class TrajectoryHeader(RunInfo):
         Whether a missing directory of ``output`` is created (``lieflow run``: yes, as
         ``--out results/run.h5`` promises) or refused (:func:`lieflow.integrate`: a library
         call creates no directory tree its caller did not ask for).
-    config_text, config_source : str
-        The configuration's text and where it came from (empty for ``integrate``).
-    checkpoint_seconds : float or None
-        Seconds between checkpoints (the resume point, flushed and fsync'd; and the last
-        one when the run ends however it ends): saved states and diagnostics are buffered
-        and written in blocks in between. ``0``: after every chunk of steps; ``None``:
-        after every chunk that holds a saved state (``[run] checkpoint = "saves"``).
-    device : str
-        Where the steps run (``[run] device``, :func:`lieflow.backends.place`): the state and
-        the warm start read from a checkpoint are placed there once.
     """
 
-    output: Path
-    replace: bool = False
-    config_text: str = attrs.field(default="", repr=False)
-    make_directory: bool = False
-    config_source: str = ""
-    checkpoint_seconds: float | None = CHECKPOINT_SECONDS
-    device: str = "cpu"
+    output: Path = attrs.field(kw_only=True)
+    replace: bool = attrs.field(default=False, kw_only=True)
+    make_directory: bool = attrs.field(default=False, kw_only=True)
 
 
 def _header(run: TrajectoryHeader | RunSetup) -> TrajectoryHeader:

@@ -1,24 +1,19 @@
 """Running a configuration into a trajectory file: :func:`run` (a
-:class:`~lieflow.app.config.RunSetup`), :func:`run_flow` (any flow) and their
-:class:`RunSummary`.
+:class:`~lieflow.app.config.RunSetup`) and its :class:`RunSummary`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
 
 import attrs
-import numpy as np
 
-from ... import _signals, driver, tree
-from ...backends import place
-from ...driver import Cadence, Diagnostics, Monitor
-from ...errors import ConvergenceError, LieflowError
-from ...sinks import Sink
+from ... import _signals
+from ...driver import Monitor
+from ...errors import LieflowError
+from ...sinks import Sink, open_sink
 from ..config import RunSetup
-from ._header import TrajectoryHeader
 from ._writer import TrajectoryWriter
 
 #: ``also(writer) -> sinks``: sinks a run writes besides its trajectory file (:func:`run`).
@@ -64,7 +59,14 @@ def run(
     monitor: Monitor | None = None,
     also: AlsoSinks | None = None,
 ) -> RunSummary:
-    """Integrate ``setup`` and write the trajectory to ``setup.output`` as it proceeds.
+    """Integrate ``setup`` and write the trajectory to ``setup.output`` as it proceeds: its
+    :class:`~lieflow.runs.RunSpec` (``W0`` placed on the device before the file is opened:
+    a device that is not there leaves no file), executed into the file's sink, opened
+    through :func:`lieflow.sinks.open_sink` as :func:`lieflow.integrate` opens it.
+
+    Memory: the writer buffers each chunk's diagnostics (a few numbers per step) and only
+    the states it will save; at every checkpoint (every ``[run] checkpoint`` seconds, and
+    at the end) they are written in one block.
 
     Parameters
     ----------
@@ -92,95 +94,32 @@ def run(
     LieflowError
         A step failed to converge (the file holds the steps before it, status "failed").
     """
-    summary, _ = run_flow(setup.header(), setup.flow(), resume=resume, monitor=monitor,
-                          also=also)  # fmt: skip
+    spec = setup.spec()
+    with _signals.Interrupts() as stop:  # Ctrl-C held from here until stepping, raised there
+        writer = open_sink(setup.output, setup.info(), resume=resume, replace=setup.replace,
+                           make_directory=True)  # fmt: skip
+        assert isinstance(writer, TrajectoryWriter)
+        try:
+            done = 0 if writer.start is None else writer.start.step
+            sinks = (writer, *(also(writer) if also is not None else ()))
+        except BaseException:  # Ctrl-C before stepping: the file says so, and is resumable
+            writer.close("interrupted", None, 0.0)
+            raise
+        outcome = spec.execute(sinks, monitor=monitor, interrupts=stop)
+    completed = writer.completed_steps
+    summary = RunSummary(
+        setup.output,
+        outcome.status,
+        completed,
+        spec.steps,
+        completed - done,
+        outcome.wall_time,
+        writer.max_energy_error,
+        "" if outcome.failure is None else str(outcome.failure),
+    )
     if summary.status == "failed":
         raise LieflowError(
             f"{summary.failure} The {summary.completed_steps} steps before the failure are "
             f"saved in {str(setup.output)!r} (status 'failed')."
         )
     return summary
-
-
-def run_flow(
-    header: TrajectoryHeader,
-    flow: Any,
-    *,
-    resume: bool = False,
-    monitor: Monitor | None = None,
-    also: AlsoSinks | None = None,
-) -> tuple[RunSummary, ConvergenceError | None]:
-    """Advance ``flow`` and write the trajectory to ``header.output`` as it proceeds: the
-    one consumer loop (:func:`lieflow.driver.run`) into a :class:`TrajectoryWriter`.
-
-    Memory: the writer buffers each chunk's diagnostics (a few numbers per step) and only
-    the states it will save; at every checkpoint (every ``header.checkpoint_seconds``, and
-    at the end) they are written in one block.
-
-    Returns
-    -------
-    (RunSummary, ConvergenceError or None)
-        How it ended (``"complete"``, ``"interrupted"`` after Ctrl-C, ``"failed"``), and
-        the error of a failed step (the file then holds the steps before it).
-    """
-    with _signals.Interrupts() as stop:  # Ctrl-C held from here until stepping, raised there
-        return _run_flow(header, flow, resume, monitor, stop, also)
-
-
-def _run_flow(
-    header: TrajectoryHeader,
-    flow: Any,
-    resume: bool,
-    monitor: Monitor | None,
-    interrupts: _signals.Interrupts,
-    also: AlsoSinks | None = None,
-) -> tuple[RunSummary, ConvergenceError | None]:
-    target = header.requested_steps
-    diagnostics = Diagnostics.of(header.system, header.W0, save_every=header.save_every)
-    device = header.device
-    # W0 placed before the file is opened: a device that is not there (its library missing,
-    # no GPU) is refused with nothing written, so the corrected run needs no --force
-    W0 = header.W0 if device == "cpu" else place(header.W0, device)
-    writer = TrajectoryWriter.open(header, resume=resume)
-    try:
-        ck = writer.start
-        if ck is None:
-            W, state, done = W0, None, 0
-        else:
-            W, done = ck.W, ck.step
-            state = ck.state(flow.init(W))
-            if device != "cpu":  # placed once; chunks come back through the sinks
-                W = place(W, device)
-                state = tree.map_leaves(
-                    lambda x: place(x, device) if isinstance(x, np.ndarray) else x, state
-                )
-        sinks = (writer, *(also(writer) if also is not None else ()))
-    except BaseException:  # Ctrl-C before stepping: the file says so, and is resumable
-        writer.close("interrupted", None, 0.0)
-        raise
-    outcome = driver.run(
-        flow,
-        W,
-        header.h,
-        target,
-        sinks=sinks,
-        diagnostics=diagnostics,
-        save_every=header.save_every,
-        start=done,
-        state=state,
-        monitor=monitor,
-        checkpoint=Cadence(seconds=header.checkpoint_seconds),
-        interrupts=interrupts,
-    )
-    completed = writer.completed_steps
-    summary = RunSummary(
-        header.output,
-        outcome.status,
-        completed,
-        target,
-        completed - done,
-        outcome.wall_time,
-        writer.max_energy_error,
-        "" if outcome.failure is None else str(outcome.failure),
-    )
-    return summary, outcome.failure

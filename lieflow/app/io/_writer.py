@@ -649,15 +649,23 @@ TrajectorySink = TrajectoryWriter
 
 
 def trajectory_sink(
-    path: Path, run: RunInfo, *, resume: bool = False, replace: bool = False
+    path: Path,
+    run: RunInfo,
+    *,
+    resume: bool = False,
+    replace: bool = False,
+    make_directory: bool = False,
 ) -> TrajectoryWriter:
     """The sink factory registered for ``.h5`` (:func:`lieflow.sinks.open_sink`): a
     :class:`TrajectoryWriter` on ``path`` for ``run`` — continuing the file from its last
     checkpoint with ``resume`` (if it exists), else creating it (an existing file only with
-    ``replace``)."""
+    ``replace``; a missing directory only with ``make_directory``)."""
     fields = {f.name: getattr(run, f.name) for f in attrs.fields(RunInfo)}
-    output = check_output_path(_as_path(path, "out"), "out")  # not a directory, writable
-    header = TrajectoryHeader(**fields, output=output, replace=replace)
+    output = _as_path(path, "out")
+    if not make_directory:  # a configuration's output was checked when it was read
+        output = check_output_path(output, "out")  # not a directory, writable
+    header = TrajectoryHeader(**fields, output=output, replace=replace,
+                              make_directory=make_directory)  # fmt: skip
     return TrajectoryWriter.open(header, resume=resume)
 
 
