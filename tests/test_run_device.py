@@ -150,3 +150,21 @@ def test_a_device_whose_library_is_missing_says_what_to_install() -> None:
         pytest.skip("CuPy is installed")
     assert backends.place(np.eye(2), "cpu") is not None
     assert backends.namespace(backends.place(np.eye(2), "array_api_strict")) is xps
+
+
+def test_integrate_streams_and_resumes_a_run_on_another_array_library(tmp_path: Path) -> None:
+    """``lf.integrate(out=...)`` with ``W0`` an ``array_api_strict`` array: the file is
+    written from the host a chunk at a time, and a resume places the checkpoint's state and
+    warm start back on the array's library (the one front door: ``lieflow.runs``)."""
+    strict = pytest.importorskip("array_api_strict")
+    system = lf.systems.get("generalized_rigid_body")
+    W0 = system.random_state(4)
+    kwargs: dict[str, Any] = dict(h=0.1, save_every=5)
+    scheme = lf.schemes.get("gauss2")
+    ref = lf.integrate(system, scheme, W0, steps=20, engine="numpy", **kwargs)
+    lf.integrate(system, scheme, strict.asarray(W0), steps=10, out=tmp_path / "d.h5", **kwargs)
+    sol = lf.integrate(system, scheme, strict.asarray(W0), steps=20, out=tmp_path / "d.h5",
+                       resume=True, **kwargs)  # fmt: skip
+    np.testing.assert_allclose(sol.W_final, ref.W_final, rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(sol.iterations, ref.iterations)
+    assert io.read_trajectory(tmp_path / "d.h5").meta["resumes"] == 1
