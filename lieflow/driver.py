@@ -28,7 +28,7 @@ from .algebras import Array
 from .backends import all_finite, is_numpy, to_numpy
 from .errors import ConvergenceError, InputError
 from .flows import Flow
-from .schemes.base import StepStats
+from .steps import StepStats
 from .systems.base import IsospectralSystem
 
 if TYPE_CHECKING:

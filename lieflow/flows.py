@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
 import attrs
 import numpy as np
@@ -34,9 +34,10 @@ import numpy as np
 from .algebras import SO, Array
 from .errors import ConvergenceError, InputError
 from .schemes import contraction
-from .schemes.base import Scheme, StepStats
+from .schemes.base import Scheme
 from .solvers.base import Solver
 from .solvers.fixed_point import FixedPoint, FrozenB
+from .steps import Flow, StepStats
 from .systems.base import IsospectralSystem
 from .systems.shifted import CasimirShifted
 from .tableaus import COMPOSITIONS, composition_weights
@@ -52,24 +53,6 @@ __all__ = [
     "Splitting",
     "StepStats",
 ]
-
-
-@runtime_checkable
-class Flow(Protocol):
-    """One step of an evolution ``W(t) -> W(t + h)``, with state carried between steps."""
-
-    @property
-    def name(self) -> str:
-        """A short name (used in files and reports)."""
-        ...
-
-    def init(self, W0: Array) -> Any:
-        """The state before the first step from ``W0`` (a tree of arrays, or ``None``)."""
-        ...
-
-    def step(self, W: Array, t: float, h: float, state: Any) -> tuple[Array, Any, StepStats]:
-        """Advance ``W`` from time ``t`` by ``h``; return the new ``W``, state and stats."""
-        ...
 
 
 @attrs.frozen(eq=False)

@@ -320,11 +320,11 @@ def test_splitting_config_errors() -> None:
 def test_a_run_that_cannot_fit_in_memory_is_refused_before_it_starts() -> None:
     import importlib
 
-    integrate_module = importlib.import_module("lieflow.integration")
+    runs_module = importlib.import_module("lieflow.runs")
 
     zeitlin_like = lf.systems.get("generalized_rigid_body", J=np.linspace(1.0, 2.0, 256))
     W0 = zeitlin_like.random_state(0)  # 512 KiB a state
-    available = integrate_module._available_memory()
+    available = runs_module._available_memory()
     assert available is not None and available > 0
     steps = int(available / W0.nbytes) + 1  # the saved states alone exceed the memory
     with pytest.raises(lf.InputError, match="save_every=") as info:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from .base import Scheme, StepResult, StepStats
+from .base import Scheme, StepResult
 from .block import BlockGauss, BlockProblem, ReducedProblem
 from .modin_viviani import ModinViviani, ModinVivianiProblem
 from .sydirk import MidpointProblem, SyDIRK
@@ -34,7 +34,6 @@ __all__ = [
     "ReducedProblem",
     "Scheme",
     "StepResult",
-    "StepStats",
     "SyDIRK",
     "available",
     "get",

@@ -13,6 +13,7 @@ from ..algebras import Array, minus_dagger, transpose
 from ..backends import is_numpy, namespace
 from ..errors import ConvergenceError
 from ..solvers.base import ImplicitProblem, Solver, SolveResult, einsum
+from ..steps import StepStats
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau
 from ..underflow import flush_tiny
@@ -24,27 +25,6 @@ P = TypeVar("P", bound=ImplicitProblem)
 #: arrays, the same bits, a third of the time on 3×3) and fresh arrays; larger ones write
 #: products into scratch (:func:`scratch`), as stacks do.
 SMALL = 64
-
-
-@attrs.frozen
-class StepStats:
-    """What one step cost: of a scheme (:attr:`StepResult.stats`) or of any flow
-    (:meth:`Flow.step <lieflow.flows.Flow.step>`).
-
-    Attributes
-    ----------
-    iterations : int
-        Nonlinear-solver updates (summed over the sub-steps of a composition; 0 for an
-        explicit or exact flow).
-    solver : str
-        Name of the solver that finished the (last implicit sub-)step; ``""`` if none.
-    residual : float
-        The largest last relative update of the step's solves (0 if none).
-    """
-
-    iterations: int = 0
-    solver: str = ""
-    residual: float = 0.0
 
 
 @attrs.frozen

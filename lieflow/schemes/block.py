@@ -12,13 +12,13 @@ import numpy as np
 from ..algebras import Array, dagger
 from ..backends import copy, device_of, from_host, identity, is_numpy, namespace
 from ..solvers.base import Solver
+from ..steps import StepStats
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau, gauss, one_of
 from . import conjugation
 from .base import (
     Scheme,
     StepResult,
-    StepStats,
     TableauProblem,
     contract,
     scratch,

@@ -8,13 +8,13 @@ import numpy as np
 from ..algebras import Array
 from ..backends import device_of, identity, namespace
 from ..solvers.base import Solver
+from ..steps import StepStats
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau, one_of
 from . import conjugation
 from .base import (
     Scheme,
     StepResult,
-    StepStats,
     TableauProblem,
     contract,
     solve,

@@ -11,6 +11,7 @@ from ..algebras import Array, minus_dagger
 from ..backends import copy, identity, is_numpy, namespace
 from ..errors import TableauError
 from ..solvers.base import Solver
+from ..steps import StepStats
 from ..systems.base import IsospectralSystem
 from ..tableaus import ButcherTableau, midpoint, one_of
 from . import conjugation
@@ -18,7 +19,6 @@ from .base import (
     Scheme,
     StageProblem,
     StepResult,
-    StepStats,
     real_scalar,
     retry,
     scratch,
