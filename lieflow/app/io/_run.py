@@ -94,8 +94,8 @@ def run(
     LieflowError
         A step failed to converge (the file holds the steps before it, status "failed").
     """
-    spec = setup.spec()
     with _signals.Interrupts() as stop:  # Ctrl-C held from here until stepping, raised there
+        spec = setup.spec()  # W0 on its device first: a device not there leaves no file
         writer = open_sink(setup.output, setup.info(), resume=resume, replace=setup.replace,
                            make_directory=True)  # fmt: skip
         assert isinstance(writer, TrajectoryWriter)
