@@ -143,7 +143,7 @@ def test_hard_kill_then_resume_is_bitwise_identical(tmp_path: Path, reference: P
 
         import attrs
         setup = build(load_config({str(config)!r}), output={str(out)!r})
-        header = attrs.evolve(setup.header(), checkpoint_seconds=0.0)  # after every step
+        header = attrs.evolve(io.TrajectoryHeader.of(setup), checkpoint_seconds=0.0)  # every step
         io.run_flow(header, setup.flow(), monitor=Kill())
         """
     )

@@ -28,7 +28,6 @@ from __future__ import annotations
 import itertools
 import json
 import os
-import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -37,12 +36,13 @@ import numpy as np
 
 from ..errors import InputError, LieflowError
 
-if sys.version_info >= (3, 11):
-    pass
-else:  # pragma: no cover - Python 3.10
-    pass
+__all__ = ["MANIFEST", "SWEEP_FORMAT", "ZARR_STORE", "open_run", "open_sweep", "write_zarr_run"]
 
-__all__ = ["ZARR_STORE", "open_run", "open_sweep", "write_zarr_run"]
+#: A sweep's directory (``lieflow sweep``): its manifest, the trajectory files ``runs/<id>.h5``
+#: and, with ``store = "zarr"``, the Zarr store (:data:`ZARR_STORE`). The manifest lists every
+#: run (parameters, status, error, file) and names its format (:data:`SWEEP_FORMAT`).
+MANIFEST = "manifest.json"
+SWEEP_FORMAT = "lieflow-sweep"
 
 
 def _xarray() -> Any:
@@ -456,8 +456,6 @@ def _stored_run(
 
 
 def _manifest(path: Path | str) -> tuple[Path, dict[str, Any]]:
-    from .sweeps import MANIFEST, SWEEP_FORMAT
-
     p = Path(path)
     if p.is_dir():
         p = p / MANIFEST

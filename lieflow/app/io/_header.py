@@ -8,17 +8,12 @@ from __future__ import annotations
 import platform
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import attrs
 import numpy as np
 
 from ...sinks import RunInfo
 from ..config import RunSetup
-
-if TYPE_CHECKING:  # pragma: no cover
-    pass
-
 
 #: Default seconds between the checkpoints of a trajectory file (:class:`TrajectoryHeader`).
 CHECKPOINT_SECONDS = 1.0
@@ -30,8 +25,8 @@ class TrajectoryHeader(RunInfo):
     run's :class:`~lieflow.sinks.RunInfo` (system, names, ``h``, ``save_every``,
     ``requested_steps``, ``identity``, ``W0``) and where and how to write it.
 
-    ``lieflow run`` builds it from its configuration (:meth:`lieflow.app.config.RunSetup.header`),
-    :func:`lieflow.integrate` with ``out=`` from its arguments (:func:`trajectory_sink`).
+    ``lieflow run`` builds it from its configuration (:meth:`of`), :func:`lieflow.integrate`
+    with ``out=`` from its arguments (:func:`trajectory_sink`).
 
     Attributes
     ----------
@@ -63,10 +58,33 @@ class TrajectoryHeader(RunInfo):
     checkpoint_seconds: float | None = CHECKPOINT_SECONDS
     device: str = "cpu"
 
+    @classmethod
+    def of(cls, setup: RunSetup) -> TrajectoryHeader:
+        """The trajectory file's header for the run ``setup`` (:func:`lieflow.app.config.build`)."""
+        cfg = setup.config
+        return cls(
+            system=setup.system,
+            system_name=cfg.system.name,
+            scheme=cfg.scheme.name,
+            solver=cfg.solver.name,
+            h=cfg.run.h,
+            save_every=cfg.run.save_every,
+            requested_steps=cfg.run.steps,
+            identity=cfg.identity(),
+            W0=setup.W0,
+            output=setup.output,
+            replace=setup.replace,
+            make_directory=True,
+            config_text=cfg.text,
+            config_source=cfg.source,
+            checkpoint_seconds=cfg.run.checkpoint,
+            device=cfg.run.device,
+        )
+
 
 def _header(run: TrajectoryHeader | RunSetup) -> TrajectoryHeader:
-    """``run`` as a :class:`TrajectoryHeader` (a :class:`RunSetup` builds its own)."""
-    return run if isinstance(run, TrajectoryHeader) else run.header()
+    """``run`` as a :class:`TrajectoryHeader` (:meth:`TrajectoryHeader.of` a :class:`RunSetup`)."""
+    return run if isinstance(run, TrajectoryHeader) else TrajectoryHeader.of(run)
 
 
 def environment() -> dict[str, str]:

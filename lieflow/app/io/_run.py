@@ -92,7 +92,7 @@ def run(
     LieflowError
         A step failed to converge (the file holds the steps before it, status "failed").
     """
-    summary, _ = run_flow(setup.header(), setup.flow(), resume=resume, monitor=monitor,
+    summary, _ = run_flow(TrajectoryHeader.of(setup), setup.flow(), resume=resume, monitor=monitor,
                           also=also)  # fmt: skip
     if summary.status == "failed":
         raise LieflowError(
