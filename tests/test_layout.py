@@ -18,6 +18,7 @@ APP_MODULES = {
     "io",
     "plotting",
     "plugin",
+    "reports",
     "reproduce",
     "salvage",
     "studies",
