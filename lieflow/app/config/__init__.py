@@ -33,7 +33,7 @@ settings::
 
 :func:`parse_config` turns the text into a frozen :class:`Config` (checking every key's
 presence and type, refusing unknown keys), and :func:`build` turns a :class:`Config` into
-the objects of a run (:class:`RunSetup`): system, scheme and solver from the registry, the
+the objects of a run (:class:`BuiltRun`): system, scheme and solver from the registry, the
 validated initial condition and the checked output path. Every problem raises
 :class:`ConfigError`, whose one-paragraph message names the key and the fix; nothing is
 written to disk by either function.
@@ -41,28 +41,28 @@ written to disk by either function.
 
 from __future__ import annotations
 
-from ._build import RunSetup, build, check_output_path
+from ._build import BuiltRun, build, check_output_path
 from ._model import (
     Component,
     Config,
     InitialCondition,
     Perturbation,
-    RunSettings,
-    SplittingSettings,
+    RunSection,
+    SplittingSection,
     identity_changes,
 )
 from ._parse import load_config, parse_config
 from ._toml import ConfigError, read_toml_file
 
 __all__ = [
+    "BuiltRun",
     "Component",
     "Config",
     "ConfigError",
     "InitialCondition",
     "Perturbation",
-    "RunSettings",
-    "RunSetup",
-    "SplittingSettings",
+    "RunSection",
+    "SplittingSection",
     "build",
     "check_output_path",
     "identity_changes",

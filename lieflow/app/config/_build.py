@@ -1,5 +1,5 @@
 """Building a run from its configuration: system, scheme, solver and flows from the registry,
-the validated initial condition, the checked output path (:func:`build`, :class:`RunSetup`);
+the validated initial condition, the checked output path (:func:`build`, :class:`BuiltRun`);
 nothing is written."""
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from ._toml import ConfigError
 
 
 @attrs.frozen(eq=False)
-class RunSetup:
+class BuiltRun:
     """Everything a run needs, built and validated; nothing has been written yet.
 
     Attributes
@@ -231,7 +231,7 @@ def build(
     output: Path | str | None = None,
     registry: Registry | None = None,
     replace: bool = True,
-) -> RunSetup:
+) -> BuiltRun:
     """Build and validate every object of a run; write nothing.
 
     Parameters
@@ -243,7 +243,7 @@ def build(
     registry : Registry, optional
         Where names are looked up (default: :func:`lieflow.default_registry`).
     replace : bool
-        Whether the run may replace an existing output file (:attr:`RunSetup.replace`;
+        Whether the run may replace an existing output file (:attr:`BuiltRun.replace`;
         ``lieflow run`` passes its ``--force``).
 
     Raises
@@ -275,4 +275,4 @@ def build(
                 "there would destroy it. To fix: choose another output file.",
                 key,
             )
-    return RunSetup(config, system, scheme, solver, W0, out, replace, flows)
+    return BuiltRun(config, system, scheme, solver, W0, out, replace, flows)

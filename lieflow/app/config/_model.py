@@ -1,5 +1,5 @@
 """What a run configuration holds, parsed and type-checked: :class:`Config` and its
-sections (:class:`Component`, :class:`InitialCondition`, :class:`RunSettings`, ...), and the
+sections (:class:`Component`, :class:`InitialCondition`, :class:`RunSection`, ...), and the
 identity of a run (:meth:`Config.identity`, :func:`identity_changes`)."""
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ class Component:
 
 
 @attrs.frozen
-class SplittingSettings:
+class SplittingSection:
     """The optional ``[splitting]`` section: the scheme composed with other flows.
 
     Attributes
@@ -132,7 +132,7 @@ class Perturbation:
 
 
 @attrs.frozen
-class RunSettings:
+class RunSection:
     """The ``[run]`` section: step size, number of steps, save cadence and output file.
 
     Attributes
@@ -189,7 +189,7 @@ class Config:
         Registry names and parameters.
     initial : InitialCondition
         How to make ``W0``.
-    run : RunSettings
+    run : RunSection
         Step size, steps, save cadence, output path.
     text : str
         The configuration's full text (stored in the output file).
@@ -201,10 +201,10 @@ class Config:
     initial: InitialCondition
     scheme: Component
     solver: Component
-    run: RunSettings
+    run: RunSection
     text: str = attrs.field(repr=False)
     source: str = "<string>"
-    splitting: SplittingSettings | None = None
+    splitting: SplittingSection | None = None
 
     def identity(self) -> str:
         """JSON of everything that defines the trajectory except its length and location

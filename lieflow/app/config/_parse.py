@@ -20,8 +20,8 @@ from ._model import (
     Config,
     InitialCondition,
     Perturbation,
-    RunSettings,
-    SplittingSettings,
+    RunSection,
+    SplittingSection,
 )
 from ._toml import ConfigError, _fail, _parse_toml, _Section, read_toml_file
 
@@ -38,7 +38,7 @@ def _component(raw: Mapping[str, Any], name: str, source: str) -> Component:
     return comp
 
 
-def _splitting(raw: Mapping[str, Any], source: str) -> SplittingSettings:
+def _splitting(raw: Mapping[str, Any], source: str) -> SplittingSection:
     sec = _Section(raw, "splitting", source)
     method = sec.string("method", required=False, hint='"strang"') or "strang"
     if method not in SPLITTINGS:
@@ -57,7 +57,7 @@ def _splitting(raw: Mapping[str, Any], source: str) -> SplittingSettings:
         )
     sec.finish()
     flows = tuple(_component(item, f"splitting.flows[{i}]", source) for i, item in enumerate(items))
-    return SplittingSettings(method, flows)
+    return SplittingSection(method, flows)
 
 
 def _initial(raw: Mapping[str, Any], source: str, base: Path) -> InitialCondition:
@@ -199,7 +199,7 @@ def _steps(sec: _Section, h: float) -> tuple[int, float | None]:
     return steps, t_final
 
 
-def _run(raw: Mapping[str, Any], source: str, base: Path, default_output: str) -> RunSettings:
+def _run(raw: Mapping[str, Any], source: str, base: Path, default_output: str) -> RunSection:
     sec = _Section(raw, "run", source)
     h = sec.number("h")
     assert h is not None
@@ -256,7 +256,7 @@ def _run(raw: Mapping[str, Any], source: str, base: Path, default_output: str) -
         )  # fmt: skip
     sec.finish()
     out = Path(output or default_output).expanduser()
-    return RunSettings(
+    return RunSection(
         h,
         steps,
         save_every or 1,

@@ -74,8 +74,8 @@ from ._lock import _Reading as _Reading
 from ._new_file import _ensemble_labels as _ensemble_labels
 from ._reader import (
     Checkpoint,
-    RunDiagnostics,
     Trajectory,
+    TrajectoryDiagnostics,
     format_version,
     read_checkpoint,
     read_diagnostics,
@@ -98,9 +98,9 @@ __all__ = [
     "DiskFullError",
     "Monitor",
     "OutputBusyError",
-    "RunDiagnostics",
     "RunSummary",
     "Trajectory",
+    "TrajectoryDiagnostics",
     "TrajectoryHeader",
     "TrajectoryWriter",
     "checkpoint_digest",

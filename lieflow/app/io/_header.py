@@ -13,7 +13,7 @@ import attrs
 import numpy as np
 
 from ...sinks import RunInfo
-from ..config import RunSetup
+from ..config import BuiltRun
 
 #: Default seconds between the checkpoints of a trajectory file (:class:`TrajectoryHeader`).
 CHECKPOINT_SECONDS = 1.0
@@ -59,7 +59,7 @@ class TrajectoryHeader(RunInfo):
     device: str = "cpu"
 
     @classmethod
-    def of(cls, setup: RunSetup) -> TrajectoryHeader:
+    def of(cls, setup: BuiltRun) -> TrajectoryHeader:
         """The trajectory file's header for the run ``setup`` (:func:`lieflow.app.config.build`)."""
         cfg = setup.config
         return cls(
@@ -82,8 +82,8 @@ class TrajectoryHeader(RunInfo):
         )
 
 
-def _header(run: TrajectoryHeader | RunSetup) -> TrajectoryHeader:
-    """``run`` as a :class:`TrajectoryHeader` (:meth:`TrajectoryHeader.of` a :class:`RunSetup`)."""
+def _header(run: TrajectoryHeader | BuiltRun) -> TrajectoryHeader:
+    """``run`` as a :class:`TrajectoryHeader` (:meth:`TrajectoryHeader.of` a :class:`BuiltRun`)."""
     return run if isinstance(run, TrajectoryHeader) else TrajectoryHeader.of(run)
 
 

@@ -475,7 +475,7 @@ def read_trajectory(path: Path | str) -> Trajectory:
 
 
 @attrs.frozen(eq=False)
-class RunDiagnostics:
+class TrajectoryDiagnostics:
     """A trajectory file without its saved states (:func:`read_diagnostics`).
 
     Attributes
@@ -498,7 +498,7 @@ class RunDiagnostics:
     iterations: Array = attrs.field(repr=False)
 
 
-def read_diagnostics(path: Path | str) -> RunDiagnostics:
+def read_diagnostics(path: Path | str) -> TrajectoryDiagnostics:
     """The per-step diagnostics, the initial and the last checkpointed state of a trajectory
     file — everything but the saved states, so it fits in memory whatever the run's length.
 
@@ -510,7 +510,7 @@ def read_diagnostics(path: Path | str) -> RunDiagnostics:
     with _opened(path) as (f, ck, layout):
         k = ck.step
         at = layout.paths
-        return RunDiagnostics(
+        return TrajectoryDiagnostics(
             completed_steps=k,
             W0=f[at["W0"]][()],
             W=np.asarray(ck.W),

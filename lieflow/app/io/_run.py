@@ -1,5 +1,5 @@
 """Running a configuration into a trajectory file: :func:`run` (a
-:class:`~lieflow.app.config.RunSetup`), :func:`run_flow` (any flow) and their
+:class:`~lieflow.app.config.BuiltRun`), :func:`run_flow` (any flow) and their
 :class:`RunSummary`.
 """
 
@@ -17,7 +17,7 @@ from ...backends import place
 from ...driver import Cadence, Diagnostics, Monitor
 from ...errors import ConvergenceError, LieflowError
 from ...sinks import Sink
-from ..config import RunSetup
+from ..config import BuiltRun
 from ._header import TrajectoryHeader
 from ._writer import TrajectoryWriter
 
@@ -58,7 +58,7 @@ class RunSummary:
 
 
 def run(
-    setup: RunSetup,
+    setup: BuiltRun,
     *,
     resume: bool = False,
     monitor: Monitor | None = None,
@@ -68,7 +68,7 @@ def run(
 
     Parameters
     ----------
-    setup : RunSetup
+    setup : BuiltRun
         A validated run (:func:`lieflow.app.config.build`).
     resume : bool
         Continue the existing file from its last checkpoint (bit-for-bit the same as an

@@ -22,7 +22,7 @@ from ...driver import Chunk, ChunkDiagnostics, Diagnostics
 from ...errors import ConvergenceError, LieflowError
 from ...sinks import Ending, RunInfo, to_host
 from ...solution import Solution, Status
-from ..config import RunSetup, check_output_path
+from ..config import BuiltRun, check_output_path
 from ._disk import (
     _ATTRIBUTES_ROOM,
     _close_quietly,
@@ -95,7 +95,7 @@ class TrajectoryWriter:
     """
 
     def __init__(
-        self, f: h5py.File, header: TrajectoryHeader | RunSetup, lock: _OutputLock | None = None
+        self, f: h5py.File, header: TrajectoryHeader | BuiltRun, lock: _OutputLock | None = None
     ) -> None:
         header = _header(header)
         self._f = f
@@ -163,9 +163,9 @@ class TrajectoryWriter:
     # -- creation --------------------------------------------------------------------------
 
     @classmethod
-    def create(cls, run: TrajectoryHeader | RunSetup) -> TrajectoryWriter:
+    def create(cls, run: TrajectoryHeader | BuiltRun) -> TrajectoryWriter:
         """Create ``run.output`` holding the header and step 0, and lock it (``run``: a
-        :class:`TrajectoryHeader`, or a :class:`~lieflow.app.config.RunSetup` for its header).
+        :class:`TrajectoryHeader`, or a :class:`~lieflow.app.config.BuiltRun` for its header).
 
         The file is written under a temporary name in the same directory and then given its
         name, so a failure leaves no partial file. A missing directory is created only with
@@ -226,10 +226,10 @@ class TrajectoryWriter:
             raise
 
     @classmethod
-    def reopen(cls, run: TrajectoryHeader | RunSetup) -> tuple[TrajectoryWriter, Checkpoint]:
+    def reopen(cls, run: TrajectoryHeader | BuiltRun) -> tuple[TrajectoryWriter, Checkpoint]:
         """Open ``run.output`` to resume, lock it, and return the writer and the last
         checkpoint; everything written after that checkpoint is dropped (``run``: a
-        :class:`TrajectoryHeader`, or a :class:`~lieflow.app.config.RunSetup` for its header).
+        :class:`TrajectoryHeader`, or a :class:`~lieflow.app.config.BuiltRun` for its header).
 
         Every check runs before the file is opened for writing, so a refused file is left
         byte for byte as it was: it must be a lieflow trajectory of the same configuration
@@ -275,7 +275,7 @@ class TrajectoryWriter:
         return writer, ck
 
     @classmethod
-    def open(cls, run: TrajectoryHeader | RunSetup, *, resume: bool = False) -> TrajectoryWriter:
+    def open(cls, run: TrajectoryHeader | BuiltRun, *, resume: bool = False) -> TrajectoryWriter:
         """:meth:`reopen` ``run.output`` if ``resume`` and it exists (the writer's
         :attr:`start` is then its last checkpoint), else :meth:`create` it."""
         setup = _header(run)

@@ -1,6 +1,6 @@
 """The paper's experiments: its integrators and published tables (:data:`SCHEMES`,
 :func:`published`), the cases (:class:`Case`, :func:`paper_cases`) and one run of a case
-(:func:`run_case`, :func:`run_paper_algorithm`) measured as a :class:`RunRecord`."""
+(:func:`run_case`, :func:`run_paper_algorithm`) measured as a :class:`CaseResult`."""
 
 from __future__ import annotations
 
@@ -147,7 +147,7 @@ def paper_cases(quick: bool = False) -> tuple[Case, ...]:
 
 
 @attrs.frozen(eq=False)
-class RunRecord:
+class CaseResult:
     """Measurements of one run.
 
     Attributes
@@ -183,7 +183,7 @@ class RunRecord:
     energy_error: Array = attrs.field(repr=False)
 
     @classmethod
-    def from_solution(cls, case: Case, scheme: str, sol: Solution) -> RunRecord:
+    def from_solution(cls, case: Case, scheme: str, sol: Solution) -> CaseResult:
         """Summarise a :class:`Solution`."""
         assert sol.energy_error is not None and sol.casimir_drift is not None
         return cls(
@@ -200,7 +200,7 @@ class RunRecord:
         )
 
 
-def run_case(case: Case, scheme: str, seed: int) -> RunRecord:
+def run_case(case: Case, scheme: str, seed: int) -> CaseResult:
     """Run ``scheme`` on ``case`` (fixed point with relative tolerance ``case.tol``)."""
     system, W0 = case.build(seed)
     sol = integrate(
@@ -212,10 +212,10 @@ def run_case(case: Case, scheme: str, seed: int) -> RunRecord:
         solver=FixedPoint(rtol=case.tol),
         save_every=max(1, case.steps // 20),
     )
-    return RunRecord.from_solution(case, scheme, sol)
+    return CaseResult.from_solution(case, scheme, sol)
 
 
-def run_paper_algorithm(case: Case, scheme: str, seed: int) -> RunRecord:
+def run_paper_algorithm(case: Case, scheme: str, seed: int) -> CaseResult:
     """Run the paper's own algorithm for ``scheme`` on ``case``: the block form (SPEC §4.3)
     for ``gauss2``/``gauss3`` (SyDIRK schemes are the paper's minimal-variable form
     already), cold starts, and the absolute stopping test ``||X_{k+1} - X_k||_F <=
@@ -236,7 +236,7 @@ def run_paper_algorithm(case: Case, scheme: str, seed: int) -> RunRecord:
         save_every=max(1, case.steps // 20),
         engine="numpy",
     )
-    return RunRecord.from_solution(case, scheme, sol)
+    return CaseResult.from_solution(case, scheme, sol)
 
 
 def warm_up(seed: int) -> None:

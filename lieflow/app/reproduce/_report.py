@@ -13,18 +13,18 @@ from ._cases import (
     _TABLES,
     ITERATION_SCHEMES,
     SCHEMES,
-    RunRecord,
+    CaseResult,
     _scheme_label,
     _system_title,
     published,
 )
 
 
-def _by_system(records: Sequence[RunRecord], system: str) -> list[RunRecord]:
+def _by_system(records: Sequence[CaseResult], system: str) -> list[CaseResult]:
     return [r for r in records if r.case.system == system]
 
 
-def _case_labels(records: Sequence[RunRecord]) -> list[str]:
+def _case_labels(records: Sequence[CaseResult]) -> list[str]:
     labels: list[str] = []
     for r in records:
         if r.case.label not in labels:
@@ -32,11 +32,11 @@ def _case_labels(records: Sequence[RunRecord]) -> list[str]:
     return labels
 
 
-def _lookup(records: Sequence[RunRecord], label: str, scheme: str) -> RunRecord:
+def _lookup(records: Sequence[CaseResult], label: str, scheme: str) -> CaseResult:
     return next(r for r in records if r.case.label == label and r.scheme == scheme)
 
 
-def _figures(records: Sequence[RunRecord], out: Path) -> list[Path]:
+def _figures(records: Sequence[CaseResult], out: Path) -> list[Path]:
     from ..plotting import Curve, Panel, energy_figure
 
     paths = []
@@ -82,7 +82,7 @@ _CSV_COLUMNS = (
 )
 
 
-def _paper_numbers(r: RunRecord) -> tuple[float | None, int | None]:
+def _paper_numbers(r: CaseResult) -> tuple[float | None, int | None]:
     pub = published(r.case.system, r.case.label)
     if pub is None:
         return None, None
@@ -96,7 +96,7 @@ def _paper_numbers(r: RunRecord) -> tuple[float | None, int | None]:
     return wall, its
 
 
-def _write_csv(records: Sequence[RunRecord], path: Path, seed: int) -> Path:
+def _write_csv(records: Sequence[CaseResult], path: Path, seed: int) -> Path:
     with path.open("w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
         writer.writerow(_CSV_COLUMNS)
@@ -131,7 +131,7 @@ def _seconds(x: float | None) -> str:
     return "n/a" if x is None else f"{x:.4f}"
 
 
-def _time_table(recs: Sequence[RunRecord]) -> str:
+def _time_table(recs: Sequence[CaseResult]) -> str:
     header = ["case"]
     for _, name in SCHEMES:
         header += [f"{name} lieflow", f"{name} paper"]
@@ -145,12 +145,12 @@ def _time_table(recs: Sequence[RunRecord]) -> str:
     return md_table(header, rows)
 
 
-def _count(r: RunRecord) -> str:
+def _count(r: CaseResult) -> str:
     """An iteration count as the paper counts it (updates in brackets)."""
     return f"{r.max_iterations - 1} ({r.max_iterations} updates)"
 
 
-def _beside_paper(recs: Sequence[RunRecord], label: str) -> list[str]:
+def _beside_paper(recs: Sequence[CaseResult], label: str) -> list[str]:
     """Each scheme's count for case ``label`` beside the published one."""
     cells = []
     for scheme in ITERATION_SCHEMES:
@@ -160,7 +160,7 @@ def _beside_paper(recs: Sequence[RunRecord], label: str) -> list[str]:
     return cells
 
 
-def _iteration_table(recs: Sequence[RunRecord]) -> str:
+def _iteration_table(recs: Sequence[CaseResult]) -> str:
     header = ["case"]
     for scheme in ITERATION_SCHEMES:
         name = _scheme_label(scheme)
@@ -169,7 +169,7 @@ def _iteration_table(recs: Sequence[RunRecord]) -> str:
     return md_table(header, rows)
 
 
-def _like_with_like_table(recs: Sequence[RunRecord], paper_algorithm: Sequence[RunRecord]) -> str:
+def _like_with_like_table(recs: Sequence[CaseResult], paper_algorithm: Sequence[CaseResult]) -> str:
     """Table 4: the paper's algorithm beside the published counts (paper's count, updates
     in brackets), then lieflow's defaults in separate, labelled columns."""
     header = ["case"]
@@ -187,7 +187,7 @@ def _like_with_like_table(recs: Sequence[RunRecord], paper_algorithm: Sequence[R
     return md_table(header, rows)
 
 
-def _conservation_table(records: Sequence[RunRecord]) -> str:
+def _conservation_table(records: Sequence[CaseResult]) -> str:
     header = [
         "system",
         "case",
@@ -237,13 +237,13 @@ _CAPTIONS = {
 
 
 def _write_report(
-    records: Sequence[RunRecord],
+    records: Sequence[CaseResult],
     path: Path,
     *,
     seed: int,
     quick: bool,
     total_time: float,
-    paper_algorithm: Sequence[RunRecord] = (),
+    paper_algorithm: Sequence[CaseResult] = (),
 ) -> Path:
     from ... import __version__
 

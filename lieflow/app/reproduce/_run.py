@@ -15,7 +15,7 @@ from ..reports import output_dir
 from ._cases import (
     ITERATION_SCHEMES,
     SCHEMES,
-    RunRecord,
+    CaseResult,
     paper_cases,
     run_case,
     run_paper_algorithm,
@@ -29,13 +29,13 @@ class ReproduceResult:
     """What :func:`reproduce` did: every run and the files it wrote."""
 
     out_dir: Path
-    records: tuple[RunRecord, ...]
+    records: tuple[CaseResult, ...]
     files: tuple[Path, ...]
     seed: int
     quick: bool
     total_time: float
     #: the paper's algorithm (:func:`run_paper_algorithm`) on the Toda cases, for Table 4
-    paper_algorithm: tuple[RunRecord, ...] = ()
+    paper_algorithm: tuple[CaseResult, ...] = ()
 
 
 def reproduce(
@@ -79,7 +79,7 @@ def reproduce(
     total = len(cases) * len(SCHEMES)
     start = time.perf_counter()
     warm_up(seed)
-    records: list[RunRecord] = []
+    records: list[CaseResult] = []
     for case in cases:
         for scheme, label in SCHEMES:
             rec = run_case(case, scheme, seed)

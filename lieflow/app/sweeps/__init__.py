@@ -37,7 +37,7 @@ from __future__ import annotations
 from ..datasets import MANIFEST, SWEEP_FORMAT
 from ._coordinator import STATUSES, SWEEP_FORMAT_VERSION
 from ._files import file_status
-from ._grid import Axis, RunSpec, Sweep, load_sweep, parse_sweep, run_id
+from ._grid import Axis, Sweep, SweepRun, load_sweep, parse_sweep, run_id
 from ._progress import SweepMonitor, SweepProgress
 from ._sweep import STORES, SweepResult, sweep
 from ._worker import run_task
@@ -49,11 +49,11 @@ __all__ = [
     "SWEEP_FORMAT",
     "SWEEP_FORMAT_VERSION",
     "Axis",
-    "RunSpec",
     "Sweep",
     "SweepMonitor",
     "SweepProgress",
     "SweepResult",
+    "SweepRun",
     "file_status",
     "load_sweep",
     "parse_sweep",

@@ -19,7 +19,7 @@ from ...errors import LieflowError
 from ..datasets import SWEEP_FORMAT
 from ._executors import _LocalPool
 from ._files import _file_state, _is_complete, _max_energy_error
-from ._grid import RunSpec, Sweep
+from ._grid import Sweep, SweepRun
 from ._progress import SweepMonitor
 from ._store import _consolidate, _store_complete_runs
 from ._worker import run_task
@@ -66,7 +66,7 @@ class _Coordinator:
         self.t0 = time.time() - 1.0
 
     def _record(
-        self, spec: RunSpec, state: Mapping[str, Any] | None, previous: Mapping[str, Any]
+        self, spec: SweepRun, state: Mapping[str, Any] | None, previous: Mapping[str, Any]
     ) -> dict[str, Any]:
         complete = _is_complete(spec, state)
         carried = {}

@@ -9,10 +9,10 @@ from typing import Any
 
 import numpy as np
 
-from ._grid import RunSpec
+from ._grid import SweepRun
 
 
-def _file_state(spec: RunSpec) -> dict[str, Any] | None:
+def _file_state(spec: SweepRun) -> dict[str, Any] | None:
     """The status and step counts a run's file records, or None (missing, locked,
     unreadable: the run is then attempted, and the attempt reports what is wrong)."""
     if not spec.output.exists():
@@ -35,7 +35,7 @@ def _file_state(spec: RunSpec) -> dict[str, Any] | None:
         return None
 
 
-def file_status(spec: RunSpec) -> str:
+def file_status(spec: SweepRun) -> str:
     """What a run's file says: ``"complete"``, ``"to run"`` (no file yet), or its status
     and steps (``"interrupted 120/400"``; ``"other config"`` when it is the file of another
     configuration); nothing is written."""
@@ -58,7 +58,7 @@ def _max_energy_error(path: Path) -> float | None:
         return None
 
 
-def _is_complete(spec: RunSpec, state: Mapping[str, Any] | None) -> bool:
+def _is_complete(spec: SweepRun, state: Mapping[str, Any] | None) -> bool:
     return (
         state is not None
         and state["status"] == "complete"

@@ -1,5 +1,5 @@
 """The grid of a sweep: a base run configuration and the ``[sweep]`` table of swept keys,
-parsed into :class:`Sweep` with one checked :class:`RunSpec` (and one file) per point
+parsed into :class:`Sweep` with one checked :class:`SweepRun` (and one file) per point
 (:func:`parse_sweep`, :func:`load_sweep`, :func:`run_id`)."""
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ class Axis:
 
 
 @attrs.frozen(eq=False)
-class RunSpec:
+class SweepRun:
     """One run of a sweep.
 
     Attributes
@@ -87,7 +87,7 @@ class Sweep:
     text: str = attrs.field(repr=False)
     axes: tuple[Axis, ...]
     directory: Path
-    runs: tuple[RunSpec, ...] = attrs.field(repr=False)
+    runs: tuple[SweepRun, ...] = attrs.field(repr=False)
     base_dir: Path = attrs.field(factory=Path.cwd, repr=False)
 
     @property
@@ -426,7 +426,7 @@ def parse_sweep(
             raise ConfigError(
                 f"{exc} (in the run with {shown or 'no swept keys'})", exc.key
             ) from None
-        runs.append(RunSpec(rid, tuple(index), MappingProxyType(params), config, output))
+        runs.append(SweepRun(rid, tuple(index), MappingProxyType(params), config, output))
     ids = [r.id for r in runs]
     if len(set(ids)) != len(ids):  # pragma: no cover - needs a SHA-256 collision
         raise _fail(source, "[sweep]", "two runs have the same id", "report this")

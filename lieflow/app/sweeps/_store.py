@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from ...errors import LieflowError
-from ._grid import RunSpec
+from ._grid import SweepRun
 
 
 def _store_sink(task: Mapping[str, Any], opened: list[Any]) -> Any:
@@ -59,7 +59,7 @@ def _consolidate(store: Path) -> None:
 
 
 def _store_complete_runs(
-    store: Path, runs: Sequence[RunSpec], records: Sequence[Mapping[str, Any]]
+    store: Path, runs: Sequence[SweepRun], records: Sequence[Mapping[str, Any]]
 ) -> None:
     """Create the Zarr store and write into it the complete runs it lacks (``records``: the
     manifest's records of ``runs``; a sweep run before without ``store``); the runs still to
