@@ -86,7 +86,7 @@ from ._reader import _check_format as _check_format
 from ._reader import _check_lengths as _check_lengths
 from ._reader import _meta as _meta
 from ._reader import _read_checkpoint as _read_checkpoint
-from ._run import RunSummary, run, run_flow
+from ._run import TrajectorySummary, run, run_flow
 from ._writer import TrajectorySink as TrajectorySink
 from ._writer import TrajectoryWriter, trajectory_sink
 
@@ -98,10 +98,10 @@ __all__ = [
     "DiskFullError",
     "Monitor",
     "OutputBusyError",
-    "RunSummary",
     "Trajectory",
     "TrajectoryDiagnostics",
     "TrajectoryHeader",
+    "TrajectorySummary",
     "TrajectoryWriter",
     "checkpoint_digest",
     "environment",

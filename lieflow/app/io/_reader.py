@@ -54,8 +54,10 @@ if TYPE_CHECKING:  # pragma: no cover
 
 @attrs.frozen(eq=False)
 class Checkpoint:
-    """A resumable state: ``W`` after step ``step`` and the flow's state then, stored leaf
-    by leaf (:mod:`lieflow.tree`: ``leaves`` maps each leaf's path to its value)."""
+    """Where a run resumes (a :class:`lieflow.sinks.ResumePoint`): ``W`` after step ``step``
+    and the flow's state then (what :meth:`lieflow.Flow.step` carries: a scheme's warm start,
+    a splitting's tuple of them), stored leaf by leaf under ``warm/`` (:mod:`lieflow.tree`:
+    ``leaves`` maps each leaf's path to its value)."""
 
     step: int
     t: float

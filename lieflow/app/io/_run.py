@@ -1,6 +1,6 @@
 """Running a configuration into a trajectory file: :func:`run` (a
 :class:`~lieflow.app.config.BuiltRun`), :func:`run_flow` (any flow) and their
-:class:`RunSummary`.
+:class:`TrajectorySummary`.
 """
 
 from __future__ import annotations
@@ -21,12 +21,12 @@ from ..config import BuiltRun
 from ._header import TrajectoryHeader
 from ._writer import TrajectoryWriter
 
-#: ``also(writer) -> sinks``: sinks a run writes besides its trajectory file (:func:`run`).
-AlsoSinks = Callable[[TrajectoryWriter], Sequence[Sink]]
+#: ``more_sinks(writer) -> sinks``: sinks a run writes besides its trajectory file (:func:`run`).
+MoreSinks = Callable[[TrajectoryWriter], Sequence[Sink]]
 
 
 @attrs.frozen
-class RunSummary:
+class TrajectorySummary:
     """How :func:`run` ended.
 
     Attributes
@@ -62,8 +62,8 @@ def run(
     *,
     resume: bool = False,
     monitor: Monitor | None = None,
-    also: AlsoSinks | None = None,
-) -> RunSummary:
+    more_sinks: MoreSinks | None = None,
+) -> TrajectorySummary:
     """Integrate ``setup`` and write the trajectory to ``setup.output`` as it proceeds.
 
     Parameters
@@ -76,13 +76,13 @@ def run(
         starts afresh. Without ``resume`` an existing file is replaced.
     monitor : Monitor, optional
         Progress callbacks.
-    also : callable, optional
-        ``also(writer)``: more sinks fed the same steps as the file, opened once the
+    more_sinks : callable, optional
+        ``more_sinks(writer)``: more sinks fed the same steps as the file, opened once the
         file's :class:`TrajectoryWriter` is (a sweep's Zarr store).
 
     Returns
     -------
-    RunSummary
+    TrajectorySummary
         ``status == "interrupted"`` after Ctrl-C (the file holds every step done).
 
     Raises
@@ -93,7 +93,7 @@ def run(
         A step failed to converge (the file holds the steps before it, status "failed").
     """
     summary, _ = run_flow(TrajectoryHeader.of(setup), setup.flow(), resume=resume, monitor=monitor,
-                          also=also)  # fmt: skip
+                          more_sinks=more_sinks)  # fmt: skip
     if summary.status == "failed":
         raise LieflowError(
             f"{summary.failure} The {summary.completed_steps} steps before the failure are "
@@ -108,8 +108,8 @@ def run_flow(
     *,
     resume: bool = False,
     monitor: Monitor | None = None,
-    also: AlsoSinks | None = None,
-) -> tuple[RunSummary, ConvergenceError | None]:
+    more_sinks: MoreSinks | None = None,
+) -> tuple[TrajectorySummary, ConvergenceError | None]:
     """Advance ``flow`` and write the trajectory to ``header.output`` as it proceeds: the
     one consumer loop (:func:`lieflow.driver.run`) into a :class:`TrajectoryWriter`.
 
@@ -119,12 +119,12 @@ def run_flow(
 
     Returns
     -------
-    (RunSummary, ConvergenceError or None)
+    (TrajectorySummary, ConvergenceError or None)
         How it ended (``"complete"``, ``"interrupted"`` after Ctrl-C, ``"failed"``), and
         the error of a failed step (the file then holds the steps before it).
     """
     with _signals.Interrupts() as stop:  # Ctrl-C held from here until stepping, raised there
-        return _run_flow(header, flow, resume, monitor, stop, also)
+        return _run_flow(header, flow, resume, monitor, stop, more_sinks)
 
 
 def _run_flow(
@@ -133,8 +133,8 @@ def _run_flow(
     resume: bool,
     monitor: Monitor | None,
     interrupts: _signals.Interrupts,
-    also: AlsoSinks | None = None,
-) -> tuple[RunSummary, ConvergenceError | None]:
+    more_sinks: MoreSinks | None = None,
+) -> tuple[TrajectorySummary, ConvergenceError | None]:
     target = header.requested_steps
     diagnostics = Diagnostics.of(header.system, header.W0, save_every=header.save_every)
     device = header.device
@@ -154,7 +154,7 @@ def _run_flow(
                 state = tree.map_leaves(
                     lambda x: place(x, device) if isinstance(x, np.ndarray) else x, state
                 )
-        sinks = (writer, *(also(writer) if also is not None else ()))
+        sinks = (writer, *(more_sinks(writer) if more_sinks is not None else ()))
     except BaseException:  # Ctrl-C before stepping: the file says so, and is resumable
         writer.close("interrupted", None, 0.0)
         raise
@@ -173,7 +173,7 @@ def _run_flow(
         interrupts=interrupts,
     )
     completed = writer.completed_steps
-    summary = RunSummary(
+    summary = TrajectorySummary(
         header.output,
         outcome.status,
         completed,

@@ -16,19 +16,19 @@ from ._grid import SweepRun
 
 
 def _store_sink(task: Mapping[str, Any], opened: list[Any]) -> Any:
-    """The run's sinks besides its file (:func:`lieflow.app.io.run`'s ``also``): with a
+    """The run's sinks besides its file (:func:`lieflow.app.io.run`'s ``more_sinks``): with a
     Zarr store (``task["store"]``), a :class:`~lieflow.app.zarr_sink.ZarrSink` writing the
     run's group as it steps (appended to ``opened``); else None."""
     if not task.get("store"):
         return None
     from ..zarr_sink import ZarrSink
 
-    def also(writer: Any) -> tuple[Any, ...]:
+    def more_sinks(writer: Any) -> tuple[Any, ...]:
         sink = ZarrSink.open(task["store"], task["id"], writer)
         opened.append(sink)
         return (sink,)
 
-    return also
+    return more_sinks
 
 
 def _store_run(task: Mapping[str, Any], out: dict[str, Any], opened: Sequence[Any]) -> None:

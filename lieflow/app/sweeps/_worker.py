@@ -175,10 +175,10 @@ def run_task(task: Mapping[str, Any]) -> dict[str, Any]:
         setup = build(config, output=task["output"], replace=False)
         monitor = _ProgressFile(Path(task["progress"]) if task.get("progress") else None, stop)
         stored: list[Any] = []  # the run's ZarrSink, once its file is open
-        also = _store_sink(task, stored)
+        more_sinks = _store_sink(task, stored)
         try:
             try:
-                summary = io.run(setup, resume=True, monitor=monitor, also=also)
+                summary = io.run(setup, resume=True, monitor=monitor, more_sinks=more_sinks)
             except io.DamagedOutputError as exc:
                 # a worker killed during a write (the lost attempt of a Dask task) can leave
                 # the file unreadable past its last good checkpoint; the run is deterministic,
@@ -186,7 +186,7 @@ def run_task(task: Mapping[str, Any]) -> dict[str, Any]:
                 out["restarted"] = str(exc)
                 setup = build(config, output=task["output"], replace=True)
                 stored.clear()
-                summary = io.run(setup, monitor=monitor, also=also)
+                summary = io.run(setup, monitor=monitor, more_sinks=more_sinks)
         except LieflowError:
             _store_run(task, out, stored)  # a failed run: its steps before the failure
             raise
