@@ -69,7 +69,7 @@ class _StoredRun:
             layout = io._check_format(f, path)
             ck = io._read_checkpoint(f, path)
             io._check_lengths(f, ck.step, path, layout)
-            self.attrs = io._meta(f)
+            self.attrs = io._header_attributes(f)
             self.k = ck.step
             self.paths = layout.paths
             #: file row of step k's iterations and residual: k + update_row0
@@ -421,7 +421,7 @@ def write_zarr_run(path: Path | str, store: Path | str, name: str) -> int:
     return info.k
 
 
-def _store(root: Path) -> dict[str, Any] | None:
+def _store_members(root: Path) -> dict[str, Any] | None:
     """Every group and array of the sweep's Zarr store by path (one read of its
     consolidated metadata), or None (no store, no zarr, unreadable)."""
     path = root / ZARR_STORE
@@ -520,7 +520,7 @@ def open_sweep(
     lead_dims = [a["name"] for a in axes]
     records = {tuple(r["index"]): r for r in data["runs"]}
     order = list(itertools.product(*(range(n) for n in lead)))
-    store = _store(root)
+    store = _store_members(root)
     infos: list[_StoredRun | None] = []
     for index in order:
         rec = records.get(index)

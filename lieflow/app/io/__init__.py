@@ -84,7 +84,7 @@ from ._reader import (
 )
 from ._reader import _check_format as _check_format
 from ._reader import _check_lengths as _check_lengths
-from ._reader import _meta as _meta
+from ._reader import _header_attributes as _header_attributes
 from ._reader import _read_checkpoint as _read_checkpoint
 from ._run import TrajectorySummary, run, run_flow
 from ._writer import TrajectorySink as TrajectorySink

@@ -361,7 +361,7 @@ def _check_attributes(f: h5py.File, path: Path) -> None:
     one that does not (a flipped byte in the header) used to fail only after the resumed
     steps were written, leaving the file marked complete and unreadable."""
     try:
-        meta = _meta(f)
+        meta = _header_attributes(f)
         raw = f["initial/W0"].attrs.get(_HEADER_COPY)
         copy = None if raw is None else json.loads(_plain(raw))
     except (*_DAMAGE, json.JSONDecodeError) as exc:
@@ -436,7 +436,7 @@ def read_checkpoint(path: Path | str) -> Checkpoint:
 _HIDDEN_ATTRS = ("_NCProperties",)
 
 
-def _meta(f: h5py.File) -> dict[str, Any]:
+def _header_attributes(f: h5py.File) -> dict[str, Any]:
     """The root attributes: the run's header (netCDF's own attributes left out)."""
     return {key: _plain(v) for key, v in f.attrs.items() if key not in _HIDDEN_ATTRS}
 
@@ -462,7 +462,7 @@ def read_trajectory(path: Path | str) -> Trajectory:
         updates = layout.update_rows(k)
         return Trajectory(
             path=_as_path(path),
-            meta=MappingProxyType(_meta(f)),
+            meta=MappingProxyType(_header_attributes(f)),
             step=saved[:n_saved],
             t=f[at["time"]][:n_saved],
             W=f[at["W"]][:n_saved],

@@ -60,7 +60,7 @@ from ._new_file import _append_extra, _initialise
 from ._reader import (
     Checkpoint,
     _check_format,
-    _meta,
+    _header_attributes,
     _verify_for_resume,
     read_diagnostics,
     read_extra,
@@ -153,7 +153,7 @@ class TrajectoryWriter:
     def attributes(self) -> dict[str, Any]:
         """The file's header attributes as they stand (after :meth:`close`: as closed;
         empty after :meth:`abandon`)."""
-        return _meta(self._f) if self._f.id.valid else dict(self._attributes)
+        return _header_attributes(self._f) if self._f.id.valid else dict(self._attributes)
 
     @property
     def max_energy_error(self) -> float:
@@ -459,7 +459,7 @@ class TrajectoryWriter:
             f.attrs["wall_time"] = float(f.attrs.get("wall_time", 0.0)) + wall_time
             f.attrs["failure"] = "" if failure is None else str(failure)
             f.flush()
-            self._attributes = _meta(f)
+            self._attributes = _header_attributes(f)
         finally:
             try:
                 try:

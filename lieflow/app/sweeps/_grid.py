@@ -182,7 +182,7 @@ def _short_names(groups: list[list[str]]) -> list[str]:
     ]
 
 
-def _set(data: dict[str, Any], key: str, value: Any, source: str) -> None:
+def _set_key(data: dict[str, Any], key: str, value: Any, source: str) -> None:
     """Set the dotted ``key`` of a run's configuration to ``value``.
 
     A part that is a number indexes a list of the base configuration (``[[splitting.flows]]``
@@ -413,7 +413,7 @@ def parse_sweep(
             params.update(axis.point(i))
         merged = copy.deepcopy(data)
         for key, value in params.items():
-            _set(merged, key, value, source)
+            _set_key(merged, key, value, source)
         rid = run_id(params)
         output = where / "runs" / f"{rid}.h5"
         merged.setdefault("run", {})["output"] = str(output)
