@@ -13,7 +13,7 @@ import pytest
 
 from lieflow.app import io
 from lieflow.app.cli import main
-from lieflow.app.io import _writer
+from lieflow.app.io import _disk
 
 CONFIG = """
 [system]
@@ -80,7 +80,7 @@ def _one_clear_error(err: str) -> None:
     assert err.count("\n") == 1 and "Traceback" not in err and "HDF5" not in err
 
 
-@pytest.mark.parametrize("margin", [_writer._SPACE_MARGIN, 0], ids=["stops-before", "hdf5-enospc"])
+@pytest.mark.parametrize("margin", [_disk._SPACE_MARGIN, 0], ids=["stops-before", "hdf5-enospc"])
 def test_a_full_disk_is_one_error_and_the_same_command_continues(
     disk: Path,
     reference: io.Trajectory,
@@ -91,7 +91,7 @@ def test_a_full_disk_is_one_error_and_the_same_command_continues(
     """``hdf5-enospc``: no reserve, so HDF5's own writes fail (errno 28 inside multi-line
     HDF5 dumps, then ``RuntimeError: Can't destroy cache`` at close) — still one line."""
     capsys.readouterr()
-    monkeypatch.setattr(_writer, "_SPACE_MARGIN", margin)
+    monkeypatch.setattr(_disk, "_SPACE_MARGIN", margin)
     config, out = disk / "run.toml", disk / "traj.h5"
     assert main(["run", str(config), "--no-progress"]) == 2
     _one_clear_error(capsys.readouterr().err)
@@ -100,7 +100,7 @@ def test_a_full_disk_is_one_error_and_the_same_command_continues(
     if margin:  # stopped before writing, with room left for its status (it used to say "running")
         stopped = io.read_trajectory(out)
         assert stopped.status == "interrupted" and stopped.completed_steps == kept
-    monkeypatch.setattr(_writer, "_SPACE_MARGIN", 1 << 20)
+    monkeypatch.setattr(_disk, "_SPACE_MARGIN", 1 << 20)
     assert main(["run", str(config), "--no-progress", "--resume"]) == 2  # still full
     _one_clear_error(capsys.readouterr().err)
     # refused before writing, or stopped at its first checkpoint: nothing lost either way

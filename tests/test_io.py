@@ -17,7 +17,7 @@ from helpers import rigid_body_config
 
 import lieflow as lf
 from lieflow.app import io
-from lieflow.app.config import ConfigError, RunSetup, build, load_config, parse_config
+from lieflow.app.config import BuiltRun, ConfigError, build, load_config, parse_config
 
 
 def config_text(scheme: str, steps: int) -> str:
@@ -30,7 +30,7 @@ def write_config(tmp_path: Path, scheme: str = "gauss2", steps: int = 60) -> Pat
     return path
 
 
-def setup_for(config: Path, out: Path | None = None) -> RunSetup:
+def setup_for(config: Path, out: Path | None = None) -> BuiltRun:
     return build(load_config(config), output=out)
 
 

@@ -18,7 +18,7 @@ import lieflow as lf
 from lieflow.app import io
 from lieflow.app.cli import main
 from lieflow.app.config import build, load_config, parse_config
-from lieflow.app.io import _format, _reader, _writer
+from lieflow.app.io import _format, _reader, _slots
 
 xr = pytest.importorskip("xarray")
 pytest.importorskip("h5netcdf")
@@ -328,10 +328,10 @@ def test_a_slot_follows_state_trees_that_change_shape(tmp_path: Path) -> None:
         slot, cache = f["checkpoint/slot0"], {}
         for k, items in enumerate(states):
             if k == 3:  # a dimension of another length that a killed writer left behind
-                _writer._drop(slot, "warm/a")
+                _slots._drop(slot, "warm/a")
                 _format._dimension(slot["warm"], "a_dim0", 9)
                 cache.clear()
-            _writer._write_slot(slot, k, 0.1 * k, items, cache)
+            _slots._write_slot(slot, k, 0.1 * k, items, cache)
             stored = _reader._slot_items(slot)
             assert sorted(stored) == sorted(items)
             assert io.checkpoint_digest(k, 0.1 * k, stored) == slot.attrs["sha256"]

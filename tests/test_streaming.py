@@ -1,5 +1,5 @@
 """``integrate(..., out=path)``: a run streamed into the trajectory format of ``lieflow run``,
-resumable, with one chunk of steps in memory; the writer's header decoupled from RunSetup."""
+resumable, with one chunk of steps in memory; the writer's header decoupled from BuiltRun."""
 
 from __future__ import annotations
 
@@ -91,7 +91,7 @@ def test_streamed_failure_keeps_the_steps_before_it(tmp_path: Path) -> None:
 
 
 def test_writer_takes_a_header(tmp_path: Path) -> None:
-    """TrajectoryWriter needs a TrajectoryHeader, not a RunSetup."""
+    """TrajectoryWriter needs a TrajectoryHeader, not a BuiltRun."""
     system, W0 = _body()
     header = io.TrajectoryHeader(system=system, system_name="generalized_rigid_body",
                                  scheme="midpoint", solver="fixed_point", h=0.1, save_every=2,

@@ -237,17 +237,17 @@ def test_an_interrupted_run_continues_its_group_when_it_resumes(tmp_path: Path) 
     zarr.open_group(str(store), mode="w")
     opened: list[ZarrSink] = []
 
-    def also(writer: io.TrajectoryWriter) -> tuple[ZarrSink]:
+    def more_sinks(writer: io.TrajectoryWriter) -> tuple[ZarrSink]:
         opened.append(ZarrSink.open(store, "run", writer))
         return (opened[-1],)
 
     setup = build(parse_config(text + 'checkpoint = "saves"\n'), output=out, replace=False)
-    first = io.run(setup, resume=True, monitor=_StopAfter(100), also=also)  # type: ignore[arg-type]
+    first = io.run(setup, resume=True, monitor=_StopAfter(100), more_sinks=more_sinks)  # type: ignore[arg-type]
     assert first.status == "interrupted" and 0 < first.completed_steps < 300
     group = zarr.open_group(str(store / "run"), mode="r")
     assert group.attrs["lieflow_stored_steps"] == first.completed_steps and opened[0].in_sync
     assert group.attrs["status"] == "interrupted"
-    done = io.run(setup, resume=True, also=also)
+    done = io.run(setup, resume=True, more_sinks=more_sinks)
     assert done.status == "complete" and done.new_steps == 300 - first.completed_steps
     assert opened[1].in_sync and not opened[1].error
     write_zarr_run(out, tmp_path / "copy.zarr", "run")
@@ -258,6 +258,6 @@ def test_an_interrupted_run_continues_its_group_when_it_resumes(tmp_path: Path) 
     # a group that is not at the file's checkpoint is not continued: the sink writes nothing
     new.attrs["lieflow_stored_steps"] = 5
     longer = build(parse_config(text.replace("300", "310")), output=out, replace=False)
-    io.run(longer, resume=True, also=also)
+    io.run(longer, resume=True, more_sinks=more_sinks)
     assert not opened[2].in_sync and "holds 5 steps, the file 300" in opened[2].error
     assert zarr.open_group(str(store / "run")).attrs["lieflow_stored_steps"] == 5

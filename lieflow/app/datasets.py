@@ -28,7 +28,6 @@ from __future__ import annotations
 import itertools
 import json
 import os
-import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -37,12 +36,13 @@ import numpy as np
 
 from ..errors import InputError, LieflowError
 
-if sys.version_info >= (3, 11):
-    pass
-else:  # pragma: no cover - Python 3.10
-    pass
+__all__ = ["MANIFEST", "SWEEP_FORMAT", "ZARR_STORE", "open_run", "open_sweep", "write_zarr_run"]
 
-__all__ = ["ZARR_STORE", "open_run", "open_sweep", "write_zarr_run"]
+#: A sweep's directory (``lieflow sweep``): its manifest, the trajectory files ``runs/<id>.h5``
+#: and, with ``store = "zarr"``, the Zarr store (:data:`ZARR_STORE`). The manifest lists every
+#: run (parameters, status, error, file) and names its format (:data:`SWEEP_FORMAT`).
+MANIFEST = "manifest.json"
+SWEEP_FORMAT = "lieflow-sweep"
 
 
 def _xarray() -> Any:
@@ -56,7 +56,7 @@ def _xarray() -> Any:
     return xarray
 
 
-class _RunInfo:
+class _StoredRun:
     """What :func:`open_run` needs of one file, read once: header, valid lengths, shapes,
     where its arrays are (format version 1 or 2)."""
 
@@ -69,7 +69,7 @@ class _RunInfo:
             layout = io._check_format(f, path)
             ck = io._read_checkpoint(f, path)
             io._check_lengths(f, ck.step, path, layout)
-            self.attrs = io._meta(f)
+            self.attrs = io._header_attributes(f)
             self.k = ck.step
             self.paths = layout.paths
             #: file row of step k's iterations and residual: k + update_row0
@@ -90,7 +90,7 @@ class _RunInfo:
         self._finish()
 
     @classmethod
-    def from_zarr(cls, group: Any, arrays: Mapping[str, Any], path: Path) -> _RunInfo:
+    def from_zarr(cls, group: Any, arrays: Mapping[str, Any], path: Path) -> _StoredRun:
         """A run as stored in a sweep's Zarr store (:func:`write_zarr_run`): its group and
         the group's ``arrays`` by name; ``path`` is its trajectory file (not read)."""
         self = cls.__new__(cls)
@@ -189,14 +189,14 @@ class _Stacked:
     """A lazily read array over many files: ``lead`` dimensions of runs, then a dataset of
     each run's file padded to a common shape (missing runs and rows read as the fill).
 
-    Each run's :meth:`_RunInfo.offset` shifts the first axis (``iterations`` of step ``k``
+    Each run's :meth:`_StoredRun.offset` shifts the first axis (``iterations`` of step ``k``
     is row ``k - 1`` of a version-1 file; rows before the offset read as ``head``); ``last``
     reads only each run's last valid row (the final state) and drops the first axis.
     """
 
     def __init__(
         self,
-        runs: Sequence[_RunInfo | None],
+        runs: Sequence[_StoredRun | None],
         lead: tuple[int, ...],
         name: str,
         rows: int,
@@ -277,7 +277,7 @@ class _Stacked:
         return out
 
 
-def _dims(info: _RunInfo, name: str) -> tuple[str, ...]:
+def _dims(info: _StoredRun, name: str) -> tuple[str, ...]:
     ens = ("ensemble",) if info.members is not None else ()
     if name == "W":
         return ("time", *ens, "row", "col")
@@ -289,7 +289,7 @@ def _dims(info: _RunInfo, name: str) -> tuple[str, ...]:
 
 
 def _variables(
-    runs: Sequence[_RunInfo | None], lead: tuple[int, ...], lead_dims: Sequence[str]
+    runs: Sequence[_StoredRun | None], lead: tuple[int, ...], lead_dims: Sequence[str]
 ) -> dict[str, Any]:
     """The lazily read data variables of runs arranged on ``lead`` (padded to the largest)."""
     ref = next(r for r in runs if r is not None)
@@ -318,7 +318,7 @@ def _variables(
 _ATTR_SKIP = ("casimir_powers",)
 
 
-def _attrs(info: _RunInfo) -> dict[str, Any]:
+def _attrs(info: _StoredRun) -> dict[str, Any]:
     return {k: v for k, v in info.attrs.items() if k not in _ATTR_SKIP}
 
 
@@ -349,12 +349,12 @@ def open_run(path: Path | str, *, chunks: Mapping[str, int] | str | None = None)
     from .io import _as_path
 
     xr = _xarray()
-    info = _RunInfo(_as_path(path))
+    info = _StoredRun(_as_path(path))
     ds = xr.Dataset(_variables([info], (), ()), coords=_coords(info), attrs=_attrs(info))
     return ds.chunk(chunks) if chunks is not None else ds
 
 
-def _coords(info: _RunInfo) -> dict[str, Any]:
+def _coords(info: _StoredRun) -> dict[str, Any]:
     k = np.arange(info.k + 1)
     coords: dict[str, Any] = {
         "time": ("time", info.t),
@@ -402,7 +402,7 @@ def write_zarr_run(path: Path | str, store: Path | str, name: str) -> int:
         The steps written (the file's checkpoint).
     """
     zarr = _zarr()
-    info = _RunInfo(Path(path))
+    info = _StoredRun(Path(path))
     attrs = {key: _jsonable(value) for key, value in info.attrs.items()}
     group = zarr.open_group(str(Path(store) / name), mode="w", attributes=attrs)
     for key, value in info.arrays().items():
@@ -421,7 +421,7 @@ def write_zarr_run(path: Path | str, store: Path | str, name: str) -> int:
     return info.k
 
 
-def _store(root: Path) -> dict[str, Any] | None:
+def _store_members(root: Path) -> dict[str, Any] | None:
     """Every group and array of the sweep's Zarr store by path (one read of its
     consolidated metadata), or None (no store, no zarr, unreadable)."""
     path = root / ZARR_STORE
@@ -437,7 +437,7 @@ def _store(root: Path) -> dict[str, Any] | None:
 
 def _stored_run(
     store: Mapping[str, Any] | None, record: Mapping[str, Any], path: Path
-) -> _RunInfo | None:
+) -> _StoredRun | None:
     """A run from the store if it holds the run as the manifest records it (same steps
     and status), else None (the file is read instead)."""
     if store is None:
@@ -450,14 +450,12 @@ def _stored_run(
         if group.attrs.get("status") != record.get("status"):
             return None
         arrays = {name: store[f"{run}/{name}"] for name in _ARRAYS}
-        return _RunInfo.from_zarr(group, arrays, path)
+        return _StoredRun.from_zarr(group, arrays, path)
     except Exception:
         return None
 
 
 def _manifest(path: Path | str) -> tuple[Path, dict[str, Any]]:
-    from .sweeps import MANIFEST, SWEEP_FORMAT
-
     p = Path(path)
     if p.is_dir():
         p = p / MANIFEST
@@ -522,14 +520,14 @@ def open_sweep(
     lead_dims = [a["name"] for a in axes]
     records = {tuple(r["index"]): r for r in data["runs"]}
     order = list(itertools.product(*(range(n) for n in lead)))
-    store = _store(root)
-    infos: list[_RunInfo | None] = []
+    store = _store_members(root)
+    infos: list[_StoredRun | None] = []
     for index in order:
         rec = records.get(index)
         info = None if rec is None else _stored_run(store, rec, root / rec["output"])
         if info is None and rec is not None and os.path.exists(root / rec["output"]):
             try:
-                info = _RunInfo(root / rec["output"])
+                info = _StoredRun(root / rec["output"])
             except LieflowError:
                 info = None  # damaged or being written: shown as missing, with its status
         infos.append(info)

@@ -67,6 +67,7 @@ from .io._format import (
     checkpoint_digest,
 )
 from .io._lock import _CHUNK_CACHE_BYTES, DamagedOutputError, _check_signature, _OutputLock
+from .io._new_file import _append_extra, _ensemble_labels, _lay_out
 from .io._reader import (
     _check_attributes,
     _check_format,
@@ -76,7 +77,7 @@ from .io._reader import (
     _opened,
     _slot_items,
 )
-from .io._writer import _append_extra, _ensemble_labels, _lay_out, _write_slot
+from .io._slots import _write_slot
 
 __all__ = ["SalvageReport", "salvage"]
 

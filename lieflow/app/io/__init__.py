@@ -47,8 +47,10 @@ checkpoint and continues bit-for-bit as if never stopped (same states, same diag
 The package's modules, one concern each: ``_format`` (format name and version, the two
 layouts, the checkpoint digest, netCDF-4 dimensions), ``_lock`` (the output lock; busy,
 damaged and full-disk errors), ``_header`` (what a file records about its run), ``_reader``
-(reading and the checks of a resume), ``_writer`` (:class:`TrajectoryWriter`) and ``_run``
-(:func:`run`). Every public name is imported from here.
+(reading and the checks of a resume), ``_disk`` (space kept in reserve, publishing a new
+file, fsync), ``_new_file`` (a new file's layout and step 0), ``_slots`` (checkpoint slots),
+``_writer`` (:class:`TrajectoryWriter`) and ``_run`` (:func:`run`). Every public name is
+imported from here.
 """
 
 from __future__ import annotations
@@ -69,10 +71,11 @@ from ._lock import DamagedOutputError, DiskFullError, OutputBusyError, salvage_f
 from ._lock import _open as _open
 from ._lock import _OutputLock as _OutputLock
 from ._lock import _Reading as _Reading
+from ._new_file import _ensemble_labels as _ensemble_labels
 from ._reader import (
     Checkpoint,
-    RunDiagnostics,
     Trajectory,
+    TrajectoryDiagnostics,
     format_version,
     read_checkpoint,
     read_diagnostics,
@@ -81,12 +84,11 @@ from ._reader import (
 )
 from ._reader import _check_format as _check_format
 from ._reader import _check_lengths as _check_lengths
-from ._reader import _meta as _meta
+from ._reader import _header_attributes as _header_attributes
 from ._reader import _read_checkpoint as _read_checkpoint
-from ._run import RunSummary, run
+from ._run import TrajectorySummary, run
 from ._writer import TrajectorySink as TrajectorySink
 from ._writer import TrajectoryWriter, trajectory_sink
-from ._writer import _ensemble_labels as _ensemble_labels
 
 __all__ = [
     "FORMAT",
@@ -96,10 +98,10 @@ __all__ = [
     "DiskFullError",
     "Monitor",
     "OutputBusyError",
-    "RunDiagnostics",
-    "RunSummary",
     "Trajectory",
+    "TrajectoryDiagnostics",
     "TrajectoryHeader",
+    "TrajectorySummary",
     "TrajectoryWriter",
     "checkpoint_digest",
     "environment",

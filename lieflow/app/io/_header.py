@@ -8,17 +8,12 @@ from __future__ import annotations
 import platform
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import attrs
 import numpy as np
 
 from ...sinks import RunInfo
-from ..config import RunSetup
-
-if TYPE_CHECKING:  # pragma: no cover
-    pass
-
+from ..config import BuiltRun
 
 #: Default seconds between the checkpoints of a trajectory file (:class:`TrajectoryHeader`).
 CHECKPOINT_SECONDS = 1.0
@@ -31,9 +26,9 @@ class TrajectoryHeader(RunInfo):
     ``requested_steps``, ``identity``, ``W0``, checkpoint cadence, device, configuration),
     written as the file's header, and where and how to write it.
 
-    The ``.h5`` sink factory builds it (:func:`trajectory_sink`, through
-    :func:`lieflow.sinks.open_sink` for both :func:`lieflow.integrate` with ``out=`` and
-    ``lieflow run``).
+    ``lieflow run`` builds it from its configuration (:meth:`of`), :func:`lieflow.integrate`
+    with ``out=`` from its arguments (:func:`trajectory_sink`); both open the file through
+    :func:`lieflow.sinks.open_sink`.
 
     Attributes
     ----------
@@ -51,10 +46,26 @@ class TrajectoryHeader(RunInfo):
     replace: bool = attrs.field(default=False, kw_only=True)
     make_directory: bool = attrs.field(default=False, kw_only=True)
 
+    @classmethod
+    def of(cls, setup: BuiltRun) -> TrajectoryHeader:
+        """The trajectory file's header for the run ``setup`` (:func:`lieflow.app.config.build`):
+        its :meth:`~lieflow.app.config.BuiltRun.info`, written to its ``output``, whose
+        directory is made if missing."""
+        return cls.from_info(setup.info(), output=setup.output, replace=setup.replace,
+                             make_directory=True)  # fmt: skip
 
-def _header(run: TrajectoryHeader | RunSetup) -> TrajectoryHeader:
-    """``run`` as a :class:`TrajectoryHeader` (a :class:`RunSetup` builds its own)."""
-    return run if isinstance(run, TrajectoryHeader) else run.header()
+    @classmethod
+    def from_info(
+        cls, info: RunInfo, *, output: Path, replace: bool = False, make_directory: bool = False
+    ) -> TrajectoryHeader:
+        """``info`` written to ``output`` (see the attributes)."""
+        fields = {f.name: getattr(info, f.name) for f in attrs.fields(RunInfo)}
+        return cls(**fields, output=output, replace=replace, make_directory=make_directory)
+
+
+def _header(run: TrajectoryHeader | BuiltRun) -> TrajectoryHeader:
+    """``run`` as a :class:`TrajectoryHeader` (:meth:`TrajectoryHeader.of` a :class:`BuiltRun`)."""
+    return run if isinstance(run, TrajectoryHeader) else TrajectoryHeader.of(run)
 
 
 def environment() -> dict[str, str]:

@@ -54,8 +54,10 @@ if TYPE_CHECKING:  # pragma: no cover
 
 @attrs.frozen(eq=False)
 class Checkpoint:
-    """A resumable state: ``W`` after step ``step`` and the flow's state then, stored leaf
-    by leaf (:mod:`lieflow.tree`: ``leaves`` maps each leaf's path to its value)."""
+    """Where a run resumes (a :class:`lieflow.sinks.ResumePoint`): ``W`` after step ``step``
+    and the flow's state then (what :meth:`lieflow.Flow.step` carries: a scheme's warm start,
+    a splitting's tuple of them), stored leaf by leaf under ``warm/`` (:mod:`lieflow.tree`:
+    ``leaves`` maps each leaf's path to its value)."""
 
     step: int
     t: float
@@ -359,7 +361,7 @@ def _check_attributes(f: h5py.File, path: Path) -> None:
     one that does not (a flipped byte in the header) used to fail only after the resumed
     steps were written, leaving the file marked complete and unreadable."""
     try:
-        meta = _meta(f)
+        meta = _header_attributes(f)
         raw = f["initial/W0"].attrs.get(_HEADER_COPY)
         copy = None if raw is None else json.loads(_plain(raw))
     except (*_DAMAGE, json.JSONDecodeError) as exc:
@@ -434,7 +436,7 @@ def read_checkpoint(path: Path | str) -> Checkpoint:
 _HIDDEN_ATTRS = ("_NCProperties",)
 
 
-def _meta(f: h5py.File) -> dict[str, Any]:
+def _header_attributes(f: h5py.File) -> dict[str, Any]:
     """The root attributes: the run's header (netCDF's own attributes left out)."""
     return {key: _plain(v) for key, v in f.attrs.items() if key not in _HIDDEN_ATTRS}
 
@@ -460,7 +462,7 @@ def read_trajectory(path: Path | str) -> Trajectory:
         updates = layout.update_rows(k)
         return Trajectory(
             path=_as_path(path),
-            meta=MappingProxyType(_meta(f)),
+            meta=MappingProxyType(_header_attributes(f)),
             step=saved[:n_saved],
             t=f[at["time"]][:n_saved],
             W=f[at["W"]][:n_saved],
@@ -475,7 +477,7 @@ def read_trajectory(path: Path | str) -> Trajectory:
 
 
 @attrs.frozen(eq=False)
-class RunDiagnostics:
+class TrajectoryDiagnostics:
     """A trajectory file without its saved states (:func:`read_diagnostics`).
 
     Attributes
@@ -498,7 +500,7 @@ class RunDiagnostics:
     iterations: Array = attrs.field(repr=False)
 
 
-def read_diagnostics(path: Path | str) -> RunDiagnostics:
+def read_diagnostics(path: Path | str) -> TrajectoryDiagnostics:
     """The per-step diagnostics, the initial and the last checkpointed state of a trajectory
     file — everything but the saved states, so it fits in memory whatever the run's length.
 
@@ -510,7 +512,7 @@ def read_diagnostics(path: Path | str) -> RunDiagnostics:
     with _opened(path) as (f, ck, layout):
         k = ck.step
         at = layout.paths
-        return RunDiagnostics(
+        return TrajectoryDiagnostics(
             completed_steps=k,
             W0=f[at["W0"]][()],
             W=np.asarray(ck.W),

@@ -1,5 +1,5 @@
 """Running a configuration into a trajectory file: :func:`run` (a
-:class:`~lieflow.app.config.RunSetup`) and its :class:`RunSummary`.
+:class:`~lieflow.app.config.BuiltRun`) and its :class:`TrajectorySummary`.
 """
 
 from __future__ import annotations
@@ -13,15 +13,15 @@ from ... import _signals
 from ...driver import Monitor
 from ...errors import LieflowError
 from ...sinks import Sink, open_sink
-from ..config import RunSetup
+from ..config import BuiltRun
 from ._writer import TrajectoryWriter
 
-#: ``also(writer) -> sinks``: sinks a run writes besides its trajectory file (:func:`run`).
-AlsoSinks = Callable[[TrajectoryWriter], Sequence[Sink]]
+#: ``more_sinks(writer) -> sinks``: sinks a run writes besides its trajectory file (:func:`run`).
+MoreSinks = Callable[[TrajectoryWriter], Sequence[Sink]]
 
 
 @attrs.frozen
-class RunSummary:
+class TrajectorySummary:
     """How :func:`run` ended.
 
     Attributes
@@ -53,12 +53,12 @@ class RunSummary:
 
 
 def run(
-    setup: RunSetup,
+    setup: BuiltRun,
     *,
     resume: bool = False,
     monitor: Monitor | None = None,
-    also: AlsoSinks | None = None,
-) -> RunSummary:
+    more_sinks: MoreSinks | None = None,
+) -> TrajectorySummary:
     """Integrate ``setup`` and write the trajectory to ``setup.output`` as it proceeds: its
     :class:`~lieflow.runs.RunSpec` (``W0`` placed on the device before the file is opened:
     a device that is not there leaves no file), executed into the file's sink, opened
@@ -70,7 +70,7 @@ def run(
 
     Parameters
     ----------
-    setup : RunSetup
+    setup : BuiltRun
         A validated run (:func:`lieflow.app.config.build`).
     resume : bool
         Continue the existing file from its last checkpoint (bit-for-bit the same as an
@@ -78,13 +78,13 @@ def run(
         starts afresh. Without ``resume`` an existing file is replaced.
     monitor : Monitor, optional
         Progress callbacks.
-    also : callable, optional
-        ``also(writer)``: more sinks fed the same steps as the file, opened once the
+    more_sinks : callable, optional
+        ``more_sinks(writer)``: more sinks fed the same steps as the file, opened once the
         file's :class:`TrajectoryWriter` is (a sweep's Zarr store).
 
     Returns
     -------
-    RunSummary
+    TrajectorySummary
         ``status == "interrupted"`` after Ctrl-C (the file holds every step done).
 
     Raises
@@ -101,13 +101,13 @@ def run(
         assert isinstance(writer, TrajectoryWriter)
         try:
             done = 0 if writer.start is None else writer.start.step
-            sinks = (writer, *(also(writer) if also is not None else ()))
+            sinks = (writer, *(more_sinks(writer) if more_sinks is not None else ()))
         except BaseException:  # Ctrl-C before stepping: the file says so, and is resumable
             writer.close("interrupted", None, 0.0)
             raise
         outcome = spec.execute(sinks, monitor=monitor, interrupts=stop)
     completed = writer.completed_steps
-    summary = RunSummary(
+    summary = TrajectorySummary(
         setup.output,
         outcome.status,
         completed,

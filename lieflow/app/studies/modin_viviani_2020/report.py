@@ -15,7 +15,8 @@ from typing import Any
 import attrs
 import numpy as np
 
-from .modin_viviani_2020 import ALTERNATIVES, STUDY, Analysis, Plan, RunResult
+from .analysis import Analysis, RunResult
+from .plan import ALTERNATIVES, STUDY, Plan
 
 __all__ = ["write_csv", "write_dataset", "write_report"]
 
@@ -144,7 +145,7 @@ def write_dataset(plan: Plan, analysis: Analysis, path: Path, seed: int) -> Path
 
 
 def _outcome_table(plan: Plan, analysis: Analysis) -> str:
-    from ..reproduce import _md_table
+    from ...reports import md_table
 
     rows = []
     for g in plan.gammas:
@@ -153,7 +154,7 @@ def _outcome_table(plan: Plan, analysis: Analysis) -> str:
         other = len(runs) - sum(tally)
         mean = np.mean([r.outcome for r in runs]) if runs else math.nan
         rows.append([f"{g:.2f}", str(len(runs)), *map(str, tally), str(other), f"{mean:.2f}"])
-    return _md_table(["γ", "runs", "2", "3", "4", "other", "mean"], rows)
+    return md_table(["γ", "runs", "2", "3", "4", "other", "mean"], rows)
 
 
 def _conservation_lines(analysis: Analysis) -> list[str]:
@@ -187,7 +188,7 @@ def write_report(
     timing: dict[str, float],
     figure: Path,
 ) -> Path:
-    from ..reproduce import _md_table, machine_description
+    from ...reports import machine_description, md_table
 
     done = [r for r in analysis.runs if r.complete]
     failed = [r for r in analysis.runs if not r.complete]
@@ -221,7 +222,7 @@ def write_report(
         "",
         "The same with other detector settings (low-pass σ, persistence threshold):",
         "",
-        _md_table(
+        md_table(
             ["σ (rad)", "threshold", "trend"],
             [
                 [f"{s:g}", f"{t:g}", trend_.describe() if trend_ is not None else "n/a"]

@@ -22,7 +22,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .modin_viviani_2020 import Analysis, Plan, RunResult
+    from .analysis import Analysis, RunResult
+    from .plan import Plan
 
 #: Values below this (exact zeros: conservation to roundoff) are drawn at it on log axes.
 FLOOR = 1e-17
