@@ -56,10 +56,12 @@ import importlib
 import inspect
 import math
 from collections.abc import Callable
-from typing import Any, TypeVar, cast
+from typing import Any, NamedTuple, TypeVar, cast
 
 import numpy as np
 
+from . import warm_start
+from .schemes import base, conjugation
 from .solvers import fixed_point
 
 numba: Any
@@ -74,14 +76,19 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 _TINY = float(np.finfo(float).tiny)
 _GO, _CONVERGED, _ROUNDOFF = fixed_point.GO, fixed_point.CONVERGED, fixed_point.ROUNDOFF
-#: Up to this ``n`` a skew ``B M B`` is formed as a strict upper triangle of dot products,
-#: and products are plain loops; above it BLAS (``np.dot`` called from compiled code, no
+#: Up to this ``n`` products are plain loops (and a skew ``B M B`` is formed as a strict
+#: upper triangle of dot products); above it BLAS (``np.dot`` called from compiled code, no
 #: Python overhead) is faster: 2.5x at n = 16 and 50 for ``A @ B``, up to 8x for ``A @ B^T``.
-_SMALL = 8
+LOOP_PRODUCTS_MAX_N = 8
 
-#: Hash of the stopping rule's source: part of the cache key of the entry points.
-RULE_KEY = hashlib.sha256(
-    (inspect.getsource(fixed_point.stopping_verdict) + repr(fixed_point.REASONS)).encode()
+#: The modules whose functions and constants the entry points compile (the rules shared
+#: with the numpy path, :data:`SHARED`).
+SHARED_MODULES = (fixed_point, warm_start, conjugation, base)
+
+#: Hash of the source of :data:`SHARED_MODULES`: part of the cache key of the entry points
+#: (numba's cache tracks this file only), so that editing a shared rule recompiles them.
+SHARED_KEY = hashlib.sha256(
+    "".join(inspect.getsource(module) for module in SHARED_MODULES).encode()
 ).hexdigest()
 
 #: The data types the loops are compiled for.
@@ -125,8 +132,8 @@ def _jit(func: F) -> F:
 
 def _inner(func: F, name: str | None = None) -> F:
     """``numba.njit`` without a cache, for the functions between an entry point and the
-    stopping rule: they are compiled into the entry points (whose cache is keyed by
-    :data:`RULE_KEY`), never loaded from a cache of their own that could hold an old rule.
+    shared rules: they are compiled into the entry points (whose cache is keyed by
+    :data:`SHARED_KEY`), never loaded from a cache of their own that could hold an old rule.
 
     They are inlined by numba (``inline="always"``): as separate calls, the generic driver
     and solve cost twice the time per step of hand-inlined loops (so(3) midpoint, measured).
@@ -158,25 +165,60 @@ def compiled_map(func: F) -> F:
     return _jit(func)
 
 
-# ------------------------------------------------------------------ the stopping rule
+# ------------------------------------------------------------------ the shared rules
+# The rules the numpy path runs as plain Python, compiled here (the same function objects):
+# the stopping rule, the warm start's trust rule, the cold retry, and the Newton–Schulz
+# iteration's decisions and unitarity test of the conjugation updates.
 
 #: :func:`lieflow.solvers.fixed_point.stopping_verdict`, compiled (the same function object):
 #: cached, for calls from Python; the loops inline their own compilation of it (``_rule``).
 verdict = _jit(fixed_point.stopping_verdict)
 _rule = _inner(fixed_point.stopping_verdict)
+_trusted_points = _inner(warm_start.trusted_points)
+_retries_cold = _inner(base.retries_cold)
+_schulz_step = _inner(conjugation.newton_schulz_step)
+_skew_to_roundoff_rule = _inner(conjugation.skew_to_roundoff)
+
+#: Entries of the loops' ``tolerances`` (float64): the stopping rule's
+#: (:class:`~lieflow.solvers.StoppingRule`) ...
+RTOL, ATOL, ROUNDOFF_FLOOR, DIVERGENCE_FACTOR = range(4)
+#: ... and of their ``settings`` (int64): the stopping rule's counts and its rate test
+#: (``StoppingRule.project``), then whether a failed warm-started solve is retried cold
+#: (:func:`~lieflow.schemes.base.retries_cold`) and whether steps are warm-started.
+MAX_ITER, PATIENCE, WINDOW, RATE_TEST, RETRY_COLD, WARM_STARTS = range(6)
+#: Entries of their ``warm_counts`` (int64, updated in place): how many solutions the
+#: history holds, and how many the next prediction extrapolates from
+#: (:class:`~lieflow.warm_start.WarmStart`).
+FILLED, TRUSTED = range(2)
+
+
+def stopping_arrays(
+    rule: fixed_point.StoppingRule, retry_cold: bool, warm_starts: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """The loops' ``tolerances`` and ``settings`` (see :data:`RTOL`, :data:`MAX_ITER`) for
+    the stopping ``rule`` of a fixed-point solve, whether a failed warm solve is retried
+    cold and whether steps are warm-started (writable: the loops' type)."""
+    tolerances = np.empty(4)
+    tolerances[[RTOL, ATOL, ROUNDOFF_FLOOR, DIVERGENCE_FACTOR]] = (
+        rule.rtol, rule.atol, rule.roundoff_floor, rule.divergence_factor,
+    )  # fmt: skip
+    settings = np.empty(6, dtype=np.int64)
+    settings[[MAX_ITER, PATIENCE, WINDOW, RATE_TEST, RETRY_COLD, WARM_STARTS]] = (
+        rule.max_iter, rule.patience, rule.window, rule.project, retry_cold, warm_starts,
+    )  # fmt: skip
+    return tolerances, settings
 
 
 @_inner
 def _judge(
-    step2: float, size2: float, k: int, size0: float, res: Any, rule: Any, irule: Any
+    step2: float, size2: float, k: int, size0: float, res: Any, tolerances: Any, settings: Any
 ) -> tuple[int, float]:
     """Record the ``k``-th update, of squared norm ``step2`` to an iterate of squared norm
     ``size2`` (the :class:`~lieflow.solvers.fixed_point.IterationMonitor` bookkeeping),
     and judge it with :data:`verdict`.
 
     Returns the verdict's code and the (possibly updated) reference size for the growth
-    test. ``rule = (rtol, atol, roundoff_floor, divergence_factor)``, ``irule = (max_iter,
-    patience, window, project, ...)``.
+    test (``tolerances``, ``settings``: :func:`stopping_arrays`).
     """
     step, size = math.sqrt(step2), math.sqrt(size2)
     if not (math.isfinite(step) and math.isfinite(size)):
@@ -184,10 +226,11 @@ def _judge(
     if k == 1:
         size0 = max(size0, size, _TINY)
     res[k - 1] = step / max(size, _TINY)
-    met = step <= rule[1] + rule[0] * size
+    met = step <= tolerances[ATOL] + tolerances[RTOL] * size
     code = _rule(
-        res, k, met, size / size0, rule[0], rule[2], rule[3], irule[0], irule[1], irule[2],
-        irule[3] != 0,
+        res, k, met, size / size0, tolerances[RTOL], tolerances[ROUNDOFF_FLOOR],
+        tolerances[DIVERGENCE_FACTOR], settings[MAX_ITER], settings[PATIENCE],
+        settings[WINDOW], settings[RATE_TEST] != 0,
     )  # fmt: skip
     return code, size0
 
@@ -233,7 +276,7 @@ def _finite(z: Any) -> bool:
 @_jit
 def _gemm(A: Any, B: Any, out: Any, transpose_a: bool, transpose_b: bool) -> None:
     """``out = op(A) @ op(B)`` by BLAS (``np.dot``), ``op(X) = X^T`` where its flag is set
-    (the loops set one at most): the products of the loops above ``n = _SMALL``.
+    (the loops set one at most): the products of the loops above ``n = LOOP_PRODUCTS_MAX_N``.
 
     Compiled on its own, with numba's reference counting (``np.dot`` needs it), and handed
     to the loops — compiled without it — as a function argument (:func:`gemm`).
@@ -278,8 +321,8 @@ def _conj_into(A: Any, out: Any) -> None:
 
 @_helper
 def _matmul(A: Any, B: Any, out: Any, gemm: Any) -> None:
-    """``out = A @ B``: :func:`_loops` up to ``n = _SMALL``, else ``gemm`` (BLAS)."""
-    if A.shape[0] > _SMALL:
+    """``out = A @ B``: :func:`_loops` up to ``n = LOOP_PRODUCTS_MAX_N``, else ``gemm`` (BLAS)."""
+    if A.shape[0] > LOOP_PRODUCTS_MAX_N:
         gemm(A, B, out, False, False)
     else:
         _loops(A, B, out)
@@ -292,7 +335,7 @@ def _matmul_hn(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> None:
     if _is_complex(A):
         _conj_into(A, tmp)
         A = tmp
-    if A.shape[0] > _SMALL:
+    if A.shape[0] > LOOP_PRODUCTS_MAX_N:
         gemm(A, B, out, True, False)
     else:
         _loops(A.T, B, out)
@@ -304,7 +347,7 @@ def _matmul_nh(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> None:
     if _is_complex(B):
         _conj_into(B, tmp)
         B = tmp
-    if A.shape[0] > _SMALL:
+    if A.shape[0] > LOOP_PRODUCTS_MAX_N:
         gemm(A, B, out, False, True)
     else:
         _loops(A, B.T, out)
@@ -323,32 +366,46 @@ def _norm(xf: Any) -> float:
 # Compiled forms of the built-in systems' B and projections (map_signature); ``params`` is
 # the flattened factor S for the Hadamard maps.
 
+#: How the loops evaluate ``B`` (the first entry of the ``params`` they are given; the
+#: system's own ``params`` follow): through the system's map, or — for the built-in
+#: Hadamard maps — the same loop inline. A call through a function pointer cannot be
+#: inlined; on so(3) it cost ~165 ns of a ~900 ns midpoint step (measured).
+CALL_MAP, INLINE_HADAMARD, INLINE_HADAMARD_SKEW, INLINE_HADAMARD_SYMMETRIC = 0, 1, 2, 3
+
+
+@_inner
+def _hadamard(W: Any, S: Any, out: Any, code: int) -> None:
+    """``out = S ⊙ part(W)`` (``S`` flattened), ``part`` by ``code``: ``W`` itself
+    (:data:`INLINE_HADAMARD`), its skew part ``(W - W^T)/2`` or its symmetric part
+    ``(W + W^T)/2``: the Hadamard maps below, and :func:`_apply_B`'s inline form of them."""
+    n = W.shape[0]
+    for i in range(n):
+        for j in range(n):
+            if code == INLINE_HADAMARD:
+                w = W[i, j]
+            elif code == INLINE_HADAMARD_SKEW:
+                w = 0.5 * (W[i, j] - W[j, i])
+            else:
+                w = 0.5 * (W[i, j] + W[j, i])
+            out[i, j] = S[i * n + j] * w
+
 
 @compiled_map
 def hadamard_B(W: Any, params: Any, out: Any) -> None:
     """``out = S ⊙ W`` (``params = S.ravel()``): ``B`` on gl(n)."""
-    n = W.shape[0]
-    for i in range(n):
-        for j in range(n):
-            out[i, j] = params[i * n + j] * W[i, j]
+    _hadamard(W, params, out, INLINE_HADAMARD)
 
 
 @compiled_map
 def hadamard_B_skew(W: Any, params: Any, out: Any) -> None:
     """``out = S ⊙ (W - W^T)/2``: ``B`` of a stage value on so(n) (projected first)."""
-    n = W.shape[0]
-    for i in range(n):
-        for j in range(n):
-            out[i, j] = params[i * n + j] * (0.5 * (W[i, j] - W[j, i]))
+    _hadamard(W, params, out, INLINE_HADAMARD_SKEW)
 
 
 @compiled_map
 def hadamard_B_symmetric(W: Any, params: Any, out: Any) -> None:
     """``out = S ⊙ (W + W^T)/2``: ``B`` of a stage value on the symmetric matrices."""
-    n = W.shape[0]
-    for i in range(n):
-        for j in range(n):
-            out[i, j] = params[i * n + j] * (0.5 * (W[i, j] + W[j, i]))
+    _hadamard(W, params, out, INLINE_HADAMARD_SYMMETRIC)
 
 
 @compiled_map
@@ -383,31 +440,16 @@ def skew_hermitian_part(W: Any, params: Any, out: Any) -> None:
             out[i, i] -= trace
 
 
-#: How the loops evaluate ``B`` (the first entry of the ``params`` they are given; the
-#: system's own ``params`` follow): through the system's map, or — for the built-in
-#: Hadamard maps — the same loop inline. A call through a function pointer cannot be
-#: inlined; on so(3) it cost ~165 ns of a ~900 ns midpoint step (measured).
-CALL_MAP, INLINE_HADAMARD, INLINE_HADAMARD_SKEW, INLINE_HADAMARD_SYMMETRIC = 0, 1, 2, 3
-
-
 @_inner
 def _apply_B(B: Any, params: Any, W: Any, out: Any) -> None:
-    """``out = B(W)``: inline for the codes above, else ``B(W, params[1:], out)``."""
+    """``out = B(W)``: inline for the codes of :data:`CALL_MAP`, else
+    ``B(W, params[1:], out)``."""
     code = int(params[0])
     S = params[1:]
     if code == CALL_MAP:
         B(W, S, out)
         return
-    n = W.shape[0]
-    for i in range(n):
-        for j in range(n):
-            if code == INLINE_HADAMARD:
-                w = W[i, j]
-            elif code == INLINE_HADAMARD_SKEW:
-                w = 0.5 * (W[i, j] - W[j, i])
-            else:
-                w = 0.5 * (W[i, j] + W[j, i])
-            out[i, j] = S[i * n + j] * w
+    _hadamard(W, S, out, code)
 
 
 def inline_code(function: Any) -> int:
@@ -475,25 +517,26 @@ def address(pointer: Any, signature: Any) -> int:
 
 @_inner
 def _midpoint_map(
-    W0: Any, q: float, x: Any, Bm: Any, BM: Any, BMB: Any, MB: Any, B: Any, params: Any,
+    W0: Any, coef: Any, x: Any, Bm: Any, BM: Any, BMB: Any, MB: Any, B: Any, params: Any,
     skew: bool, gemm: Any,
 ) -> tuple[float, float]:  # fmt: skip
     """One update of the midpoint map (SPEC §4.1), in place:
 
-    ``M <- W0 + q (B M - M B) + q^2 B M B``, ``B = B(M)``, ``q = h/2``;
+    ``M <- W0 + q (B M - M B) + q^2 B M B``, ``B = B(M)``, ``coef = (q, q^2)``
+    (:func:`~lieflow.schemes.sydirk.midpoint_coefficients`, ``q = h/2``);
     for skew algebras ``M B = (B M)^†`` (two products per update, SPEC §4.1), and for
     small real ``n`` only half of the skew ``B M B`` is formed. The new iterate overwrites ``x``
     entry by entry once the products are formed; ``Bm``, ... ``MB`` are scratch matrices,
-    ``gemm`` the products above ``n = _SMALL`` (:func:`gemm`). Returns the squared norms of
-    the update and of the new iterate.
+    ``gemm`` the products above ``n = LOOP_PRODUCTS_MAX_N`` (:func:`gemm`). Returns the
+    squared norms of the update and of the new iterate.
     """
     n = W0.shape[0]
-    qq = q * q
+    q, qq = coef[0], coef[1]
     _apply_B(B, params, x, Bm)
     _matmul(Bm, x, BM, gemm)
     step2 = 0.0
     size2 = 0.0
-    if skew and n <= _SMALL and not _is_complex(x):
+    if skew and n <= LOOP_PRODUCTS_MAX_N and not _is_complex(x):
         # B M B is skew for skew B, M: form its strict upper triangle only (its diagonal
         # is zero in exact arithmetic) and mirror it, half a product instead of one.
         for i in range(n):
@@ -549,20 +592,22 @@ def _commutator_add(
 
 @_inner
 def _reduced_map(
-    W0: Any, hA: Any, x: Any, Wst: Any, Bs: Any, GB: Any, PB: Any, B: Any, params: Any,
+    W0: Any, coef: Any, x: Any, Wst: Any, Bs: Any, GB: Any, PB: Any, B: Any, params: Any,
     skew: bool, gemm: Any,
 ) -> tuple[float, float]:  # fmt: skip
     """One update of the reduced stage form (SPEC §4.5), in place (``x[0] = G``,
     ``x[1] = P``, each ``(s, n, n)``):
 
-    ``G_i <- I + h sum_j a_ij G_j B_j^†``, ``P_i <- W0 - h sum_j a_ij P_j B_j``,
-    ``B_j = B(G_j^† P_j)``; for skew algebras ``B^† = -B``. ``3 s`` products per
-    update; ``Wst``, ... ``PB`` are scratch stacks ``(s, n, n)`` (``GB[j]`` and ``Wst[j]``
-    also hold the conjugates that complex data need, before they are overwritten; ``Wst``
-    and ``Bs`` then the stage sums, each entry summed in the order ``j = 1..s``). Returns
-    the squared norms of the update and of the new iterate.
+    ``G_i <- I + sum_j (C_G)_ij G_j B_j^†``, ``P_i <- W0 + sum_j (C_P)_ij P_j B_j``,
+    ``B_j = B(G_j^† P_j)``; ``coef = (C_G; C_P)`` stacked, ``(2s, s)``
+    (:func:`~lieflow.schemes.block.reduced_coefficients`: ``C_P = -hA``, ``C_G = hA``,
+    or ``-hA`` for skew algebras, where ``G_j B_j`` is formed for ``G_j B_j^† = -G_j B_j``).
+    ``3 s`` products per update; ``Wst``, ... ``PB`` are scratch stacks ``(s, n, n)``
+    (``GB[j]`` and ``Wst[j]`` also hold the conjugates that complex data need, before they
+    are overwritten; ``Wst`` and ``Bs`` then the stage sums, each entry summed in the order
+    ``j = 1..s``). Returns the squared norms of the update and of the new iterate.
     """
-    s, n = hA.shape[0], W0.shape[0]
+    s, n = coef.shape[1], W0.shape[0]
     nn = n * n
     for j in range(s):
         _matmul_hn(x[0, j], x[1, j], Wst[j], GB[j], gemm)
@@ -573,16 +618,15 @@ def _reduced_map(
             _matmul_nh(x[0, j], Bs[j], GB[j], Wst[j], gemm)
         _matmul(x[1, j], Bs[j], PB[j], gemm)
     # the stage sums, into Wst and Bs (free by now), over the n² entries of each matrix as
-    # one flat loop (vectorised whatever n): w (-Y) and (-w) Y are the same numbers
+    # one flat loop (vectorised whatever n)
     GBf, PBf = GB.reshape((s, nn)), PB.reshape((s, nn))
     accG, accP = Wst.reshape((s, nn)), Bs.reshape((s, nn))
-    sign = -1.0 if skew else 1.0
     for i in range(s):
         for e in range(nn):
             accG[i, e] = 0.0
             accP[i, e] = 0.0
         for j in range(s):
-            wG, wP = sign * hA[i, j], -hA[i, j]
+            wG, wP = coef[i, j], coef[s + i, j]
             for e in range(nn):
                 accG[i, e] += wG * GBf[j, e]
                 accP[i, e] += wP * PBf[j, e]
@@ -609,8 +653,6 @@ def _reduced_map(
 #: The updates' names, by ``conjugation``.
 _UPDATES = ("commutator", "conjugation")
 
-#: Newton–Schulz steps allowed (as :data:`lieflow.schemes.conjugation.NEWTON_SCHULZ_STEPS`).
-_NS_STEPS = 12
 _EPS64 = float(np.finfo(np.float64).eps)
 
 
@@ -655,7 +697,7 @@ def _gauss_jordan(L: Any, R: Any) -> None:
 @_helper
 def _skew_to_roundoff(B: Any) -> bool:
     """Whether ``B`` is skew-Hermitian to roundoff
-    (:func:`~lieflow.schemes.conjugation.is_unitary_generator`)."""
+    (:func:`~lieflow.schemes.conjugation.skew_to_roundoff` of its norms)."""
     n = B.shape[0]
     defect = 0.0
     size = 0.0
@@ -663,19 +705,19 @@ def _skew_to_roundoff(B: Any) -> bool:
         for j in range(n):
             defect += _abs2(B[i, j] + np.conj(B[j, i]))
             size += _abs2(B[i, j])
-    return math.sqrt(defect) <= 16 * _EPS64 * max(math.sqrt(size), _TINY)
+    return _skew_to_roundoff_rule(math.sqrt(defect), math.sqrt(size), _EPS64)
 
 
 @_helper
 def _orthonormalize(K: Any, E: Any, KE: Any, tmp: Any, gemm: Any) -> bool:
     """Newton–Schulz on ``U = I + K`` in its increment, in place:
     ``E = K + K^† + K^† K``, ``K <- K - (E + K E)/2``
-    (:func:`~lieflow.schemes.conjugation.orthonormalize`); false if ``U`` is too far from
-    unitary (``||E|| >= 1`` at the start)."""
+    (:func:`~lieflow.schemes.conjugation.orthonormalize`, its decisions by
+    :func:`~lieflow.schemes.conjugation.newton_schulz_step`); false if ``U`` is too far
+    from unitary (``||E|| >= 1`` at the start)."""
     n = K.shape[0]
-    floor = math.sqrt(n) * _EPS64
     last = math.inf
-    for _ in range(_NS_STEPS):
+    for _ in range(conjugation.NEWTON_SCHULZ_STEPS):
         _matmul_hn(K, K, E, tmp, gemm)
         err2 = 0.0
         for i in range(n):
@@ -684,16 +726,17 @@ def _orthonormalize(K: Any, E: Any, KE: Any, tmp: Any, gemm: Any) -> bool:
                 E[i, j] = e
                 err2 += _abs2(e)
         err = math.sqrt(err2)
-        if err <= floor or err >= last:
+        decision = _schulz_step(err, last, n, _EPS64)
+        if decision == conjugation.SCHULZ_DONE:
             return True
-        if err >= 1.0 and last == math.inf:
+        if decision == conjugation.SCHULZ_REFUSED:
             return False
         last = err
         _matmul(K, E, KE, gemm)
         for i in range(n):
             for j in range(n):
                 K[i, j] -= 0.5 * (E[i, j] + KE[i, j])
-        if err * err <= _EPS64:
+        if decision == conjugation.SCHULZ_LAST:
             return True
     return True
 
@@ -799,49 +842,37 @@ def _solver(fmap: Any) -> Any:
     :func:`_reduced_map`): one source for every formulation, compiled once per map (the map
     is a closure variable, i.e. a direct call, not a value passed at run time)."""
 
-    def iterate(
-        W0: Any, coef: Any, x: Any, xf: Any, m0: Any, m1: Any, m2: Any, m3: Any, B: Any,
-        params: Any, skew: bool, gemm: Any, res: Any, rule: Any, irule: Any,
-    ) -> int:  # fmt: skip
-        """Fixed-point iteration ``x <- fmap(x)`` from the guess in ``x`` (``xf``: its flat
-        view) until the stopping rule stops it: the number of updates (``x`` holds the
-        solution), negated on failure."""
-        size0 = _norm(xf)
-        k = 0
-        while True:
-            step2, size2 = fmap(W0, coef, x, m0, m1, m2, m3, B, params, skew, gemm)
-            k += 1
-            code, size0 = _judge(step2, size2, k, size0, res, rule, irule)
-            if code == _CONVERGED or code == _ROUNDOFF:
-                return k
-            if code != _GO:
-                return -k
-
-    iterate = _inner(iterate, f"_iterate_{fmap.__name__}")
-
     def solve(
         W0: Any, coef: Any, x: Any, xf: Any, x0f: Any, pred: Any, solved: Any, off: int,
-        guessing: bool, retry_cold: bool, m0: Any, m1: Any, m2: Any, m3: Any, B: Any,
-        params: Any, skew: bool, gemm: Any, res: Any, rule: Any, irule: Any,
+        guessing: bool, m0: Any, m1: Any, m2: Any, m3: Any, B: Any, params: Any, skew: bool,
+        gemm: Any, res: Any, tolerances: Any, settings: Any,
     ) -> int:  # fmt: skip
-        """Solve from the warm guess ``x0 + pred[off:]`` (when ``guessing``), retried from
-        the cold guess ``x0`` if that fails and ``retry_cold``
-        (:func:`lieflow.schemes.base.solve`); on success ``solved[off:] = x - x0`` (the
-        offsets a warm start keeps) and the updates of both attempts are returned, else a
-        negative number. ``xf``, ``x0f``: flat views of ``x`` and the cold guess."""
+        """Fixed-point iteration ``x <- fmap(x)`` until the stopping rule stops it, from the
+        warm guess ``x0 + pred[off:]`` (when ``guessing``), and once more from the cold
+        guess ``x0`` if that fails and :func:`~lieflow.schemes.base.retries_cold` says so
+        (where ``settings`` allow it); on success ``solved[off:] = x - x0`` (the offsets a
+        warm start keeps) and the updates of both attempts are returned, else a negative
+        number. ``xf``, ``x0f``: flat views of ``x`` and the cold guess."""
         m = xf.size
         total = 0
         warm = guessing
         while True:  # the warm attempt (when guessing), then the cold one if it failed
             for e in range(m):
                 xf[e] = x0f[e] + pred[off + e] if warm else x0f[e]
-            its = iterate(W0, coef, x, xf, m0, m1, m2, m3, B, params, skew, gemm, res, rule, irule)
-            total += abs(its)
-            if its > 0:
+            size0 = _norm(xf)
+            k = 0
+            code = _GO
+            while code == _GO:
+                step2, size2 = fmap(W0, coef, x, m0, m1, m2, m3, B, params, skew, gemm)
+                k += 1
+                code, size0 = _judge(step2, size2, k, size0, res, tolerances, settings)
+            total += k
+            converged = code == _CONVERGED or code == _ROUNDOFF
+            if not (settings[RETRY_COLD] != 0 and _retries_cold(converged, warm)):
                 break
-            if not (warm and retry_cold):
-                return -1
             warm = False
+        if not converged:
+            return -1
         for e in range(m):
             solved[off + e] = xf[e] - x0f[e]
         return total
@@ -862,40 +893,47 @@ def _sydirk_views(work: Any, scratch: Any) -> Any:
     return x, x0, x.reshape(x.size), x0.reshape(x0.size), m0, m1, m2, m3
 
 
+#: The updates' names, by ``conjugation``.
+_UPDATES = ("commutator", "conjugation")
+
+
 def _sydirk_step_of(conjugation: bool) -> Any:
     """:func:`_sydirk_step` for one update (SPEC §4.7): ``conjugation`` is a constant of the
     compiled code, so the other update is neither typed nor compiled (numba prunes the
     branch on a closure constant)."""
 
     def _sydirk_step(
-        cur: Any, out: Any, pred: Any, solved: Any, guessing: bool, retry_cold: bool, hA: Any,
-        hb: Any, x: Any, x0: Any, xf: Any, x0f: Any, m0: Any, m1: Any, m2: Any, m3: Any, B: Any,
-        params: Any, skew: bool, gemm: Any, res: Any, rule: Any, irule: Any,
+        cur: Any, out: Any, pred: Any, solved: Any, guessing: bool, coefficients: Any,
+        weights: Any, x: Any, x0: Any, xf: Any, x0f: Any, m0: Any, m1: Any, m2: Any, m3: Any,
+        B: Any, params: Any, skew: bool, gemm: Any, res: Any, tolerances: Any, settings: Any,
     ) -> int:  # fmt: skip
-        """One step of a composition of midpoint steps of sizes ``hb`` (SPEC §4.2) from
-        ``cur`` into ``out``; ``solved``/``pred``: the ``(s, n, n)`` offsets, flattened."""
+        """One step of a composition of midpoint steps (SPEC §4.2) of sizes ``weights``
+        (``h b_i``; ``coefficients[i]``: their
+        :func:`~lieflow.schemes.sydirk.midpoint_coefficients`) from ``cur`` into ``out``;
+        ``solved``/``pred``: the ``(s, n, n)`` offsets, flattened."""
         n = cur.shape[0]
         nn = n * n
         for a in range(n):
             for c in range(n):
                 out[a, c] = cur[a, c]
         total = 0
-        for i in range(hb.shape[0]):
+        for i in range(weights.shape[0]):
             for a in range(n):
                 for c in range(n):
                     x0[a, c] = out[a, c]
             its = _solve_midpoint(
-                x0, 0.5 * hb[i], x, xf, x0f, pred, solved, i * nn, guessing, retry_cold, m0,
-                m1, m2, m3, B, params, skew, gemm, res, rule, irule,
+                x0, coefficients[i], x, xf, x0f, pred, solved, i * nn, guessing, m0, m1, m2,
+                m3, B, params, skew, gemm, res, tolerances, settings,
             )  # fmt: skip
             if its < 0:
                 return -1
             total += its
             if conjugation:
-                if not _cayley_into(out, 0.5 * hb[i], skew, x, B, params, m0, m1, m2, m3, gemm):
+                a = coefficients[i, 0]  # the Cayley transform's h/2
+                if not _cayley_into(out, a, skew, x, B, params, m0, m1, m2, m3, gemm):
                     return -1
             else:
-                _commutator_add(out, hb[i], skew, x, B, params, m0, m1, m3, gemm)
+                _commutator_add(out, weights[i], skew, x, B, params, m0, m1, m3, gemm)
         return total
 
     return _inner(_sydirk_step, f"_sydirk_step_{_UPDATES[conjugation]}")
@@ -915,22 +953,24 @@ def _reduced_step_of(conjugation: bool) -> Any:
     """:func:`_reduced_step` for one update (as :func:`_sydirk_step_of`)."""
 
     def _reduced_step(
-        cur: Any, out: Any, pred: Any, solved: Any, guessing: bool, retry_cold: bool, hA: Any,
-        hb: Any, x: Any, x0: Any, xf: Any, x0f: Any, m0: Any, m1: Any, m2: Any, m3: Any, B: Any,
-        params: Any, skew: bool, gemm: Any, res: Any, rule: Any, irule: Any,
+        cur: Any, out: Any, pred: Any, solved: Any, guessing: bool, coefficients: Any,
+        weights: Any, x: Any, x0: Any, xf: Any, x0f: Any, m0: Any, m1: Any, m2: Any, m3: Any,
+        B: Any, params: Any, skew: bool, gemm: Any, res: Any, tolerances: Any, settings: Any,
     ) -> int:  # fmt: skip
         """One step of the reduced stage form of a symplectic tableau (SPEC §4.5) from
-        ``cur`` into ``out``: unknowns ``(G, P)``, cold guess ``(I, cur)``;
+        ``cur`` into ``out``: unknowns ``(G, P)``, cold guess ``(I, cur)``; ``coefficients``:
+        :func:`~lieflow.schemes.block.reduced_coefficients`, ``weights = h b``;
         ``solved``/``pred``: the ``(2, s, n, n)`` offsets, flattened.
         ``out = cur + sum_i hb_i [B(W_i), W_i]``, ``W_i = G_i^† P_i``."""
-        s, n = hb.shape[0], cur.shape[0]
+        s, n = weights.shape[0], cur.shape[0]
         for i in range(s):
             for a in range(n):
                 for c in range(n):
                     x0[0, i, a, c] = 1.0 if a == c else 0.0
                     x0[1, i, a, c] = cur[a, c]
-        its = _solve_reduced(cur, hA, x, xf, x0f, pred, solved, 0, guessing, retry_cold, m0,
-                             m1, m2, m3, B, params, skew, gemm, res, rule, irule)  # fmt: skip
+        its = _solve_reduced(cur, coefficients, x, xf, x0f, pred, solved, 0, guessing, m0,
+                             m1, m2, m3, B, params, skew, gemm, res, tolerances,
+                             settings)  # fmt: skip
         if its < 0:
             return -1
         Wi, Bi, BW, WB = m0[0], m1[0], m2[0], m3[0]
@@ -938,63 +978,60 @@ def _reduced_step_of(conjugation: bool) -> Any:
             for c in range(n):
                 out[a, c] = cur[a, c]
         if conjugation:
-            return its if _lifted_into(out, hb, skew, x, B, params, Wi, Bi, BW, WB, gemm) else -1
+            lifted = _lifted_into(out, weights, skew, x, B, params, Wi, Bi, BW, WB, gemm)
+            return its if lifted else -1
         for i in range(s):
             _matmul_hn(x[0, i], x[1, i], Wi, WB, gemm)
-            _commutator_add(out, hb[i], skew, Wi, B, params, Bi, BW, WB, gemm)
+            _commutator_add(out, weights[i], skew, Wi, B, params, Bi, BW, WB, gemm)
         return its
 
     return _inner(_reduced_step, f"_reduced_step_{_UPDATES[conjugation]}")
 
 
 @_helper
-def _predict(hist: Any, kk: int, points: int, weights: Any, out: Any) -> None:
+def _predict(history: Any, kk: int, points: int, extrapolation: Any, out: Any) -> None:
     """The warm-start prediction from the last ``points`` solutions of trajectory ``kk``
-    (:meth:`WarmStart.prediction <lieflow.flows.WarmStart.prediction>`):
-    ``out = sum_j weights[points - 1, j] hist[j, kk]``, 1-D."""
+    (:meth:`WarmStart.prediction <lieflow.warm_start.WarmStart.prediction>`):
+    ``out = sum_j extrapolation[points - 1, j] history[j, kk]``, 1-D."""
     m = out.size
-    w0 = weights[points - 1, 0]
+    w0 = extrapolation[points - 1, 0]
     for e in range(m):
-        out[e] = w0 * hist[0, kk, e]
+        out[e] = w0 * history[0, kk, e]
     for j in range(1, points):
-        w = weights[points - 1, j]
+        w = extrapolation[points - 1, j]
         for e in range(m):
-            out[e] += w * hist[j, kk, e]
+            out[e] += w * history[j, kk, e]
 
 
 @_helper
-def _commit(solved: Any, hist: Any, flags: Any, weights: Any, acc: Any, err2: Any) -> None:
-    """:meth:`WarmStart.advance <lieflow.flows.WarmStart.advance>` for the whole stack:
-    the squared errors of the predictions of ``solved`` from ``0 .. nh`` points (summed
-    over the stack), the best number of points (ties: fewer; one more if it was all of
-    them and ``hist`` holds more) into ``flags[1]``, and ``solved`` into the history
-    ``hist`` (``(depth, K, m)``, most recent first; ``flags[0]``: how many are filled)."""
-    depth, K, m = hist.shape
-    nh = flags[0]
-    for u in range(nh + 1):
+def _commit(
+    solved: Any, history: Any, warm_counts: Any, extrapolation: Any, acc: Any, err2: Any
+) -> None:
+    """:meth:`WarmStart.advance <lieflow.warm_start.WarmStart.advance>` for the whole stack:
+    the squared errors of the predictions of ``solved`` from ``0 .. filled`` points (summed
+    over the stack), the number of points trusted next by
+    :func:`~lieflow.warm_start.trusted_points`, and ``solved`` into the history
+    (``(depth, K, m)``, most recent first)."""
+    depth, K, m = history.shape
+    filled = warm_counts[FILLED]
+    for u in range(filled + 1):
         err2[u] = 0.0
     for kk in range(K):
         for e in range(m):
             err2[0] += _abs2(solved[kk, e])
-        for u in range(1, nh + 1):
-            _predict(hist, kk, u, weights, acc)
+        for u in range(1, filled + 1):
+            _predict(history, kk, u, extrapolation, acc)
             for e in range(m):
                 err2[u] += _abs2(solved[kk, e] - acc[e])
-    best = 0
-    for u in range(1, nh + 1):
-        if err2[u] < err2[best]:
-            best = u
-    if best == nh and best < depth:
-        best += 1
-    flags[1] = best
+    warm_counts[TRUSTED] = _trusted_points(err2, filled, depth)
     for j in range(depth - 1, 0, -1):
         for kk in range(K):
             for e in range(m):
-                hist[j, kk, e] = hist[j - 1, kk, e]
+                history[j, kk, e] = history[j - 1, kk, e]
     for kk in range(K):
         for e in range(m):
-            hist[0, kk, e] = solved[kk, e]
-    flags[0] = min(nh + 1, depth)
+            history[0, kk, e] = solved[kk, e]
+    warm_counts[FILLED] = min(filled + 1, depth)
 
 
 def _driver(fstep: Any, fviews: Any) -> Any:
@@ -1002,64 +1039,55 @@ def _driver(fstep: Any, fviews: Any) -> Any:
     :func:`_reduced_step`, with views of the work arrays from ``fviews``): one source,
     compiled once per formulation."""
 
-    def advance(
-        W: Any, hA: Any, hb: Any, skew: bool, B: Any, params: Any, P: Any,
-        pparams: Any, project: bool, rule: Any, irule: Any, hist: Any, weights: Any,
-        flags: Any, states: Any, iters: Any, gemm: Any, buf: Any, fbuf: Any,
-    ) -> int:  # fmt: skip
-        """Advance the stack ``W`` (``(K, n, n)``) by up to ``states.shape[0]`` steps of
-        ``fstep``.
-
-        ``hist`` (``(depth, K, m)``: the last ``depth`` solutions' warm offsets of each
-        trajectory, flattened, most recent first), ``flags = (filled, trusted)`` and the
-        extrapolation weights (row ``p - 1``: from ``p`` points) are the warm-start state
-        (:class:`~lieflow.flows.WarmStart`), updated in place after every completed step.
-        ``irule`` holds ``(max_iter, patience, window, project, retry_cold, use_warm)``;
-        the update (SPEC §4.7) is the step's own (:func:`_sydirk_step_of`).
-        Each new state is mapped by ``P`` (the system's compiled projection) when
-        ``project``. ``gemm``: the products above ``n = _SMALL`` (:func:`gemm`); ``buf``,
-        ``fbuf``: the work arrays (:func:`workspace`). Writes each step's states and its
-        iteration count (max over the stack) and returns how many steps completed; fewer
-        than asked means the next step failed and nothing of it was committed.
+    def advance(args: Any) -> int:
+        """Advance the stack ``start`` (``(K, n, n)``) by up to ``states.shape[0]`` steps of
+        ``fstep``: ``args`` are the :class:`LoopArguments`, with ``B``, ``project`` and
+        ``gemm`` as functions. Writes each step's states and its iteration count (max over
+        the stack) and returns how many steps completed; fewer than asked means the next
+        step failed and nothing of it was committed.
         """
-        K, n, s = W.shape[0], W.shape[1], hb.shape[0]
-        retry_cold, use_warm = irule[4] != 0, irule[5] != 0
-        m = hist.shape[2]
-        # the work arrays, carved out of buf and fbuf as workspace() sizes them
-        solved = buf[: K * m].reshape((K, m))
-        pred = buf[K * m : K * m + m]
-        acc = buf[K * m + m : K * m + 2 * m]
+        (
+            start, coefficients, weights, skew, B, B_params, project, project_params,
+            projecting, tolerances, settings, history, extrapolation, warm_counts, states,
+            iterations, gemm, workspace, real_workspace,
+        ) = args  # fmt: skip
+        K, n, s = start.shape[0], start.shape[1], weights.shape[0]
+        warm = settings[WARM_STARTS] != 0
+        depth, m = history.shape[0], history.shape[2]
+        # the work arrays, carved out as workspace() sizes them
+        solved = workspace[: K * m].reshape((K, m))
+        pred = workspace[K * m : K * m + m]
+        acc = workspace[K * m + m : K * m + 2 * m]
         o = K * m + 2 * m
-        work = buf[o : o + 4 * s * n * n].reshape((2, 2, s, n, n))
-        scratch = buf[o + 4 * s * n * n : o + 9 * s * n * n].reshape((5, s, n, n))
-        depth = hist.shape[0]
-        err2 = fbuf[: depth + 1]
-        res = fbuf[depth + 1 : depth + 1 + irule[0]]
+        work = workspace[o : o + 4 * s * n * n].reshape((2, 2, s, n, n))
+        scratch = workspace[o + 4 * s * n * n : o + 9 * s * n * n].reshape((5, s, n, n))
+        err2 = real_workspace[: depth + 1]
+        res = real_workspace[depth + 1 : depth + 1 + settings[MAX_ITER]]
         x, x0, xf, x0f, m0, m1, m2, m3 = fviews(work, scratch)
         for step in range(states.shape[0]):
-            points = min(flags[0], flags[1])
-            guessing = use_warm and points > 0
+            points = min(warm_counts[FILLED], warm_counts[TRUSTED])
+            guessing = warm and points > 0
             most = 0
             for kk in range(K):
                 if guessing:
-                    _predict(hist, kk, points, weights, pred)
-                cur = W[kk] if step == 0 else states[step - 1, kk]
+                    _predict(history, kk, points, extrapolation, pred)
+                cur = start[kk] if step == 0 else states[step - 1, kk]
                 out = states[step, kk]
-                total = fstep(cur, out, pred, solved[kk], guessing, retry_cold, hA, hb, x, x0, xf,
-                              x0f, m0, m1, m2, m3, B, params, skew, gemm, res, rule,
-                              irule)  # fmt: skip
+                total = fstep(cur, out, pred, solved[kk], guessing, coefficients, weights, x,
+                              x0, xf, x0f, m0, m1, m2, m3, B, B_params, skew, gemm, res,
+                              tolerances, settings)  # fmt: skip
                 if total < 0:
                     return step
-                if project:
-                    P(out, pparams, out)
+                if projecting:
+                    project(out, project_params, out)
                 for a in range(n):
                     for c in range(n):
                         if not _finite(out[a, c]):
                             return step
                 most = max(most, total)
-            if use_warm:
-                _commit(solved, hist, flags, weights, acc, err2)
-            iters[step] = most
+            if warm:
+                _commit(solved, history, warm_counts, extrapolation, acc, err2)
+            iterations[step] = most
         return states.shape[0]
 
     return _inner(advance, f"_advance_{fstep.__name__}")
@@ -1072,6 +1100,67 @@ _advance_sydirk, _advance_sydirk_conjugation = (
 _advance_reduced, _advance_reduced_conjugation = (
     _driver(_reduced_step_of(c), _reduced_views) for c in (False, True)
 )
+
+
+class LoopArguments(NamedTuple):
+    """The arguments of an entry point (:func:`entry`), by name and in order: the loops'
+    interface. The loops read the inputs and write ``states``, ``iterations`` and the warm
+    start (``history``, ``warm_counts``) in place, and return how many steps they took.
+
+    Attributes
+    ----------
+    start : ndarray
+        The states the chunk starts from, ``(K, n, n)`` (``K`` trajectories).
+    coefficients : ndarray
+        The formulation's stage coefficients, ``float64``: rows ``(q, q^2)`` per sub-step
+        of a midpoint composition (:func:`~lieflow.schemes.sydirk.midpoint_coefficients`),
+        ``(C_G; C_P)`` of the reduced form (:func:`~lieflow.schemes.block.reduced_coefficients`).
+    weights : ndarray
+        ``h b``: the sub-steps' sizes, or the stage weights of the update.
+    skew : bool
+        Whether the algebra is skew-Hermitian (``M B = (B M)^†``).
+    B, project, gemm : int
+        Addresses of the system's compiled ``B``, of its compiled projection (``B``'s when
+        there is none: not called) and of the BLAS product (:func:`address`).
+    B_params, project_params : ndarray
+        Their ``params``; ``B_params`` led by :func:`inline_code`.
+    projecting : bool
+        Whether each new state is mapped by ``project``.
+    tolerances, settings : ndarray
+        The stopping rule and the step's switches (:func:`stopping_arrays`).
+    history : ndarray
+        The warm start's kept solutions, ``(depth, K, m)``, most recent first (updated).
+    extrapolation : ndarray
+        :func:`~lieflow.warm_start.extrapolation_matrix` of ``depth`` points.
+    warm_counts : ndarray
+        ``(filled, trusted)`` of the warm start (:data:`FILLED`, :data:`TRUSTED`; updated).
+    states : ndarray
+        Out: the states after each step, ``(steps, K, n, n)``.
+    iterations : ndarray
+        Out: fixed-point updates per step (max over the stack), ``(steps,)``.
+    workspace, real_workspace : ndarray
+        The work arrays (:func:`workspace`): the loops allocate nothing.
+    """
+
+    start: np.ndarray
+    coefficients: np.ndarray
+    weights: np.ndarray
+    skew: bool
+    B: int
+    B_params: np.ndarray
+    project: int
+    project_params: np.ndarray
+    projecting: bool
+    tolerances: np.ndarray
+    settings: np.ndarray
+    history: np.ndarray
+    extrapolation: np.ndarray
+    warm_counts: np.ndarray
+    states: np.ndarray
+    iterations: np.ndarray
+    gemm: int
+    workspace: np.ndarray
+    real_workspace: np.ndarray
 
 
 def _at(signature_of: Callable[[np.dtype], Any]) -> Any:
@@ -1109,48 +1198,55 @@ if numba is not None:
     _product_at = _at(lambda dtype: _PRODUCT_SIGNATURES[np.dtype(dtype)])
 
 
-def _entry_points(key: str, conjugation: bool) -> tuple[Any, Any]:
-    """The two entry points for one update, closures over ``key`` (:data:`RULE_KEY`) and
-    ``conjugation``, so that numba's cache key (which hashes closure variables) changes with
-    the stopping rule and tells the updates apart; the update's loop is the one compiled
-    (the branch on the constant ``conjugation`` is pruned). They take the system's maps and
-    the product by address (``B``, ``P``, ``gemm``: ``int64``, see :func:`_at`)."""
+def _entry_point(key: str, sydirk: bool, conjugation: bool) -> Any:
+    """The entry point of one formulation (``sydirk``: a composition of midpoint steps, else
+    the reduced stage form) and update: a closure over ``key`` (:data:`SHARED_KEY`),
+    ``sydirk`` and ``conjugation``, so that numba's cache key (which hashes closure
+    variables) changes with the shared rules; the formulation's and update's loop is the
+    one compiled (the branches on the constants are pruned). It takes the
+    :class:`LoopArguments`, the system's maps and the product by address (``int64``, see
+    :func:`_at`)."""
 
-    def sydirk_advance(
-        W: Any, hA: Any, hb: Any, skew: bool, B: Any, params: Any, P: Any, pparams: Any,
-        project: bool, rule: Any, irule: Any, hist: Any, weights: Any, flags: Any,
-        states: Any, iters: Any, gemm: Any, buf: Any, fbuf: Any,
+    def advance(
+        start: Any, coefficients: Any, weights: Any, skew: bool, B: Any, B_params: Any,
+        project: Any, project_params: Any, projecting: bool, tolerances: Any, settings: Any,
+        history: Any, extrapolation: Any, warm_counts: Any, states: Any, iterations: Any,
+        gemm: Any, workspace: Any, real_workspace: Any,
     ) -> int:  # fmt: skip
-        """The chunk loop of compositions of midpoint steps, ``hb = h b``."""
         key  # noqa: B018 - part of the cache key
+        args = (
+            start, coefficients, weights, skew, _map_at(B, start), B_params,
+            _map_at(project, start), project_params, projecting, tolerances, settings,
+            history, extrapolation, warm_counts, states, iterations, _product_at(gemm, start),
+            workspace, real_workspace,
+        )  # fmt: skip
+        if sydirk:
+            if conjugation:
+                return _advance_sydirk_conjugation(args)
+            return _advance_sydirk(args)
         if conjugation:
-            return _advance_sydirk_conjugation(
-                W, hA, hb, skew, _map_at(B, W), params, _map_at(P, W), pparams, project, rule,
-                irule, hist, weights, flags, states, iters, _product_at(gemm, W), buf, fbuf,
-            )  # fmt: skip
-        return _advance_sydirk(W, hA, hb, skew, _map_at(B, W), params, _map_at(P, W), pparams,
-                               project, rule, irule, hist, weights, flags, states, iters,
-                               _product_at(gemm, W), buf, fbuf)  # fmt: skip
+            return _advance_reduced_conjugation(args)
+        return _advance_reduced(args)
 
-    def reduced_advance(
-        W: Any, hA: Any, hb: Any, skew: bool, B: Any, params: Any, P: Any, pparams: Any,
-        project: bool, rule: Any, irule: Any, hist: Any, weights: Any, flags: Any,
-        states: Any, iters: Any, gemm: Any, buf: Any, fbuf: Any,
-    ) -> int:  # fmt: skip
-        """The chunk loop of the reduced stage form, ``hA = h A``, ``hb = h b``."""
-        key  # noqa: B018 - part of the cache key
-        if conjugation:
-            return _advance_reduced_conjugation(
-                W, hA, hb, skew, _map_at(B, W), params, _map_at(P, W), pparams, project, rule,
-                irule, hist, weights, flags, states, iters, _product_at(gemm, W), buf, fbuf,
-            )  # fmt: skip
-        return _advance_reduced(W, hA, hb, skew, _map_at(B, W), params, _map_at(P, W),
-                                pparams, project, rule, irule, hist, weights, flags, states,
-                                iters, _product_at(gemm, W), buf, fbuf)  # fmt: skip
+    name = f"{'sydirk' if sydirk else 'reduced'}_advance{'_conjugation' if conjugation else ''}"
+    advance.__name__ = advance.__qualname__ = name  # one cache file per entry point
+    return advance
 
-    for f in (sydirk_advance, reduced_advance):  # one cache file per update
-        f.__name__ = f.__qualname__ = f"{f.__name__}{'_conjugation' if conjugation else ''}"
-    return sydirk_advance, reduced_advance
+
+def _entry_signature(dtype: np.dtype) -> Any:
+    """numba's signature of an entry point for data of ``dtype``: the types of
+    :class:`LoopArguments`, by name."""
+    t = numba.types
+    f8, i8, d = t.float64, t.int64, numba.from_dtype(dtype)
+    types = {
+        "start": d[:, :, ::1], "coefficients": f8[:, ::1], "weights": f8[::1],
+        "skew": t.boolean, "B": i8, "B_params": f8[::1], "project": i8,
+        "project_params": f8[::1], "projecting": t.boolean, "tolerances": f8[::1],
+        "settings": i8[::1], "history": d[:, :, ::1], "extrapolation": f8[:, ::1],
+        "warm_counts": i8[::1], "states": d[:, :, :, ::1], "iterations": i8[::1], "gemm": i8,
+        "workspace": d[::1], "real_workspace": f8[::1],
+    }  # fmt: skip
+    return t.int64(*(types[name] for name in LoopArguments._fields))
 
 
 def _compile_entry(func: F, dtype: np.dtype) -> F:
@@ -1158,29 +1254,15 @@ def _compile_entry(func: F, dtype: np.dtype) -> F:
     disk cache if there)."""
     if numba is None:  # pragma: no cover
         return func
-    t = numba.types
-    f8, i8, d = t.float64, t.int64, numba.from_dtype(dtype)
-    sig = t.int64(
-        d[:, :, ::1], f8[:, ::1], f8[::1], t.boolean, i8, f8[::1], i8, f8[::1], t.boolean,
-        f8[::1], i8[::1], d[:, :, ::1], f8[:, ::1], i8[::1], d[:, :, :, ::1], i8[::1], i8,
-        d[::1], f8[::1],
-    )  # fmt: skip
     # without reference counting (see the module's docstring) where this numba has the
     # (private) option; with it the same loops are correct, only slower
     options: dict[str, Any] = {"error_model": "numpy"}
     cpu = importlib.import_module("numba.core.cpu")
     if hasattr(getattr(cpu, "CPUTargetOptions", None), "_nrt"):
         options["_nrt"] = False
-    return cast(F, numba_cache.cached_njit(func, signature=sig, **options))
+    return cast(F, numba_cache.cached_njit(func, signature=_entry_signature(dtype), **options))
 
 
-_ENTRY_SOURCES = {
-    (name, conjugation): f
-    for conjugation in (False, True)
-    for name, f in zip(
-        ("sydirk_advance", "reduced_advance"), _entry_points(RULE_KEY, conjugation), strict=True
-    )
-}
 _ENTRIES: dict[Any, Any] = {}
 
 
@@ -1198,11 +1280,11 @@ def gemm(dtype: np.dtype) -> Any:
 def workspace(
     dtype: np.dtype, K: int, m: int, s: int, n: int, depth: int, max_iter: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The work arrays of the loops (``buf``, ``fbuf`` of :func:`_driver`), which allocate
-    nothing themselves: ``solved (K, m)``, ``pred (m)``, ``acc (m)``, ``work (2, 2, s, n,
-    n)`` and ``scratch (5, s, n, n)`` end to end in ``dtype``, then ``err2 (depth + 1)`` and
-    the residual history ``res (max_iter)`` in float64; ``m``: one trajectory's warm
-    offsets, ``depth``: the history's length (``hist.shape[0]``)."""
+    """The work arrays of the loops (``workspace``, ``real_workspace`` of
+    :class:`LoopArguments`), which allocate nothing themselves: ``solved (K, m)``,
+    ``pred (m)``, ``acc (m)``, ``work (2, 2, s, n, n)`` and ``scratch (5, s, n, n)`` end to
+    end in ``dtype``, then ``err2 (depth + 1)`` and the residual history ``res (max_iter)``
+    in float64; ``m``: one trajectory's warm offsets, ``depth``: the history's length."""
     return (
         np.zeros(K * m + 2 * m + 9 * s * n * n, dtype=dtype),
         np.zeros(depth + 1 + max_iter),
@@ -1217,5 +1299,8 @@ def entry(name: str, dtype: np.dtype = DTYPES[0], conjugation: bool = False) -> 
     compiles and loads only the loop of its own formulation, data type and update."""
     key = (name, np.dtype(dtype), bool(conjugation))
     if key not in _ENTRIES:
-        _ENTRIES[key] = _compile_entry(_ENTRY_SOURCES[name, key[2]], key[1])
+        if name not in ("sydirk_advance", "reduced_advance"):
+            raise ValueError(f"no entry point {name!r}")
+        source = _entry_point(SHARED_KEY, name == "sydirk_advance", key[2])
+        _ENTRIES[key] = _compile_entry(source, key[1])
     return _ENTRIES[key]

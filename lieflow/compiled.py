@@ -46,9 +46,10 @@ import functools
 import importlib.util
 import math
 import sys
+import weakref
 from collections.abc import Callable, Sequence
 from types import ModuleType
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, NamedTuple, TypeVar
 
 import attrs
 import numpy as np
@@ -57,12 +58,17 @@ from . import driver
 from .algebras import Array
 from .flows import SchemeFlow, StepStats
 from .schemes.base import Scheme
+from .schemes.block import reduced_coefficients
+from .schemes.sydirk import midpoint_coefficients
 from .solvers import anderson
 from .solvers.base import Solver
-from .solvers.fixed_point import FixedPoint
+from .solvers.fixed_point import FixedPoint, StoppingRule
 from .solvers.newton import Auto
 from .systems.base import IsospectralSystem
 from .warm_start import DEFAULT_DEPTH, WarmStart, extrapolation_matrix
+
+if TYPE_CHECKING:
+    from ._kernels import LoopArguments
 
 #: ``engine="auto"`` picks the compiled engine for matrix sizes ``n <= AUTO_MAX_N`` (real
 #: data) or ``n <= AUTO_MAX_N_COMPLEX`` (complex data) ...
@@ -178,44 +184,72 @@ class CompiledSteps:
         return int(self.iterations.shape[0])
 
 
+def _read_only(values: Any) -> Array:
+    """A C-contiguous read-only float64 copy of ``values``: what a plan shows of its
+    coefficients and ``params`` (the loops get copies of their own, :class:`_Fixed`)."""
+    out = np.array(values, dtype=np.float64, order="C")
+    out.setflags(write=False)
+    return out
+
+
+class _Fixed(NamedTuple):
+    """What :meth:`CompiledPlan.loop_call` passes the loops unchanged from call to call for
+    one warm-start depth (made once per plan and depth): the loops' module and entry point,
+    their arguments of that kind (:class:`lieflow._kernels.LoopArguments`: writable copies
+    of the plan's values, which nothing outside the plan sees), the warm offsets' core
+    shape and size, and ``max_iter``."""
+
+    kernels: ModuleType
+    run: Any
+    B: int
+    B_params: Array
+    project: int
+    project_params: Array
+    tolerances: Array
+    settings: Array
+    extrapolation: Array
+    gemm: int
+    core: tuple[int, ...]
+    size: int
+    max_iter: int
+
+
 @attrs.frozen(eq=False)
 class CompiledPlan:
     """A supported case (see the module docstring), ready to advance.
 
     Build it with :func:`plan`. ``kind`` selects the formulation (``Scheme.compiled_form``);
-    ``A``, ``b`` are the tableau's coefficients; ``B``/``params`` the system's compiled
-    ``B`` (:meth:`~lieflow.IsospectralSystem.compiled_B`) and ``project``/``pparams`` its
-    compiled projection onto the phase space (``None``: each chunk is projected by
-    ``system.project`` afterwards); ``rule = (rtol, atol, roundoff_floor,
-    divergence_factor)`` and ``irule = (max_iter, patience, window, project, retry_cold)``
-    are the fixed-point stopping rule (:class:`~lieflow.solvers.StoppingRule`);
-    ``retry_cold`` repeats a failed warm-started solve from the cold guess, as
-    :func:`lieflow.schemes.base.solve` does (not under ``Auto``, which hands a failed solve
-    to Newton first). ``conjugation``: the scheme's ``update`` is ``"conjugation"`` (SPEC
-    §4.7).
+    ``A``, ``b`` are the tableau's coefficients; ``B``/``B_params`` the system's compiled
+    ``B`` (:meth:`~lieflow.IsospectralSystem.compiled_B`) and ``project``/``project_params``
+    its compiled projection onto the phase space (``None``: each chunk is projected by
+    ``system.project`` afterwards); ``rule`` is the fixed-point stopping rule
+    (:class:`~lieflow.solvers.StoppingRule`); ``retry_cold``: a failed warm-started solve is
+    retried from the cold guess inside the loops (:func:`lieflow.schemes.base.retries_cold`;
+    not under ``Auto``, which hands a failed solve to Newton first: the step is handed to
+    the numpy path). ``conjugation``: the scheme's ``update`` is ``"conjugation"`` (SPEC
+    §4.7). The arrays are read-only: a plan is kept by the engine (:func:`plan`) and serves
+    every call of its case.
     """
 
     kind: str
     n: int
     dtype: np.dtype
     skew: bool
-    A: Array = attrs.field(repr=False)
-    b: Array = attrs.field(repr=False)
+    A: Array = attrs.field(repr=False, converter=_read_only)
+    b: Array = attrs.field(repr=False, converter=_read_only)
     B: Any = attrs.field(repr=False)
-    params: Array = attrs.field(repr=False)
+    B_params: Array = attrs.field(repr=False, converter=_read_only)
     project: Any = attrs.field(repr=False)
-    pparams: Array = attrs.field(repr=False)
-    rule: Array = attrs.field(repr=False)
-    irule: Array = attrs.field(repr=False)
+    project_params: Array = attrs.field(repr=False, converter=_read_only)
+    rule: StoppingRule
+    retry_cold: bool
     solver_name: str
     conjugation: bool = attrs.field(default=False, kw_only=True)
-    #: What :meth:`advance` passes the loops unchanged from call to call, per warm-start
-    #: depth (built on first use and kept: a plan is kept on its system, see :func:`plan`).
-    _static: dict[int, tuple[Any, ...]] = attrs.field(
-        init=False, factory=dict, eq=False, repr=False
-    )
+    #: The loops' unchanging arguments per warm-start depth (:class:`_Fixed`, made on first
+    #: use and kept with the plan).
+    _fixed: dict[int, _Fixed] = attrs.field(init=False, factory=dict, eq=False, repr=False)
     #: The last flow built on this plan (:meth:`flow`) and the step size of the last call
-    #: with its scaled coefficients ``(h, h A, h b)`` (:meth:`loop_call`): values, kept.
+    #: with its coefficients ``(h, coefficients, weights)`` (:meth:`loop_call`): values, kept.
     _kept: dict[str, Any] = attrs.field(init=False, factory=dict, eq=False, repr=False)
 
     def flow(
@@ -244,6 +278,23 @@ class CompiledPlan:
         s, n = self.b.size, self.n
         return (s, n, n) if self.kind == "sydirk" else (2, s, n, n)
 
+    def coefficients(self, h: float) -> tuple[Array, Array]:
+        """The loops' stage ``coefficients`` and ``weights`` (``h b``) for step size ``h``
+        (:class:`~lieflow._kernels.LoopArguments`), by the derivations the numpy path uses:
+        rows ``(q, q^2)`` of :func:`~lieflow.schemes.sydirk.midpoint_coefficients` of each
+        sub-step, or ``(C_G; C_P)`` of :func:`~lieflow.schemes.block.reduced_coefficients`.
+        Those of the last step size are kept."""
+        kept = self._kept.get("h")
+        if kept is not None and kept[0] == h:
+            return kept[1], kept[2]
+        weights = h * self.b
+        if self.kind == "sydirk":
+            coefficients = np.array([midpoint_coefficients(w) for w in weights.tolist()])
+        else:
+            coefficients = np.concatenate(reduced_coefficients(h, self.A, self.skew))
+        self._kept["h"] = (h, coefficients, weights)
+        return coefficients, weights
+
     def advance(
         self,
         W: Array,
@@ -259,16 +310,17 @@ class CompiledPlan:
         (``trusted``), as in :class:`~lieflow.warm_start.WarmStart`."""
         run, args = self.loop_call(W, h, steps, history, depth, trusted)
         done = run(*args)
-        states, iters, hist, flags = args[14], args[15], args[11], args[13]
+        states, iterations, counts = args.states, args.iterations, args.warm_counts
         if done < steps:
-            states, iters = states[:done], iters[:done]
+            states, iterations = states[:done], iterations[:done]
         batch, n = W.shape[:-2], self.n
-        shape = (*batch, *self._static[depth][7])
+        fixed = self._fixed[depth]
+        k, shape = fixed.kernels, (*batch, *fixed.core)
         return CompiledSteps(
             states.reshape(done, *batch, n, n),
-            iters,
-            tuple([hist[j].reshape(shape) for j in range(int(flags[0]))]),
-            int(flags[1]),
+            iterations,
+            tuple([args.history[j].reshape(shape) for j in range(int(counts[k.FILLED]))]),
+            int(counts[k.TRUSTED]),
             done == steps,
         )
 
@@ -280,59 +332,61 @@ class CompiledPlan:
         history: Sequence[Array] = (),
         depth: int = DEFAULT_DEPTH,
         trusted: int = 1,
-    ) -> tuple[Any, tuple[Any, ...]]:
+    ) -> tuple[Any, LoopArguments]:
         """The compiled loop that :meth:`advance` calls and its arguments, ``(run, args)``:
         ``run(*args)`` takes the steps (it returns how many it accepted and writes the
-        states into ``args[14]``, the updates per step into ``args[15]``). With
+        states into ``args.states``, the updates per step into ``args.iterations``). With
         ``depth=0`` (cold starts) the call reads nothing it writes, so it may be repeated:
         what the fixed-cost benchmark times as the bare compiled step
         (``benchmarks/suites/call_cost.py``)."""
         batch, n, dtype = W.shape[:-2], self.n, self.dtype
         K = math.prod(batch)
-        static = self._static.get(depth)
-        if static is None:
-            static = self._static[depth] = self._arguments(depth)
-        k, run, irule, weights, B, P, gemm, _, size, max_iter = static
+        fixed = self._fixed.get(depth)
+        if fixed is None:
+            fixed = self._fixed[depth] = self._fixed_arguments(depth)
+        k, size = fixed.kernels, fixed.size
         Wk = np.ascontiguousarray(W, dtype=dtype).reshape(K, n, n)
         keep = max(depth, 1)
-        hist = np.zeros((keep, K, size), dtype=dtype)
+        kept = np.zeros((keep, K, size), dtype=dtype)
         filled = min(len(history), keep) if depth else 0
         for j in range(filled):
-            hist[j] = np.asarray(history[j], dtype=dtype).reshape(K, size)
-        counts = np.zeros(2 + steps, dtype=np.int64)  # the flags, then the updates per step
-        flags, iters = counts[:2], counts[2:]
-        flags[0], flags[1] = filled, int(trusted)
+            kept[j] = np.asarray(history[j], dtype=dtype).reshape(K, size)
+        # one allocation: the warm counts, then the updates per step
+        counts = np.zeros(2 + steps, dtype=np.int64)
+        warm_counts, iterations = counts[:2], counts[2:]
+        warm_counts[k.FILLED], warm_counts[k.TRUSTED] = filled, int(trusted)
         states = np.empty((steps, K, n, n), dtype=dtype)
-        buf, fbuf = k.workspace(dtype, K, size, self.b.size, n, keep, max_iter)
-        scaled = self._kept.get("h")
-        if scaled is None or scaled[0] != h:  # h A, h b of the last step size, kept
-            scaled = self._kept["h"] = (h, h * self.A, h * self.b)
-        args = (
-            Wk, scaled[1], scaled[2], self.skew, B, self.params, P, self.pparams,
-            self.project is not None, self.rule, irule, hist, weights, flags, states, iters,
-            gemm, buf, fbuf,
+        work, real_work = k.workspace(dtype, K, size, self.b.size, n, keep, fixed.max_iter)
+        coefficients, weights = self.coefficients(h)
+        # (positional: a NamedTuple's keywords cost 2 µs a call)
+        args = k.LoopArguments(
+            Wk, coefficients, weights, self.skew, fixed.B, fixed.B_params, fixed.project,
+            fixed.project_params, self.project is not None, fixed.tolerances, fixed.settings,
+            kept, fixed.extrapolation, warm_counts, states, iterations, fixed.gemm, work,
+            real_work,
         )  # fmt: skip
-        return run, args
+        return fixed.run, args
 
-    def _arguments(self, depth: int) -> tuple[Any, ...]:
-        """The loops' module and entry point, and the arguments that depend on the
-        warm-start ``depth`` alone: ``irule`` extended by ``depth > 0``, the
-        extrapolation weights (a writable copy: the loops' type), and the addresses of
-        ``B``, the projection (``B``'s when there is none: not called) and the product,
-        each checked to be a resolved function of the signature the loops call it with
-        (:func:`lieflow._kernels.address`; the loops take bare integers). The loops write
-        none of them; with the warm offsets' core shape and size and ``max_iter``."""
+    def _fixed_arguments(self, depth: int) -> _Fixed:
+        """The loops' arguments that depend on the warm-start ``depth`` alone
+        (:class:`_Fixed`): the stopping rule's arrays, the extrapolation weights (a writable
+        copy: the loops' type), and the addresses of ``B``, the projection (``B``'s when
+        there is none: not called) and the product, each checked to be a resolved function
+        of the signature the loops call it with (:func:`lieflow._kernels.address`; the
+        loops take bare integers)."""
         k = kernels()
-        irule = np.concatenate((self.irule, np.array([depth > 0], np.int64)))
-        weights = np.array(extrapolation_matrix(max(depth, 1)))
+        tolerances, settings = k.stopping_arrays(self.rule, self.retry_cold, depth > 0)
         run = k.entry(f"{self.kind}_advance", self.dtype, self.conjugation)
         signature = k.map_signature(self.dtype)
         B = k.address(self.B, signature)
         P = B if self.project is None else k.address(self.project, signature)
         gemm = k.gemm(self.dtype)
         core = self.warm_shape()
-        return (k, run, irule, weights, B, P, k.address(gemm, gemm.signature()), core,
-                math.prod(core), int(self.irule[0]))  # fmt: skip
+        return _Fixed(
+            k, run, B, self.B_params.copy(), P, self.project_params.copy(), tolerances,
+            settings, np.array(extrapolation_matrix(max(depth, 1))),
+            k.address(gemm, gemm.signature()), core, math.prod(core), self.rule.max_iter,
+        )  # fmt: skip
 
 
 @attrs.frozen(eq=False)
@@ -531,6 +585,49 @@ def _by_name(got: Any) -> Any:
     return got
 
 
+class _Kept:
+    """What the compiled engine keeps of the systems it ran, held by the engine (:data:`_KEPT`)
+    and never on a system: per live system, a dictionary of the values :func:`plan`
+    derives from it (its checked compiled maps and its last plan, per dtype).
+
+    Process-local values (compiled functions' addresses), so they cannot live in a system,
+    which is copied, pickled and sent to other processes; and kept, because checking a
+    system's maps again on every call would cost what the call-overhead benchmark
+    (``benchmarks/suites/call_cost.py``) counts. A system is identified by its identity
+    while it lives (a weak reference: an entry goes with its system; a copy or a pickle is
+    another system and starts without one). Only :func:`plan` reads and writes it; what it
+    hands out (a :class:`CompiledPlan`) is read-only.
+    """
+
+    def __init__(self) -> None:
+        self._systems: dict[int, tuple[weakref.ref[Any], dict[Any, Any]]] = {}
+
+    def of(self, system: IsospectralSystem) -> dict[Any, Any]:
+        """The values kept for ``system`` (an empty dictionary the first time; a fresh one,
+        not kept, for a system that cannot be referenced weakly)."""
+        key = id(system)
+        held = self._systems.get(key)
+        if held is not None and held[0]() is system:
+            return held[1]
+        values: dict[Any, Any] = {}
+        try:
+            ref = weakref.ref(system, functools.partial(self._forget, key))
+        except TypeError:  # not weakly referenceable (a class with __slots__): not kept
+            return values
+        self._systems[key] = (ref, values)
+        return values
+
+    def _forget(self, key: int, ref: weakref.ref[Any]) -> None:
+        """Drop a collected system's values (its weak reference's callback)."""
+        held = self._systems.get(key)
+        if held is not None and held[0] is ref:
+            del self._systems[key]
+
+
+#: The compiled engine's values per system (:class:`_Kept`).
+_KEPT = _Kept()
+
+
 def _system_maps(
     system: IsospectralSystem, W0: Array, dtype: np.dtype
 ) -> tuple[tuple[Any, Array], tuple[Any, Array] | None] | str:
@@ -540,10 +637,10 @@ def _system_maps(
     ``system.project(V)`` (:func:`_checked_map`) on ``V = W0`` and off it; or the reason
     they cannot be used.
 
-    The check is of the system's maps, not of ``W0``: its result is kept on the system
-    (:attr:`~lieflow.IsospectralSystem._derived`, per dtype) together with the maps and
-    their ``params`` it was made for, and reused while :meth:`compiled_B` and
-    :meth:`compiled_project` return the same functions and ``params``.
+    The check is of the system's maps, not of ``W0``: its result is kept by the engine
+    (:data:`_KEPT`, per system and dtype) together with the maps and their ``params`` it was
+    made for, and reused while :meth:`compiled_B` and :meth:`compiled_project` return the
+    same functions and ``params``.
     """
     try:
         got_B = _by_name(system.compiled_B())
@@ -564,8 +661,9 @@ def _system_maps(
             None,
             f"{system.name}.compiled_project() raised {type(exc).__name__}: {exc}",
         )
+    values = _KEPT.of(system)
     key = ("compiled maps", dtype)
-    kept = system._derived.get(key)
+    kept = values.get(key)
     if (
         P_error is None
         and kept is not None
@@ -597,7 +695,7 @@ def _system_maps(
     params = np.concatenate([[float(k.inline_code(got_B[0]))], Bw[1]])
     maps = ((Bw[0], params), P)
     # what the maps are now that the check compiled them
-    system._derived[key] = (_identity(got_B, dtype), _identity(got_P, dtype), maps)
+    values[key] = (_identity(got_B, dtype), _identity(got_P, dtype), maps)
     return maps
 
 
@@ -610,7 +708,9 @@ def plan(
     against ``system.B(system.project_stage(W0))``, and its compiled projection against
     ``system.project(W0)``, to roundoff, so that a subclass overriding ``B`` without its
     compiled form cannot be integrated wrongly — once per system and dtype while the hooks
-    return the same maps (:func:`_system_maps`).
+    return the same maps (:func:`_system_maps`). The last plan per system and dtype is kept
+    by the engine (:data:`_KEPT`) and returned while it is for the same checked maps and the
+    same values of everything else it holds.
     """
     dtype = np.dtype(W0.dtype)
     # by the dtype's character code: float64 "d", complex128 "D" (comparisons with dtype
@@ -657,8 +757,9 @@ def plan(
     r = fixed.rule
     conjugation = getattr(scheme, "update", "commutator") == "conjugation"
     same = (n, kind, A.tobytes(), b.tobytes(), A.shape, conjugation, fixed.name, retry_cold, r)
+    values = _KEPT.of(system)
     key = ("compiled plan", dtype)
-    kept = system._derived.get(key)
+    kept = values.get(key)
     if kept is not None and kept[1] is maps and kept[0] == same:
         made: CompiledPlan = kept[2]
         return made
@@ -667,18 +768,18 @@ def plan(
         n=n,
         dtype=dtype,
         skew=bool(system.algebra.skew),
-        A=np.ascontiguousarray(A, dtype=np.float64),
-        b=np.ascontiguousarray(b, dtype=np.float64),
+        A=A,
+        b=b,
         B=B,
-        params=params,
+        B_params=params,
         project=None if P is None else P[0],
-        pparams=np.zeros(0) if P is None else P[1],
-        rule=np.array([r.rtol, r.atol, r.roundoff_floor, r.divergence_factor], dtype=float),
-        irule=np.array([r.max_iter, r.patience, r.window, r.project, retry_cold], dtype=np.int64),
+        project_params=np.zeros(0) if P is None else P[1],
+        rule=r,
+        retry_cold=retry_cold,
         solver_name=fixed.name,
         conjugation=conjugation,
     )
-    system._derived[key] = (same, maps, made)
+    values[key] = (same, maps, made)
     return made
 
 

@@ -2,9 +2,12 @@ r"""Warm starts: initial guesses of an implicit step from the previous steps' so
 
 :class:`WarmStart` is the state a :class:`~lieflow.flows.SchemeFlow` carries between steps
 (SPEC §5): the last few solved offsets of the scheme's unknowns, and how many of them the
-next prediction extrapolates from. The extrapolation (:func:`extrapolation_weights`,
-:func:`extrapolation_matrix`) is shared with the compiled loops
-(:mod:`lieflow.compiled`), which update the same state in place.
+next prediction extrapolates from. The compiled loops (:mod:`lieflow._kernels`) update the
+same state in place, with the same extrapolation weights (:func:`extrapolation_matrix`) and
+the same trust rule (:func:`trusted_points`: plain scalar Python, which they compile, as
+they compile the stopping rule). The extrapolation itself, a weighted sum of the kept
+solutions, is written twice: here as one BLAS product (or leaf by leaf for trees), there as
+a loop over the entries (the loops cannot call NumPy: see :mod:`lieflow._kernels`).
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ __all__ = [
     "WarmStart",
     "extrapolation_matrix",
     "extrapolation_weights",
+    "trusted_points",
     "warm_depth",
 ]
 
@@ -89,6 +93,27 @@ def extrapolation_matrix(points: int) -> np.ndarray:
     extrapolation from ``m`` points (:func:`extrapolation_weights`, zero-padded),
     ``m = 1 .. points``; read-only."""
     return _MATRICES[points] if points < len(_MATRICES) else _matrix(points)
+
+
+def trusted_points(errors: Any, filled: int, depth: int) -> int:
+    """How many kept solutions the next prediction extrapolates from (SPEC §5): the number
+    of points whose prediction of the step's solution was closest, fewer among equals, plus
+    one if that was all ``filled`` of them and ``depth`` keeps more (the history is still
+    filling).
+
+    ``errors[m]`` is the squared error ``||solved - p_m||^2`` of the prediction from ``m``
+    points, ``m = 0 .. filled`` (``p_0 = 0``: the cold guess); a NaN error is never the
+    closest. One source for both engines: :meth:`WarmStart.advance` calls it on a list, and
+    the compiled loops (:mod:`lieflow._kernels`) compile this very function on an array;
+    hence scalars and indexing only.
+    """
+    best = 0
+    for m in range(1, filled + 1):
+        if errors[m] < errors[best]:
+            best = m
+    if best == filled and best < depth:
+        best += 1
+    return best
 
 
 def _weights(points: int) -> tuple[int, ...]:
@@ -319,20 +344,15 @@ def _advanced(state: WarmStart, solved: Any, history: list[Any], stack: Any) -> 
     if type(previous) is tuple and not previous and len(history) == 1:
         last = history[0]
         if type(solved) is np.ndarray and type(last) is np.ndarray and last.shape == solved.shape:
-            # one solution kept (warm_start=1), as below: the last solution is trusted next
-            # when it predicted ``solved`` better than the cold guess
-            closer = squared_norm(solved - last) < squared_norm(solved)
-            return WarmStart(solved, (), int(closer))
-    best = 0
-    best_error = (
+            # one solution kept (warm_start=1), as below without the stacking
+            errors = [squared_norm(solved), squared_norm(solved - last)]
+            return WarmStart(solved, (), trusted_points(errors, 1, 1))
+    errors = [
         squared_norm(solved) if isinstance(solved, np.ndarray) else tree.sum_of_squares(solved)
-    )
+    ]
     if history:
-        for m, error in enumerate(_prediction_errors(solved, history, stack), start=1):
-            if error < best_error:
-                best, best_error = m, error
-    if best == len(history) and best < state.depth:
-        best += 1
+        errors += _prediction_errors(solved, history, stack)
+    best = trusted_points(errors, len(history), state.depth)
     return state.replaced([solved, *history], best)
 
 

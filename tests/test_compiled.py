@@ -306,12 +306,16 @@ def test_changed_compiled_maps_are_checked_again_and_used() -> None:
     system.S[0, 1] = system.S[1, 0] = -5.0  # compiled_B's params change with B
     ref, fast = _both(system, scheme, W0, 0.1, steps=4)
     _assert_same(ref, fast)
-    # the maps kept on a system do not travel: a pickle or copy starts without them
+    # the engine keeps the checked maps per live system, not on it: a pickle or a copy is
+    # another system and starts without them
+    assert compiled._KEPT.of(system)
     system.S[0, 1] = system.S[1, 0] = -0.25
     clone = pickle.loads(pickle.dumps(system))
-    assert not clone._derived
+    assert compiled._KEPT.of(clone) == {}
     _assert_same(*_both(clone, scheme, W0, 0.1, steps=4))
-    assert not copy.deepcopy(HADAMARD["rigid_body"])._derived
+    assert compiled._KEPT.of(clone)
+    assert compiled._KEPT.of(copy.deepcopy(HADAMARD["rigid_body"])) == {}
+    assert "_derived" not in vars(system) and "_derived" not in vars(clone)
 
 
 @pytest.mark.usefixtures("numba")
@@ -324,8 +328,8 @@ def test_a_plan_is_kept_for_the_same_scheme_and_solver() -> None:
     loose = compiled.plan(system, mid, lf.solvers.FixedPoint(rtol=1e-8), _state(system))
     assert isinstance(first, compiled.CompiledPlan) and first.kind == "sydirk"
     assert isinstance(gauss, compiled.CompiledPlan) and gauss.kind == "reduced"
-    assert isinstance(loose, compiled.CompiledPlan) and loose.rule[0] == 1e-8
-    assert first.rule[0] == 1e-14
+    assert isinstance(loose, compiled.CompiledPlan) and loose.rule.rtol == 1e-8
+    assert first.rule.rtol == 1e-14
     # kept by value (the last plan per dtype): a scheme and solver built anew, as
     # lf.schemes.get does on every call, find it; another update or tolerance does not
     first = compiled.plan(system, mid, fp, _state(system))
@@ -335,7 +339,7 @@ def test_a_plan_is_kept_for_the_same_scheme_and_solver() -> None:
     assert isinstance(cayley, compiled.CompiledPlan) and cayley is not first
     assert cayley.conjugation and not first.conjugation
     capped = compiled.plan(system, mid, lf.solvers.FixedPoint(max_iter=7), _state(system))
-    assert isinstance(capped, compiled.CompiledPlan) and capped.irule[0] == 7
+    assert isinstance(capped, compiled.CompiledPlan) and capped.rule.max_iter == 7
     # one kept plan run with and without warm starts, in turn: each as numpy runs it
     for warm in (False, True, False):
         _assert_same(*_both(system, mid, _state(system), 0.05, steps=30, solver=fp,

@@ -539,8 +539,8 @@ def test_the_bare_loop_call_is_the_engines_first_step() -> None:
     sol = lf.integrate(body, scheme, W0, h, steps=1, engine="compiled")
     for _ in range(2):
         assert run(*args) == 1
-        np.testing.assert_array_equal(body.project(args[14][0, 0]), sol.W[-1])
-        assert int(args[15][0]) == sol.iterations[0]
+        np.testing.assert_array_equal(body.project(args.states[0, 0]), sol.W[-1])
+        assert int(args.iterations[0]) == sol.iterations[0]
 
 
 @pytest.mark.slow  # compiles one entry point from an empty cache (~20 s)

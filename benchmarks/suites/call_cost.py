@@ -203,7 +203,7 @@ def bare_step(
         assert isinstance(flow, CompiledSchemeFlow)
         plan = flow.plan
         run, args = plan.loop_call(W, h, 1, depth=0)
-        states, iters = args[14], args[15]
+        states, iters = args.states, args.iterations
         project = plan.project is None
 
         def compiled_step() -> object:

@@ -20,11 +20,11 @@ from ..underflow import flush_tiny
 
 P = TypeVar("P", bound=ImplicitProblem)
 
-#: Up to this size ``n`` a single ``n×n`` problem is *small*: per-call overhead outweighs
-#: arithmetic, so its maps use ``ndarray.dot`` (the same BLAS product as ``@`` on 2-D
-#: arrays, the same bits, a third of the time on 3×3) and fresh arrays; larger ones write
-#: products into scratch (:func:`scratch`), as stacks do.
-SMALL = 64
+#: Up to this size ``n`` the maps of a single ``n×n`` problem form their products with
+#: ``ndarray.dot`` into fresh arrays (per-call overhead outweighs arithmetic: the same
+#: BLAS product as ``@`` on 2-D arrays, the same bits, a third of the time on 3×3); larger
+#: ones write products into scratch (:func:`scratch`), as stacks do.
+FRESH_PRODUCTS_MAX_N = 64
 
 
 @attrs.frozen
@@ -117,6 +117,18 @@ def solve(
     return retry(solver, build, warm, problem, solver.solve(problem))
 
 
+def retries_cold(converged: bool, warm: bool) -> bool:
+    """Whether a step's solve is tried again from the cold guess (SPEC §5): it failed, and
+    it started from a warm guess (a previous step's solution is a poor guess when ``h`` is
+    large). The iterations of both attempts count; a cold solve that fails fails the step.
+
+    One source for both engines: :func:`retry` calls it, and the compiled loops
+    (:mod:`lieflow._kernels`) compile it for a solver that is a fixed-point iteration alone
+    (:class:`~lieflow.solvers.Auto` hands a failed solve to its next solver first, so its
+    compiled solve hands the step to the numpy path instead); hence scalars only."""
+    return warm and not converged
+
+
 def retry(
     solver: Solver,
     build: Callable[[Array | None], P],
@@ -127,7 +139,7 @@ def retry(
     """:func:`solve` after its first attempt: ``res`` of ``problem = build(warm)``. A scheme
     that builds and solves its problem itself (no ``build`` closure per stage and step)
     hands the result here when it did not converge."""
-    if not res.converged and warm is not None:
+    if retries_cold(res.converged, warm is not None):
         problem, first = build(None), res
         res = solver.solve(problem)
         res = attrs.evolve(
@@ -170,9 +182,10 @@ class StageProblem:
         self.skew = algebra.skew
         # how the maps compute, decided once per problem rather than per call: on NumPy
         # arrays (else another library, lieflow.backends), and on one small matrix (no
-        # batch axes, at most SMALL x SMALL: products by ndarray.dot, no scratch)
+        # batch axes, at most FRESH_PRODUCTS_MAX_N square: products by ndarray.dot, no
+        # scratch)
         self._host = host = type(W0) is np.ndarray or is_numpy(W0)
-        self._small = host and W0.ndim == 2 and W0.shape[-1] <= SMALL
+        self._small = host and W0.ndim == 2 and W0.shape[-1] <= FRESH_PRODUCTS_MAX_N
         # the system's maps, looked up once per problem rather than per iteration (the
         # default stage projection is the algebra's: called directly, one frame less)
         self._B = system.B

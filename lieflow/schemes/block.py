@@ -56,6 +56,17 @@ def _block_coefficient_matrix(coef: np.ndarray, mats: Array) -> Array:
     return blocks_to_dense(coef[:, :, None, None] * mats)
 
 
+def reduced_coefficients(h: float, A: np.ndarray, skew: bool) -> tuple[np.ndarray, np.ndarray]:
+    r"""The coefficients ``(C_G, C_P)`` of the reduced stage form's stage sums (SPEC §4.5),
+    ``G_i = I + sum_j (C_G)_ij G_j B̃_j`` and ``P_i = W_0 + sum_j (C_P)_ij P_j B_j``:
+    ``C_P = -hA``, and ``C_G = hA`` with ``B̃_j = B_j^†``, or on a skew-Hermitian algebra
+    (``B^† = -B``) ``C_G = -hA`` with ``B̃_j = B_j``, so that no negated copy of a stack is
+    made. One derivation for both engines: :class:`ReducedProblem` and the compiled
+    engine's plan (:mod:`lieflow.compiled`), which hands them to its loops."""
+    hA = h * A
+    return (-hA if skew else hA), -hA
+
+
 class BlockProblem(TableauProblem):
     r"""The block algorithm's implicit equation (SPEC §4.3), evaluated block-wise.
 
@@ -195,6 +206,7 @@ class ReducedProblem(TableauProblem):
             trivial = xp.stack(parts, axis=-4)
         self.trivial = trivial
         self.warm = warm
+        self._coefficients = reduced_coefficients(self.h, self.A, self.skew)
         self._stages: Array | None = None
         self._products: Array | None = None
 
@@ -213,21 +225,21 @@ class ReducedProblem(TableauProblem):
 
     def _assemble(self, GB: Array, PB: Array, constant: Array | None) -> Array:
         """``(h sum_j a_ij G_j B_j^†, -h sum_j a_ij P_j B_j) + constant`` from ``GB_j = G_j B_j``
-        (skew algebras: ``B^† = -B``, so the sign goes into the coefficients and no
-        negated copy of a stack is made) or ``G_j B_j^†`` (others): one ``(s×s)@(s×n²)``
+        (skew algebras: ``B^† = -B``, so the sign goes into the coefficients,
+        :func:`reduced_coefficients`) or ``G_j B_j^†`` (others): one ``(s×s)@(s×n²)``
         product per half, written into the result."""
         *batch, s, n, _ = GB.shape
-        hA = self.h * self.A
+        halves = tuple(zip(self._coefficients, (GB, PB), strict=True))
         if not is_numpy(GB):  # another array library: the same products, fresh arrays
             xp = namespace(GB)
-            halves = [  # coefficients in GB's dtype: some libraries (torch) do not mix
+            parts = [  # coefficients in GB's dtype: some libraries (torch) do not mix
                 from_host(coef, GB, GB.dtype) @ xp.reshape(Y, (*batch, s, n * n))
-                for coef, Y in ((-hA if self.skew else hA, GB), (-hA, PB))
+                for coef, Y in halves
             ]
-            joined = xp.reshape(xp.stack(halves, axis=-3), (*batch, 2, s, n, n))
+            joined = xp.reshape(xp.stack(parts, axis=-3), (*batch, 2, s, n, n))
             return joined if constant is None else joined + constant
         out = np.empty((*batch, 2, s, n * n), dtype=np.result_type(GB, PB, self.A))
-        for half, (coef, Y) in enumerate(((-hA if self.skew else hA, GB), (-hA, PB))):
+        for half, (coef, Y) in enumerate(halves):
             np.matmul(coef, Y.reshape(*batch, s, n * n), out=out[..., half, :, :])
         out = out.reshape(*batch, 2, s, n, n)
         if constant is not None:

@@ -76,17 +76,54 @@ def _eps(xp: Any, X: Array) -> float:
     return float(xp.finfo(X.dtype).eps)
 
 
+#: A ``B`` is skew-Hermitian to roundoff when ``||B + B^†|| <= UNITARY_TOLERANCE eps ||B||``
+#: (:func:`skew_to_roundoff`).
+UNITARY_TOLERANCE = 16
+_TINY = float(np.finfo(float).tiny)
+
+
+def skew_to_roundoff(defect: float, size: float, eps: float) -> bool:
+    """Whether a ``B`` with ``||B + B^†|| = defect`` and ``||B|| = size`` is skew-Hermitian
+    to roundoff (machine epsilon ``eps``), so that the conjugators built from it are
+    unitary. One source for both engines: :func:`is_unitary_generator` calls it with NumPy
+    norms and the compiled loops (:mod:`lieflow._kernels`) compile it; scalars only."""
+    return defect <= UNITARY_TOLERANCE * eps * max(size, _TINY)
+
+
 def is_unitary_generator(B: Array, xp: Any | None = None) -> Any:
-    """Whether every ``B`` of the stack is skew-Hermitian to roundoff (then the
-    conjugators built from it are unitary): a bool for NumPy arrays, a 0-d boolean array
-    (not read on the host) for arrays of another library."""
+    """Whether every ``B`` of the stack is skew-Hermitian to roundoff
+    (:func:`skew_to_roundoff` of the largest norms): a bool for NumPy arrays, a 0-d boolean
+    array (not read on the host) for arrays of another library."""
     xp = namespace(B) if xp is None else xp
     defect = xp.max(_matrix_norms(xp, B + _dagger(xp, B)))
     size = xp.max(_matrix_norms(xp, B))
-    tiny = float(np.finfo(float).tiny)
     if xp is np:
-        return float(defect) <= 16 * _eps(xp, B) * max(float(size), tiny)
-    return defect <= 16 * _eps(xp, B) * xp.maximum(size, tiny)
+        return skew_to_roundoff(float(defect), float(size), _eps(xp, B))
+    return defect <= UNITARY_TOLERANCE * _eps(xp, B) * xp.maximum(size, _TINY)
+
+
+#: What :func:`newton_schulz_step` decides before an update of :func:`orthonormalize`:
+#: stop (``U`` is unitary to roundoff, or no longer improves), refuse (too far from
+#: unitary), the last update (it takes ``||E||`` to roundoff), or an update and go on.
+SCHULZ_DONE, SCHULZ_REFUSED, SCHULZ_LAST, SCHULZ_GO = range(4)
+
+
+def newton_schulz_step(err: float, last: float, n: int, eps: float) -> int:
+    """The decision of :func:`orthonormalize` at ``||E||_F = err`` (``last``: the value
+    before the previous update, ``inf`` at the start) for ``n×n`` matrices of machine
+    epsilon ``eps``: :data:`SCHULZ_DONE` when ``err <= sqrt(n) eps`` or ``err`` stopped
+    decreasing, :data:`SCHULZ_REFUSED` when ``err >= 1`` at the start,
+    :data:`SCHULZ_LAST` when the update takes ``||E||`` to roundoff (``err^2 <= eps``),
+    else :data:`SCHULZ_GO`. One source for both engines: :func:`orthonormalize` calls it
+    and the compiled loops (:mod:`lieflow._kernels`) compile it; scalars and ``math``
+    only."""
+    if err <= math.sqrt(n) * eps or err >= last:
+        return SCHULZ_DONE
+    if err >= 1.0 and last == math.inf:
+        return SCHULZ_REFUSED
+    if err * err <= eps:
+        return SCHULZ_LAST
+    return SCHULZ_GO
 
 
 def orthonormalize(K: Array, xp: Any | None = None) -> Array:
@@ -108,16 +145,16 @@ def orthonormalize(K: Array, xp: Any | None = None) -> Array:
     xp = namespace(K) if xp is None else xp
     if xp is not np:
         return _orthonormalize_static(K, xp)
-    eps = _eps(xp, K)
-    floor = math.sqrt(K.shape[-1]) * eps
+    eps, n = _eps(xp, K), K.shape[-1]
     last = math.inf
     for _ in range(NEWTON_SCHULZ_STEPS):
         Kh = _dagger(xp, K)
         E = K + Kh + Kh @ K
         err = float(xp.max(_matrix_norms(xp, E)))
-        if err <= floor or err >= last:
+        decision = newton_schulz_step(err, last, n, eps)
+        if decision == SCHULZ_DONE:
             return K
-        if err >= 1.0 and last == math.inf:
+        if decision == SCHULZ_REFUSED:
             raise ConvergenceError(
                 f"the step's conjugator is far from unitary (||U^† U - I|| = {err:.2e} >= 1; "
                 "solve the stage equations more accurately: a smaller rtol)",
@@ -127,7 +164,7 @@ def orthonormalize(K: Array, xp: Any | None = None) -> Array:
             )
         last = err
         K = K - 0.5 * (E + K @ E)
-        if err * err <= eps:  # this update took ||E|| to roundoff
+        if decision == SCHULZ_LAST:
             return K
     return K
 

@@ -26,6 +26,15 @@ from .base import (
 )
 
 
+def midpoint_coefficients(h: float) -> tuple[float, float]:
+    """The coefficients ``q = h/2`` and ``q^2`` of the midpoint map (SPEC §4.1), and ``q``
+    the Cayley update's ``a`` (SPEC §4.7), for a (sub-)step of size ``h``. One derivation
+    for both engines: :class:`MidpointProblem` and the compiled engine's plan
+    (:mod:`lieflow.compiled`), which hands them to its loops."""
+    q = 0.5 * h
+    return q, q * q
+
+
 class MidpointProblem(StageProblem):
     r"""The midpoint equation in minimal-variable form (SPEC §4.1).
 
@@ -43,15 +52,16 @@ class MidpointProblem(StageProblem):
         self, system: IsospectralSystem, W0: Array, h: float, warm: Array | None = None
     ) -> None:
         super().__init__(system, W0)
-        self.half = q = 0.5 * float(h)
+        q, qq = midpoint_coefficients(float(h))
+        self.half = q
         self.warm = warm
         # q and q^2 as 0-d arrays of W0's real precision: the values a Python float gives
         # (NumPy rounds it to that precision too) at half the cost of a multiplication
         # (float64 NumPy, once per step: real_scalar's own first case, inline)
         if self._host and W0.dtype.char == "d":
-            self._q, self._qq = np.array(q), np.array(q * q)
+            self._q, self._qq = np.array(q), np.array(qq)
         else:
-            self._q, self._qq = real_scalar(q, W0), real_scalar(q * q, W0)
+            self._q, self._qq = real_scalar(q, W0), real_scalar(qq, W0)
         self._scratch: Array | None = None
 
     @property

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 import math
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar
@@ -31,8 +30,9 @@ def _real_trace(P: Array) -> Array:
 
 def read_only(arr: np.ndarray) -> np.ndarray:
     """``arr`` made read-only (in place) and returned: a system's constant arrays, so that
-    nothing can change a system after it was built (values derived from it are kept on it,
-    :attr:`IsospectralSystem._derived`). Pass an array the system owns (a copy)."""
+    nothing can change a system after it was built (the compiled engine keeps values
+    derived from it, :func:`lieflow.compiled.plan`). Pass an array the system owns (a
+    copy)."""
     arr.setflags(write=False)
     return arr
 
@@ -52,15 +52,6 @@ def table_like(table: np.ndarray, W: Array) -> Array:
     if dtype.char in "dD":
         return table
     return table.astype(np.result_type(np.asarray(W).real.dtype, np.float32), copy=False)
-
-
-class _Derived(dict[Any, Any]):
-    """Values derived from one system and kept on it (:attr:`IsospectralSystem._derived`):
-    process-local (compiled function addresses), so a copy or a pickle of the system
-    starts without them."""
-
-    def __reduce__(self) -> tuple[type[_Derived], tuple[()]]:
-        return (type(self), ())
 
 
 class IsospectralSystem(ABC):
@@ -149,8 +140,9 @@ class IsospectralSystem(ABC):
         params)``: the system need not import the engine) or called. The engine checks it
         against :meth:`B` and :meth:`project_stage` on the initial state (to roundoff)
         before use, once per system and dtype while this method returns the same function
-        and ``params`` (:attr:`_derived`). Importing numba inside this method keeps it
-        optional.
+        and ``params`` (the engine keeps the check, :func:`lieflow.compiled.plan`; a system
+        whose ``B`` changes after it was built must show the change in ``params`` to be
+        checked again). Importing numba inside this method keeps it optional.
 
         The default is derived from :attr:`hadamard_factor` ``S`` for the algebra's own
         stage projection on so(n) (``(S - shift) ⊙ (W - W^T)/2``) and gl(n)
@@ -181,18 +173,6 @@ class IsospectralSystem(ABC):
         if type(self).project is not IsospectralSystem.project or not isinstance(self.algebra, U):
             return None
         return "skew_hermitian_part", np.array([isinstance(self.algebra, SU)], float)
-
-    @functools.cached_property
-    def _derived(self) -> _Derived:
-        """Values derived from this system and kept on it: the compiled engine's checked
-        maps per dtype (:func:`lieflow.compiled.plan` checks :meth:`compiled_B` and
-        :meth:`compiled_project` against :meth:`B` and :meth:`project` once per system
-        and dtype, not on every call). A system is a value: the built-in systems' arrays
-        are read-only; a system whose ``B`` can change after it was built must not be
-        integrated on the compiled engine before and after the change (its maps' ``params``
-        are compared on each call: a change that shows in them is checked again). Starts
-        empty in a copy or a pickle."""
-        return _Derived()
 
     def B_derivative(self, W: Array, dW: Array) -> Array:
         """Fréchet derivative ``B'(W)[dW]``; needed by Newton's method (SPEC §5).
