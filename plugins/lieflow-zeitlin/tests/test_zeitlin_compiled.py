@@ -50,7 +50,7 @@ def test_the_casimir_shift_is_folded_into_the_compiled_B() -> None:
     assert isinstance(shifted, lf.systems.shifted.CasimirShifted) and shifted.c != 0
     plan = compiled.plan(shifted, lf.schemes.get("gauss3"), lf.solvers.FixedPoint(), W0)
     assert isinstance(plan, compiled.CompiledPlan)
-    assert plan.params[1] == shifted.c  # params: [inline code, c, ...]
+    assert plan.B_params[1] == shifted.c  # B_params: [inline code, c, ...]
     ref, fast = _both(system, lf.schemes.get("gauss3"), W0, 0.2, steps=20, casimir_shift="auto")
     np.testing.assert_allclose(fast.W, ref.W, rtol=0, atol=1e-13 * np.abs(ref.W).max())
 
