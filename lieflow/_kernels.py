@@ -62,6 +62,7 @@ import numpy as np
 
 from . import warm_start
 from .schemes import base, conjugation
+from .schemes.conjugation import UPDATES
 from .solvers import fixed_point
 
 numba: Any
@@ -650,9 +651,6 @@ def _reduced_map(
 # elimination in loops for the solves (compiled code here cannot allocate, so LAPACK's
 # solve is not available).
 
-#: The updates' names, by ``conjugation``.
-_UPDATES = ("commutator", "conjugation")
-
 _EPS64 = float(np.finfo(np.float64).eps)
 
 
@@ -893,9 +891,6 @@ def _sydirk_views(work: Any, scratch: Any) -> Any:
     return x, x0, x.reshape(x.size), x0.reshape(x0.size), m0, m1, m2, m3
 
 
-#: The updates' names, by ``conjugation``.
-_UPDATES = ("commutator", "conjugation")
-
 
 def _sydirk_step_of(conjugation: bool) -> Any:
     """:func:`_sydirk_step` for one update (SPEC §4.7): ``conjugation`` is a constant of the
@@ -936,7 +931,7 @@ def _sydirk_step_of(conjugation: bool) -> Any:
                 _commutator_add(out, weights[i], skew, x, B, params, m0, m1, m3, gemm)
         return total
 
-    return _inner(_sydirk_step, f"_sydirk_step_{_UPDATES[conjugation]}")
+    return _inner(_sydirk_step, f"_sydirk_step_{UPDATES[conjugation]}")
 
 
 @_inner
@@ -985,7 +980,7 @@ def _reduced_step_of(conjugation: bool) -> Any:
             _commutator_add(out, weights[i], skew, Wi, B, params, Bi, BW, WB, gemm)
         return its
 
-    return _inner(_reduced_step, f"_reduced_step_{_UPDATES[conjugation]}")
+    return _inner(_reduced_step, f"_reduced_step_{UPDATES[conjugation]}")
 
 
 @_helper
