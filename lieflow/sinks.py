@@ -136,12 +136,6 @@ class RunInfo:
         same.
     W0 : ndarray
         The initial condition.
-    checkpoint_seconds : float or None
-        Seconds between the run's checkpoints (``0``: after every chunk of steps; ``None``:
-        after every chunk that holds a saved state).
-    device : str
-        Where the run's steps live (:func:`lieflow.backends.place`: ``"cpu"``, ``"jax"``,
-        ``"cupy:1"``, ...).
     config_text, config_source : str
         The configuration the run was made from and where it came from (``lieflow run``;
         empty for :func:`lieflow.integrate`).
@@ -156,8 +150,6 @@ class RunInfo:
     requested_steps: int
     identity: str = attrs.field(repr=False)
     W0: Array = attrs.field(repr=False)
-    checkpoint_seconds: float | None = 1.0
-    device: str = "cpu"
     config_text: str = attrs.field(default="", repr=False)
     config_source: str = ""
 

@@ -69,8 +69,6 @@ class BuiltRun:
             requested_steps=cfg.run.steps,
             identity=cfg.identity(),
             W0=self.W0,
-            checkpoint_seconds=cfg.run.checkpoint,
-            device=cfg.run.device,
             config_text=cfg.text,
             config_source=cfg.source,
         )

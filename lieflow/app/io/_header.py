@@ -23,7 +23,7 @@ CHECKPOINT_SECONDS = 1.0
 class TrajectoryHeader(RunInfo):
     """What a :class:`TrajectoryWriter` needs to know about a run: the run's
     :class:`~lieflow.sinks.RunInfo` (system, names, ``h``, ``save_every``,
-    ``requested_steps``, ``identity``, ``W0``, checkpoint cadence, device, configuration),
+    ``requested_steps``, ``identity``, ``W0``, configuration),
     written as the file's header, and where and how to write it.
 
     ``lieflow run`` builds it from its configuration (:meth:`of`), :func:`lieflow.integrate`
