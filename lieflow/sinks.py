@@ -13,8 +13,9 @@ A file format is found by its suffix in the plugin registry
 ``integrate(out="run.h5")`` reaches the application's writer without the core importing the
 application.
 
-Arrays of a chunk may live on a device (a GPU array library); a sink copies them to the host
-with :func:`to_host`, the one place that conversion happens.
+The driver hands sinks chunks whose states are on the host already (:func:`lieflow.driver.run`
+copies another library's states once per chunk); a flow's state held for a checkpoint may
+still live on a device, and a sink copies it with :func:`to_host`.
 """
 
 from __future__ import annotations
