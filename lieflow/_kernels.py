@@ -891,7 +891,6 @@ def _sydirk_views(work: Any, scratch: Any) -> Any:
     return x, x0, x.reshape(x.size), x0.reshape(x0.size), m0, m1, m2, m3
 
 
-
 def _sydirk_step_of(conjugation: bool) -> Any:
     """:func:`_sydirk_step` for one update (SPEC §4.7): ``conjugation`` is a constant of the
     compiled code, so the other update is neither typed nor compiled (numba prunes the

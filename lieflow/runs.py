@@ -252,11 +252,17 @@ class RunSpec:
     device : str
         Where the run lives: ``"cpu"``, a device name (:func:`lieflow.backends.place`), or
         ``"array"`` (``W0`` came as an array of another library and stays on its device).
-    identity : str
+    identity : str or None
         What defines the trajectory besides its length and location
         (:func:`lieflow.sinks.run_identity`): a file resumes only a run of the same identity.
-    system_name, scheme_name, solver_name : str
-        The names a file records (the registry's).
+        ``None``: described from :attr:`described` when a sink asks (:meth:`info`), not on
+        every call (a description costs about as much as a small step).
+    names : tuple of str, or None
+        The names a file records (system, scheme, solver: the registry's); ``None``: looked
+        up when a sink asks.
+    described : dict
+        The objects and settings :func:`~lieflow.sinks.run_identity` describes (scheme,
+        solver, ``h``, ``save_every``, ``warm_start``, the Casimir shift).
     """
 
     system: IsospectralSystem
@@ -269,10 +275,9 @@ class RunSpec:
     diagnostics: bool = True
     checkpoint: driver.Cadence = DEFAULT_CADENCE
     device: str = "cpu"
-    identity: str = attrs.field(default="", repr=False)
-    system_name: str = ""
-    scheme_name: str = ""
-    solver_name: str = ""
+    identity: str | None = attrs.field(default=None, repr=False)
+    names: tuple[str, str, str] | None = None
+    described: dict[str, Any] = attrs.field(factory=dict, repr=False)
 
     @classmethod
     def build(
@@ -341,31 +346,32 @@ class RunSpec:
             shift = stepped.c if isinstance(stepped, CasimirShifted) else None
         if compose is not None:
             flow = compose(flow)
-        if identity is None:
-            identity = run_identity(system=system, scheme=scheme, solver=solver, h=h,
-                                    save_every=save_every, warm_start=warm_start,
-                                    casimir_shift=shift)  # fmt: skip
-        if names is None:
-            solver_name = (
-                "" if solver is None else str(getattr(solver, "name", type(solver).__name__))
-            )
-            names = (_system_name(system), flow.name, solver_name)
+        described = dict(system=system, scheme=scheme, solver=solver, h=h, save_every=save_every,
+                         warm_start=warm_start, casimir_shift=shift)  # fmt: skip
         return cls(system, flow, W0_host, W0_device, h, n_steps, save_every, diagnostics,
-                   cadence, where, identity, *names)  # fmt: skip
+                   cadence, where, identity, names, described)  # fmt: skip
 
     def info(self, **more: Any) -> RunInfo:
         """What a file sink records about the run besides its steps
         (:class:`~lieflow.sinks.RunInfo`); ``more``: the fields of a sink's own header
         (``lieflow run``'s configuration text and source, ...)."""
+        names = self.names
+        if names is None:
+            solver = self.described.get("solver")
+            solver_name = (
+                "" if solver is None else str(getattr(solver, "name", type(solver).__name__))
+            )
+            names = (_system_name(self.system), self.flow.name, solver_name)
+        identity = run_identity(**self.described) if self.identity is None else self.identity
         return RunInfo(
             system=self.system,
-            system_name=self.system_name,
-            scheme=self.scheme_name,
-            solver=self.solver_name,
+            system_name=names[0],
+            scheme=names[1],
+            solver=names[2],
             h=self.h,
             save_every=self.save_every,
             requested_steps=self.steps,
-            identity=self.identity,
+            identity=identity,
             W0=self.W0,
             **more,
         )
