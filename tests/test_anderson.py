@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers import needs_zeitlin
 
 import lieflow as lf
 from lieflow import backends
@@ -204,6 +205,7 @@ def _levels(W: np.ndarray) -> np.ndarray:
     return np.linalg.eigvalsh(1j * W)
 
 
+@needs_zeitlin
 @pytest.mark.parametrize(("N", "h"), [(128, 1 / 32), (256, 1 / 32)])
 def test_euler_zeitlin_fewer_updates_same_solution(N: int, h: float) -> None:
     plain = _run(N, h, 3, 0)
@@ -240,6 +242,7 @@ def test_euler_zeitlin_converges_where_plain_fails() -> None:
     assert np.max(np.abs(W0_again - W0)) <= 1e-12 * np.max(np.abs(W0))
 
 
+@needs_zeitlin
 def test_euler_zeitlin_fast_contraction_is_left_plain() -> None:
     # N = 128 at h = 1/256: 5 updates a step, nothing to gain: the same bits as plain
     plain, fast = _run(128, 1 / 256, 3, 0), _run(128, 1 / 256, 3, 5)
@@ -247,6 +250,7 @@ def test_euler_zeitlin_fast_contraction_is_left_plain() -> None:
     np.testing.assert_array_equal(fast.iterations, plain.iterations)
 
 
+@needs_zeitlin
 @pytest.mark.parametrize("engage", [anderson.ENGAGE, 0.0])
 def test_no_stall_at_roundoff(monkeypatch: pytest.MonkeyPatch, engage: float) -> None:
     # rtol below the roundoff floor: the stopping rule ends on stagnation ("roundoff");
