@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib.util
 import json
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import pytest
@@ -13,12 +14,19 @@ import pytest
 import lieflow as lf
 
 
-def _needs(module: str) -> pytest.MarkDecorator:
+def _missing(module: str) -> str:
     distribution = module.replace("_", "-")
-    return pytest.mark.skipif(
-        importlib.util.find_spec(module) is None,
-        reason=f"needs the {distribution} plugin (pip install -e ./plugins/{distribution})",
-    )
+    return f"needs the {distribution} plugin (pip install -e ./plugins/{distribution})"
+
+
+def _needs(module: str) -> pytest.MarkDecorator:
+    return pytest.mark.skipif(importlib.util.find_spec(module) is None, reason=_missing(module))
+
+
+def import_plugin(module: str) -> ModuleType:
+    """The plugin ``module`` of this repository, imported inside a test; the test is skipped,
+    with the command that installs it, where it is not installed."""
+    return pytest.importorskip(module, reason=_missing(module))  # type: ignore[no-any-return]
 
 
 #: Marks of the tests that need a plugin of this repository (plugins/*): skipped, with the

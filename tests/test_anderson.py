@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from helpers import needs_zeitlin
+from helpers import import_plugin, needs_zeitlin
 
 import lieflow as lf
 from lieflow import backends
@@ -161,7 +161,7 @@ def test_jax_traced_matches_eager_on_a_contraction() -> None:
 
 def test_jax_traced_matches_eager_on_a_lieflow_map(monkeypatch: pytest.MonkeyPatch) -> None:
     jax = _jax()
-    lz = pytest.importorskip("lieflow_zeitlin")
+    lz = import_plugin("lieflow_zeitlin")
     from lieflow.schemes.sydirk import MidpointProblem
 
     monkeypatch.setattr(anderson, "MIN_SIZE", 0)
@@ -188,7 +188,7 @@ def test_jax_traced_matches_eager_on_a_lieflow_map(monkeypatch: pytest.MonkeyPat
 
 
 def _field(N: int) -> np.ndarray:
-    lz = pytest.importorskip("lieflow_zeitlin")
+    lz = import_plugin("lieflow_zeitlin")
     W: np.ndarray = lz.random_vorticity(N, degree=8, seed=N)
     return W
 
@@ -225,7 +225,7 @@ def test_euler_zeitlin_fewer_updates_same_solution(N: int, h: float) -> None:
 
 
 def test_euler_zeitlin_converges_where_plain_fails() -> None:
-    lz = pytest.importorskip("lieflow_zeitlin")
+    lz = import_plugin("lieflow_zeitlin")
     from lieflow.schemes.sydirk import MidpointProblem
 
     N, h = 256, 1 / 16
@@ -289,7 +289,7 @@ def test_every_scheme_with_anderson_mixing(
 ) -> None:
     # mixing from the second update on, on a small system: every scheme's unknown (a
     # matrix, stacked stages, a batch of either) gives the step of a tight plain solve
-    lz = pytest.importorskip("lieflow_zeitlin")
+    lz = import_plugin("lieflow_zeitlin")
     monkeypatch.setattr(anderson, "MIN_SIZE", 0)
     monkeypatch.setattr(anderson, "ENGAGE", 0.0)
     system = lz.EulerZeitlin(6)
