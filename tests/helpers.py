@@ -1,13 +1,55 @@
-"""Test helpers: tight solver settings and small systems added by subclassing."""
+"""Test helpers: tight solver settings, small systems added by subclassing, and the marks of
+the tests that need a plugin (the core's tests run without the plugins installed)."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
+import pytest
 
 import lieflow as lf
+
+
+def _missing(module: str) -> str:
+    distribution = module.replace("_", "-")
+    return f"needs the {distribution} plugin (pip install -e ./plugins/{distribution})"
+
+
+def _needs(module: str) -> pytest.MarkDecorator:
+    return pytest.mark.skipif(importlib.util.find_spec(module) is None, reason=_missing(module))
+
+
+def import_plugin(module: str) -> ModuleType:
+    """The plugin ``module`` of this repository, imported inside a test; the test is skipped,
+    with the command that installs it, where it is not installed."""
+    return pytest.importorskip(module, reason=_missing(module))  # type: ignore[no-any-return]
+
+
+#: Marks of the tests that need a plugin of this repository (plugins/*): skipped, with the
+#: command that installs it, where it is not installed.
+needs_zeitlin = _needs("lieflow_zeitlin")
+needs_vortices = _needs("lieflow_vortices")
+
+#: What code or a configuration names of each plugin: its module, its registry names.
+_NAMES = (
+    (needs_zeitlin, ("lieflow_zeitlin", "euler_zeitlin", "zeitlin_")),
+    (needs_vortices, ("lieflow_vortices", "point_vortices")),
+)
+
+
+def plugin_marks(text: str) -> list[pytest.MarkDecorator]:
+    """The marks of the plugins that ``text`` (code, a configuration, a system name) uses:
+    a parameter carrying them is skipped where one is not installed."""
+    return [mark for mark, names in _NAMES if any(name in text for name in names)]
+
+
+def plugin_param(*values: object, id: str | None = None) -> object:
+    """``pytest.param(*values)`` marked with the plugins that its values name."""
+    return pytest.param(*values, marks=plugin_marks(" ".join(map(str, values))), id=id)
 
 
 def tight() -> lf.solvers.FixedPoint:

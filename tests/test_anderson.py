@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers import import_plugin, needs_zeitlin
 
 import lieflow as lf
 from lieflow import backends
@@ -160,7 +161,7 @@ def test_jax_traced_matches_eager_on_a_contraction() -> None:
 
 def test_jax_traced_matches_eager_on_a_lieflow_map(monkeypatch: pytest.MonkeyPatch) -> None:
     jax = _jax()
-    lz = pytest.importorskip("lieflow_zeitlin")
+    lz = import_plugin("lieflow_zeitlin")
     from lieflow.schemes.sydirk import MidpointProblem
 
     monkeypatch.setattr(anderson, "MIN_SIZE", 0)
@@ -187,7 +188,7 @@ def test_jax_traced_matches_eager_on_a_lieflow_map(monkeypatch: pytest.MonkeyPat
 
 
 def _field(N: int) -> np.ndarray:
-    lz = pytest.importorskip("lieflow_zeitlin")
+    lz = import_plugin("lieflow_zeitlin")
     W: np.ndarray = lz.random_vorticity(N, degree=8, seed=N)
     return W
 
@@ -204,6 +205,7 @@ def _levels(W: np.ndarray) -> np.ndarray:
     return np.linalg.eigvalsh(1j * W)
 
 
+@needs_zeitlin
 @pytest.mark.parametrize(("N", "h"), [(128, 1 / 32), (256, 1 / 32)])
 def test_euler_zeitlin_fewer_updates_same_solution(N: int, h: float) -> None:
     plain = _run(N, h, 3, 0)
@@ -223,7 +225,7 @@ def test_euler_zeitlin_fewer_updates_same_solution(N: int, h: float) -> None:
 
 
 def test_euler_zeitlin_converges_where_plain_fails() -> None:
-    lz = pytest.importorskip("lieflow_zeitlin")
+    lz = import_plugin("lieflow_zeitlin")
     from lieflow.schemes.sydirk import MidpointProblem
 
     N, h = 256, 1 / 16
@@ -240,6 +242,7 @@ def test_euler_zeitlin_converges_where_plain_fails() -> None:
     assert np.max(np.abs(W0_again - W0)) <= 1e-12 * np.max(np.abs(W0))
 
 
+@needs_zeitlin
 def test_euler_zeitlin_fast_contraction_is_left_plain() -> None:
     # N = 128 at h = 1/256: 5 updates a step, nothing to gain: the same bits as plain
     plain, fast = _run(128, 1 / 256, 3, 0), _run(128, 1 / 256, 3, 5)
@@ -247,6 +250,7 @@ def test_euler_zeitlin_fast_contraction_is_left_plain() -> None:
     np.testing.assert_array_equal(fast.iterations, plain.iterations)
 
 
+@needs_zeitlin
 @pytest.mark.parametrize("engage", [anderson.ENGAGE, 0.0])
 def test_no_stall_at_roundoff(monkeypatch: pytest.MonkeyPatch, engage: float) -> None:
     # rtol below the roundoff floor: the stopping rule ends on stagnation ("roundoff");
@@ -285,7 +289,7 @@ def test_every_scheme_with_anderson_mixing(
 ) -> None:
     # mixing from the second update on, on a small system: every scheme's unknown (a
     # matrix, stacked stages, a batch of either) gives the step of a tight plain solve
-    lz = pytest.importorskip("lieflow_zeitlin")
+    lz = import_plugin("lieflow_zeitlin")
     monkeypatch.setattr(anderson, "MIN_SIZE", 0)
     monkeypatch.setattr(anderson, "ENGAGE", 0.0)
     system = lz.EulerZeitlin(6)

@@ -9,6 +9,7 @@ from typing import Any, cast
 
 import numpy as np
 import pytest
+from helpers import import_plugin
 
 import lieflow as lf
 from lieflow import backends
@@ -18,7 +19,7 @@ xps = pytest.importorskip("array_api_strict")
 
 def _systems() -> list[tuple[str, lf.IsospectralSystem]]:
     out = [("rigid_body", lf.systems.get("rigid_body", inertia=(1.0, 2.0, 3.0)))]
-    lz = pytest.importorskip("lieflow_zeitlin")
+    lz = import_plugin("lieflow_zeitlin")
     out.append(("euler_zeitlin_16", lz.EulerZeitlin(16)))
     return out
 
@@ -102,7 +103,7 @@ def test_gpu_runs_match_numpy(library: str, scheme_name: str) -> None:
     """A step and a whole ``integrate`` run on a GPU library's arrays against the NumPy
     engine (skipped without a CUDA device)."""
     put = _on_gpu(library)
-    lz = pytest.importorskip("lieflow_zeitlin")
+    lz = import_plugin("lieflow_zeitlin")
     system = lz.EulerZeitlin(32)
     W = system.random_state(2)
     solver = lf.solvers.FixedPoint(rtol=1e-14)
@@ -161,7 +162,7 @@ def test_check_every_reads_the_host_once_per_group(
     with NumPy's to roundoff."""
     from lieflow.solvers import fixed_point
 
-    lz = pytest.importorskip("lieflow_zeitlin")
+    lz = import_plugin("lieflow_zeitlin")
     system = lz.EulerZeitlin(16)
     W = system.random_state(2)
     scheme = lf.schemes.get("midpoint")

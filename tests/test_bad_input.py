@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers import needs_vortices
 
 import lieflow as lf
 from lieflow import tableaus
@@ -96,10 +97,9 @@ def test_a_plugins_random_state_is_used_and_validated(tmp_path: Path) -> None:
         build(parse_config(config_text(system='name = "broken"'), base_dir=tmp_path), registry=reg)
 
 
+@needs_vortices
 def test_point_vortices_random_state_from_a_config(tmp_path: Path) -> None:
     """Point vortices used to get a state from so(3)^K that validate refused."""
-    if "point_vortices" not in lf.default_registry().systems:
-        pytest.skip("the lieflow-vortices plugin is not installed")
     text = config_text(system='name = "point_vortices"', initial="random = true\nseed = 0")
     setup = build(parse_config(text, base_dir=tmp_path))
     assert np.array_equal(setup.W0, setup.system.random_state(0))

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import pytest
+from helpers import needs_zeitlin
 
 pytest.importorskip("array_api_strict")
-pytest.importorskip("lieflow_zeitlin")
 
 from benchmarks import device
 
 
+@needs_zeitlin
 def test_dry_run_prints_the_table_and_agrees_with_the_cpu_engine(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
@@ -46,6 +47,7 @@ def test_without_a_gpu_library_it_says_so(capsys: pytest.CaptureFixture[str]) ->
     assert "no engine runs here" in capsys.readouterr().err
 
 
+@needs_zeitlin
 def test_the_cpu_floor_benchmark_prints_its_ratio(capsys: pytest.CaptureFixture[str]) -> None:
     from benchmarks import floor
 
@@ -55,6 +57,7 @@ def test_the_cpu_floor_benchmark_prints_its_ratio(capsys: pytest.CaptureFixture[
     assert len(cells) == 8 and float(cells[-1]) > 0 and float(cells[1]) >= 1
 
 
+@needs_zeitlin
 def test_the_anderson_benchmark_prints_its_rows(capsys: pytest.CaptureFixture[str]) -> None:
     from benchmarks import anderson
 

@@ -9,6 +9,7 @@ from typing import Literal
 
 import numpy as np
 import pytest
+from helpers import import_plugin
 
 import lieflow as lf
 from benchmarks import cli
@@ -231,7 +232,7 @@ def test_stiffness_of_the_rigid_body_matches_its_linearisation() -> None:
 def test_splitting_suite_quick_reports_the_target(tmp_path: Path) -> None:
     """The forced-dissipative splitting suite (issue 26.3) runs and gives a verdict."""
     pytest.importorskip("numba")
-    pytest.importorskip("lieflow_zeitlin")
+    import_plugin("lieflow_zeitlin")
     out = tmp_path / "benchmarks.md"
     assert cli.main(["--quick", "--only", "splitting", "--out", str(out)]) == 0
     page = out.read_text(encoding="utf-8")
@@ -252,7 +253,7 @@ def test_quflow_suite_quick(
     """The quflow comparison (issue 27.4) runs in quick mode: lieflow's midpoint curve is
     second order against the gauss4 reference, gauss4 is far more accurate, and without
     quflow the section says so and gives no verdict."""
-    pytest.importorskip("lieflow_zeitlin")
+    import_plugin("lieflow_zeitlin")
     from benchmarks.suites import quflow_accuracy
 
     if with_quflow:
@@ -287,7 +288,7 @@ def test_quflow_suite_quick(
 def test_startup_suite_quick_reports_what_each_case_imported() -> None:
     from benchmarks.suites import startup
 
-    pytest.importorskip("lieflow_zeitlin")
+    import_plugin("lieflow_zeitlin")
     section = startup.run(BenchContext(quick()))
     rows = {row[0]: row for row in section.tables[0].rows}
     assert rows["lieflow run"][3] == "none"

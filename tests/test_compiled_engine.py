@@ -15,6 +15,7 @@ from typing import Any
 import attrs
 import numpy as np
 import pytest
+from helpers import import_plugin
 
 import lieflow as lf
 from lieflow import compiled, driver
@@ -62,7 +63,7 @@ def test_blas_products_above_n_8_agree_with_numpy(
 @pytest.mark.parametrize("scheme", ["midpoint", "gauss2", "sydirk7"])
 def test_a_plugin_system_runs_compiled(scheme: str) -> None:
     """The point vortices' nonlinear B lives in the plugin (lieflow_vortices._compiled)."""
-    vortices = pytest.importorskip("lieflow_vortices")
+    vortices = import_plugin("lieflow_vortices")
     system = vortices.PointVortices()
     W0 = system.random_state(seed=1)
     plan = compiled.plan(system, lf.schemes.get(scheme), lf.solvers.FixedPoint(), W0)
@@ -380,7 +381,7 @@ def test_a_forced_dissipative_euler_zeitlin_run_is_compiled(
     """``lieflow run`` of a [splitting] configuration with engine = "compiled" (drag,
     stochastic forcing and the isospectral step on complex data) never takes a numpy step,
     and agrees with engine = "numpy" to roundoff."""
-    pytest.importorskip("lieflow_zeitlin")
+    import_plugin("lieflow_zeitlin")
     from lieflow.app.config import build, parse_config
 
     forcing = '{ name = "zeitlin_forcing", params = { amplitude = 0.2, l1 = 2, l2 = 4, seed = 1 } }'
@@ -437,7 +438,7 @@ def test_compiled_run_interrupted_and_resumed_is_bit_for_bit(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, system: str, scheme: str, h: float
 ) -> None:
     if "zeitlin" in system:
-        pytest.importorskip("lieflow_zeitlin")
+        import_plugin("lieflow_zeitlin")
     config = tmp_path / "run.toml"
     config.write_text(
         textwrap.dedent(

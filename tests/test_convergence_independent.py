@@ -14,6 +14,7 @@ import functools
 import numpy as np
 import pytest
 from conftest import SCHEMES
+from helpers import needs_vortices, plugin_param
 from scipy.integrate import solve_ivp
 
 import lieflow as lf
@@ -98,7 +99,7 @@ def observed_order(system_name: str, scheme: lf.Scheme) -> tuple[float, list[flo
     return float(np.log2(e1 / e2)), errs
 
 
-@pytest.mark.parametrize("system_name", ["generalized_rigid_body", "point_vortices"])
+@pytest.mark.parametrize("system_name", [plugin_param(name) for name in PROBLEMS])
 def test_references_agree(system_name: str) -> None:
     """DOP853 and Radau (implicit, a different family) agree to 5 % of ``ERR_MIN``: an
     error of ``ERR_MIN`` is known to 5 %, its log2 to 0.07 (measured: 3e-16 for the
@@ -115,6 +116,7 @@ def test_order_against_independent_reference(name: str) -> None:
     assert order == pytest.approx(scheme.order, abs=0.1), errs
 
 
+@needs_vortices
 @pytest.mark.parametrize(
     "name",
     [

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import zeitlin_ensemble
+from helpers import needs_zeitlin, zeitlin_ensemble
 
 import lieflow as lf
 from lieflow.app import io
@@ -103,6 +103,7 @@ def test_ensemble_from_seeds_runs_as_one_batch(tmp_path: Path) -> None:
     np.testing.assert_array_equal(kept.values, ds.W.values)
 
 
+@needs_zeitlin
 def test_ensemble_from_perturbations_and_complex_states(tmp_path: Path) -> None:
     text = zeitlin_ensemble()
     setup = build(parse_config(text), output=tmp_path / "ez.h5")

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers import import_plugin
 
 import lieflow as lf
 from lieflow import backends
@@ -41,9 +42,9 @@ STEPS = 4
 
 def _system(name: str) -> lf.IsospectralSystem:
     if name == "point_vortices":
-        pytest.importorskip("lieflow_vortices")
+        import_plugin("lieflow_vortices")
     if name == "euler_zeitlin":
-        pytest.importorskip("lieflow_zeitlin")
+        import_plugin("lieflow_zeitlin")
         return lf.systems.get("euler_zeitlin", N=6)
     if name == "toda_gl_gradient":
         return lf.systems.get("periodic_toda", n=4, gl_gradient=True)

@@ -214,3 +214,72 @@ def test_documented_top_level_names_and_the_command() -> None:
         [sys.executable, "-m", "lieflow", "--version"], capture_output=True, text=True, check=True
     )
     assert lf.__version__ in out.stdout
+
+
+TESTS = Path(__file__).resolve().parent
+#: The plugins of this repository as modules (plugins/lieflow-zeitlin: lieflow_zeitlin).
+PLUGIN_MODULES = {
+    p.name.replace("-", "_")
+    for p in TESTS.parent.glob("plugins/*")
+    if (p / "pyproject.toml").is_file()
+}
+
+
+def _plugin_imports_on_import(path: Path) -> list[str]:
+    """``line: code`` of each import of a plugin module run when the file is imported (outside
+    a function): an import statement, ``pytest.importorskip`` or ``import_module``."""
+    found: list[str] = []
+
+    def visit(node: ast.AST) -> None:
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda):
+            return  # runs when called, not on import
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            names = [node.module or ""] if not node.level else []
+        elif (
+            isinstance(node, ast.Call)
+            and getattr(node.func, "attr", getattr(node.func, "id", ""))
+            in ("importorskip", "import_module")
+            and node.args
+            and isinstance(node.args[0], ast.Constant)
+        ):
+            names = [str(node.args[0].value)]
+        else:
+            names = []
+        if any(name.split(".")[0] in PLUGIN_MODULES for name in names):
+            found.append(f"{node.lineno}: {ast.unparse(node)}")  # type: ignore[attr-defined]
+        for child in ast.iter_child_nodes(node):
+            visit(child)
+
+    visit(ast.parse(path.read_text(encoding="utf-8")))
+    return found
+
+
+def test_the_core_tests_import_no_plugin_on_import() -> None:
+    """The core's tests collect and run without the plugins (pip install -e ".[test]"): a
+    test that needs one imports it inside the test and carries the mark of tests/helpers.py
+    (``needs_zeitlin``, ``needs_vortices``, ``plugin_marks``); a test of a plugin itself
+    lives in its plugins/*/tests."""
+    assert PLUGIN_MODULES == {"lieflow_zeitlin", "lieflow_vortices"}
+    offenders = {p.name: hits for p in TESTS.glob("*.py") if (hits := _plugin_imports_on_import(p))}
+    assert offenders == {}
+
+
+def test_the_plugin_import_scan_finds_them(tmp_path: Path) -> None:
+    """The scan above can fail: module-level imports, also under ``if``/``try`` and in a
+    class body, and ``importorskip`` are seen; imports inside functions are not."""
+    probe = tmp_path / "test_probe.py"
+    probe.write_text(
+        "import pytest\n"
+        "import lieflow_zeitlin\n"
+        "from lieflow_vortices._compiled import vortex_B\n"
+        "lz = pytest.importorskip('lieflow_zeitlin')\n"
+        "try:\n    import lieflow_vortices as lv\nexcept ImportError:\n    pass\n"
+        "class T:\n    import lieflow_zeitlin.plotting\n"
+        "def test_f():\n    import lieflow_zeitlin\n    pytest.importorskip('lieflow_vortices')\n"
+        "import lieflow.systems\n"
+    )
+    assert [hit.split(":")[0] for hit in _plugin_imports_on_import(probe)] == [
+        "2", "3", "4", "6", "10"
+    ]  # fmt: skip

@@ -18,6 +18,7 @@ import itertools
 
 import pytest
 from conftest import SCHEMES, SYSTEMS
+from helpers import needs_vortices
 
 import lieflow as lf
 
@@ -174,6 +175,7 @@ def test_toda_sydirk7_newton_at_h_08(solver: str) -> None:
 # ------------------------------------------------------------------ issue 14: point vortices
 
 
+@needs_vortices
 def test_vortex_block_form_slow_contraction_is_not_given_up_at_roundoff() -> None:
     """random_state(2), gauss2 block form, h = 0.25: step 4 contracts at 0.76 and reached
     the iteration cap with its update at 2.4e-14 (below the roundoff floor); it is
@@ -184,6 +186,7 @@ def test_vortex_block_form_slow_contraction_is_not_given_up_at_roundoff() -> Non
     assert sol.success and sol.iterations[3] > 100
 
 
+@needs_vortices
 @pytest.mark.slow
 def test_vortex_block_form_close_encounter() -> None:
     """The same run at step 29: two vortices come close (1 - x_i.x_j = 0.08) and the

@@ -12,7 +12,7 @@ from typing import Any
 import h5py
 import numpy as np
 import pytest
-from helpers import zeitlin_ensemble
+from helpers import needs_zeitlin, zeitlin_ensemble
 
 import lieflow as lf
 from lieflow.app import io
@@ -170,6 +170,7 @@ def test_a_lieflow_run_file_opens_with_plain_xarray(tmp_path: Path) -> None:
     assert "_NCProperties" not in tr.meta
 
 
+@needs_zeitlin
 def test_complex_ensemble_states_and_extra_diagnostics(tmp_path: Path) -> None:
     """Euler-Zeitlin: complex states in the nc-complex compound type, read as complex."""
     path = lieflow_run(tmp_path, ZEITLIN, "ez")
@@ -252,6 +253,7 @@ def assert_close_runs(a: io.Trajectory, b: io.Trajectory) -> None:
         np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-9, atol=1e-14)
 
 
+@needs_zeitlin
 def test_version_1_files_are_read(tmp_path: Path) -> None:
     old = v1_file(tmp_path, "v1_zeitlin_ensemble.h5")
     assert io.format_version(old) == 1

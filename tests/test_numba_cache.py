@@ -4,6 +4,7 @@ non-editable install survive its uninstall and shadow a later editable install."
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import subprocess
@@ -14,24 +15,30 @@ import pytest
 
 pytest.importorskip("numba")
 
-#: Prints where the cache of each compiled function of lieflow and its plugins lives (no
-#: compilation), then compiles a function of a module in ``sys.argv[1]`` and calls it.
+#: The compiled functions of lieflow and of each installed plugin of this repository.
+COMPILED = {"lieflow": 2, "lieflow_vortices": 2, "lieflow_zeitlin": 4}
+
+#: Prints where the cache of each compiled function of lieflow and its installed plugins
+#: lives (no compilation), then compiles a function of a module in ``sys.argv[1]`` and calls
+#: it.
 PROBE = """
-import json, sys
+import importlib.util, json, sys
 from lieflow import _kernels
 from lieflow.numba_cache import cache_directory
-import lieflow_vortices._compiled as vortices
-import lieflow_zeitlin._compiled as zeitlin
-from lieflow_zeitlin import _recurrences, laplacian
 
 sys.path.insert(0, sys.argv[1])
 import probe_module
 
-functions = [_kernels.hadamard_B_skew, _kernels.verdict, vortices.vortex_B,
-             vortices.vortex_project, zeitlin.zeitlin_B,
-             _recurrences._harmonic_compiled.dispatcher(),
-             _recurrences._legendre_sweep_compiled.dispatcher(),
-             laplacian._sweep_compiled.dispatcher()]
+functions = [_kernels.hadamard_B_skew, _kernels.verdict]
+if importlib.util.find_spec("lieflow_vortices"):
+    import lieflow_vortices._compiled as vortices
+    functions += [vortices.vortex_B, vortices.vortex_project]
+if importlib.util.find_spec("lieflow_zeitlin"):
+    import lieflow_zeitlin._compiled as zeitlin
+    from lieflow_zeitlin import _recurrences, laplacian
+    functions += [zeitlin.zeitlin_B, _recurrences._harmonic_compiled.dispatcher(),
+                  _recurrences._legendre_sweep_compiled.dispatcher(),
+                  laplacian._sweep_compiled.dispatcher()]
 print(json.dumps({
     "directory": str(cache_directory()),
     "paths": [f.stats.cache_path for f in functions],
@@ -66,6 +73,8 @@ def _probe(tmp_path: Path, **env: str) -> dict[str, object]:
     )
     assert proc.returncode == 0, proc.stderr
     result: dict[str, object] = json.loads(proc.stdout.strip().splitlines()[-1])
+    installed = [m for m in COMPILED if importlib.util.find_spec(m) is not None]
+    assert len(result["paths"]) == sum(COMPILED[m] for m in installed)  # type: ignore[arg-type]
     return result
 
 

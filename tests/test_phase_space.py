@@ -11,6 +11,7 @@ Toda; the stage projection changes a Toda step by <= 7e-17).
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +19,6 @@ import pytest
 from conftest import SCHEMES
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from lieflow_vortices import PointVortices
 
 import lieflow as lf
 from lieflow.driver import advance
@@ -106,7 +106,8 @@ def _off_phase_space(system: lf.IsospectralSystem, W: np.ndarray) -> np.ndarray:
         E = np.zeros((n, n))
         E[0, 1] = 1.0
         return E
-    if isinstance(system, PointVortices):
+    vortices = sys.modules.get("lieflow_vortices")  # loaded if the plugin's system is here
+    if vortices is not None and isinstance(system, vortices.PointVortices):
         return W  # changes every radius |m_i|
     if system.algebra.dtype.kind == "c":
         return 1j * np.eye(n)  # skew-Hermitian, not traceless
@@ -181,23 +182,6 @@ def test_solution_measures_the_phase_space() -> None:
     assert sol.phase_space_distance().shape == (21,)
     assert sol.phase_space_distance().max() <= 4 * EPS
     np.testing.assert_array_equal(sol.algebra_distance(), sol.phase_space_distance())
-
-
-def test_vortex_projection_puts_each_vortex_on_its_sphere() -> None:
-    system = PointVortices(strengths=(1.0, -2.0, 0.5))
-    W = system.random_state(0)
-    V = system.project(1.1 * W + 1e-3 * _ambient(system, 9))
-    m = lf_block_vee(V)
-    np.testing.assert_allclose(np.linalg.norm(m, axis=-1), [1.0, 2.0, 0.5], rtol=1e-15)
-    assert system.algebra.contains(V, tol=1e-15)
-    assert float(system.phase_space_distance(1.1 * W)) == pytest.approx(0.1 / 1.1, rel=1e-12)
-
-
-def lf_block_vee(W: np.ndarray) -> np.ndarray:
-    from lieflow_vortices import block_vee
-
-    out: np.ndarray = block_vee(W)
-    return out
 
 
 def test_toda_gradient_extension_has_all_of_gl_n_as_phase_space() -> None:

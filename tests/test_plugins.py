@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import ClassVar
 
 import pytest
+from helpers import needs_vortices, needs_zeitlin
 
 import lieflow as lf
 from lieflow import plugins
@@ -41,11 +42,6 @@ def test_builtins_come_from_lieflow_entry_point() -> None:
         assert name in reg.schemes
     assert {"fixed_point", "newton", "frozen_b", "auto"} <= set(reg.solvers)
     assert all(e.description for e in reg.schemes.values())
-
-
-def test_point_vortex_plugin_is_installed_and_registered() -> None:
-    entry = lf.default_registry().systems["point_vortices"]
-    assert "lieflow-vortices" in entry.source
 
 
 def test_unknown_name_lists_known_ones() -> None:
@@ -168,9 +164,8 @@ def _imported_after(code: str) -> dict[str, list[str]]:
     return dict(json.loads(line) for line in out.stdout.splitlines() if line.startswith("["))
 
 
-@pytest.mark.skipif(
-    "euler_zeitlin" not in lf.default_registry().systems, reason="lieflow-zeitlin not installed"
-)
+@needs_zeitlin
+@needs_vortices
 def test_a_builtin_system_loads_no_other_plugin(tmp_path: Path) -> None:
     """``lieflow run`` on a rigid body, and looking up a built-in, import no third-party
     plugin and no numba (161 ms of ``lieflow run`` before, issue 27); a plugin's system

@@ -10,21 +10,24 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import needs_zeitlin
 from scipy.stats import spearmanr
 
 import lieflow as lf
 from lieflow.app.cli import main
 
-lz = pytest.importorskip("lieflow_zeitlin")
 pytest.importorskip("xarray")
 
-from lieflow.app.studies import modin_viviani_2020 as mv  # noqa: E402
-from lieflow.app.sweeps import parse_sweep  # noqa: E402
+from lieflow.app.studies import modin_viviani_2020 as mv
+from lieflow.app.sweeps import parse_sweep
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
+@needs_zeitlin
 def test_plans_fit_the_issue() -> None:
+    import lieflow_zeitlin as lz
+
     quick = mv.PLANS["quick"]
     assert quick.runs >= 24 and len(set(quick.gammas)) >= 6 and 0.0 in quick.gammas
     for plan in mv.PLANS.values():
@@ -34,7 +37,10 @@ def test_plans_fit_the_issue() -> None:
         assert plan.steps % plan.save_every == 0
 
 
+@needs_zeitlin
 def test_grid_is_a_sweep_over_the_initial_files(tmp_path: Path) -> None:
+    import lieflow_zeitlin as lz
+
     plan = mv.PLANS["smoke"]
     states = mv.initial_states(plan, 3, tmp_path)
     assert [(s.gamma, s.seed) for s in states] == [(0.0, 3), (0.0, 4), (1.2, 3), (1.2, 4)]
@@ -58,6 +64,7 @@ def test_grid_is_a_sweep_over_the_initial_files(tmp_path: Path) -> None:
     assert states[0].rotation == 0.0
 
 
+@needs_zeitlin
 def test_initial_data_of_another_version_is_refused(tmp_path: Path) -> None:
     plan = mv.PLANS["smoke"]
     states = mv.initial_states(plan, 0, tmp_path)
@@ -106,6 +113,7 @@ def smoke(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out / "modin-viviani-2020-smoke"
 
 
+@needs_zeitlin
 def test_smoke_writes_every_output(smoke: Path) -> None:
     from matplotlib.image import imread
 
@@ -119,6 +127,7 @@ def test_smoke_writes_every_output(smoke: Path) -> None:
     assert (smoke / "sweep" / "manifest.json").exists()
 
 
+@needs_zeitlin
 def test_smoke_results(smoke: Path) -> None:
     import xarray as xr
 
@@ -142,6 +151,7 @@ def test_smoke_results(smoke: Path) -> None:
         assert (outcome[1] == 2).all()  # gamma = 1.2: a dipole at once (the solid-body part)
 
 
+@needs_zeitlin
 @pytest.mark.slow
 def test_smoke_on_a_device_equals_the_cpu(smoke: Path, tmp_path: Path) -> None:
     """``[run] device`` passed through: the eager engine on ``array_api_strict`` arrays (the
@@ -154,6 +164,7 @@ def test_smoke_on_a_device_equals_the_cpu(smoke: Path, tmp_path: Path) -> None:
     assert [r.outcome for r in result.analysis.runs] == outcomes
 
 
+@needs_zeitlin
 @pytest.mark.slow
 def test_quick_study_finds_the_trend(tmp_path: Path) -> None:
     """The laptop variant (about 3 minutes on 2 idle cores): fewer coherent vortices at

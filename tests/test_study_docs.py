@@ -22,8 +22,8 @@ import pytest
 
 pytest.importorskip("xarray")
 pytest.importorskip("scipy")
-pytest.importorskip("lieflow_zeitlin")
 
+from helpers import needs_zeitlin
 from test_docs import FENCE
 
 from lieflow.app.cli import main
@@ -126,6 +126,7 @@ def test_page_shows_the_grid_files() -> None:
         assert grid in tomls, f"docs/study.md does not show examples/sweeps/{name}.toml"
 
 
+@needs_zeitlin  # examples/sweeps/study_ensemble.toml: an Euler–Zeitlin ensemble
 def test_page_runs_and_prints_what_it_shows(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

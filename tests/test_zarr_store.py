@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import zeitlin_ensemble
+from helpers import needs_zeitlin, zeitlin_ensemble
 
 import lieflow as lf
 from lieflow.app import io
@@ -136,6 +136,7 @@ def test_lieflow_sweep_refuses_an_unknown_store(
     assert "invalid choice: 'parquet' (choose from 'zarr')" in capsys.readouterr().err
 
 
+@needs_zeitlin
 def test_complex_ensemble_runs_in_the_store(tmp_path: Path) -> None:
     base = zeitlin_ensemble(members=2, steps=6, save_every=3)
     res = lf.sweep(write_grid(tmp_path, base, '"run.h" = [0.01, 0.02]'), workers=2,

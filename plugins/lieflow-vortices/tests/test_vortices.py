@@ -108,6 +108,19 @@ def test_block_algebra() -> None:
         BlockSO3(0)
 
 
+def test_vortex_projection_puts_each_vortex_on_its_sphere() -> None:
+    """The phase space is the product of the spheres |m_i| = |Γ_i|: the projection of a
+    perturbed state (off the spheres and off so(3)^K) lands on them."""
+    system = PointVortices(strengths=(1.0, -2.0, 0.5))
+    W = system.random_state(0)
+    ambient = np.random.default_rng(9).standard_normal((system.algebra.n, system.algebra.n))
+    V = system.project(1.1 * W + 1e-3 * ambient)
+    m = block_vee(V)
+    np.testing.assert_allclose(np.linalg.norm(m, axis=-1), [1.0, 2.0, 0.5], rtol=1e-15)
+    assert system.algebra.contains(V, tol=1e-15)
+    assert float(system.phase_space_distance(1.1 * W)) == pytest.approx(0.1 / 1.1, rel=1e-12)
+
+
 # ------------------------------------------------------------------------- dynamics
 def test_vector_field_matches_the_vortex_equations(system: PointVortices) -> None:
     x = random_positions(system.K, seed=3)
