@@ -152,10 +152,11 @@ def test_an_interrupt_while_resuming_keeps_the_file_resumable(
 def test_an_interrupt_before_the_file_exists_says_nothing_was_written(
     config: Path, children: Children
 ) -> None:
-    code, text = _child(children, "load_config", str(config), "--out", "other.h5", "--force")
+    other = config.parent / "other.h5"  # in the test's folder, not the working directory
+    code, text = _child(children, "load_config", str(config), "--out", str(other), "--force")
     assert code == 130, text
     assert "lieflow: interrupted before the run started: nothing was written" in text
-    assert not (config.parent / "traj.h5").exists()
+    assert not (config.parent / "traj.h5").exists() and not other.exists()
     assert sorted(p.name for p in config.parent.iterdir()) == ["run.toml"]
 
 
