@@ -95,6 +95,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.child:
         _child(args.child, args.save)
         return 0
+    if args.save:
+        Path(args.save).mkdir(parents=True, exist_ok=True)
     print(f"load average at start: {os.getloadavg()[0]:.2f} (2-core target: idle)")
     print("| case | first: wall s | first: CPU s | first: integrate s "
           "| warm: wall s | warm: CPU s |")  # fmt: skip

@@ -153,10 +153,15 @@ def _helper(func: F) -> F:
     """``numba.njit`` without a cache, for the helpers of the loops: numba links a function
     loaded from its own cache as machine code, which cannot be inlined into a caller, so the
     loops would call ``_matmul`` and friends instead of inlining them whenever they are
-    recompiled (a new stopping rule) while the helpers' cache is still valid."""
+    recompiled (a new stopping rule) while the helpers' cache is still valid.
+
+    Only compiled code calls them, so numba makes neither of its wrappers for them (the
+    Python one, ``no_cpython_wrapper``, and the C one, ``no_cfunc_wrapper``), code that a
+    first run would otherwise compile for each helper (issue 37 item 11)."""
     if numba is None:  # pragma: no cover
         return func
-    return cast(F, numba.njit(error_model="numpy")(func))
+    options = {"no_cpython_wrapper": True, "no_cfunc_wrapper": True}
+    return cast(F, numba.njit(error_model="numpy", **options)(func))
 
 
 def compiled_map(func: F) -> F:
@@ -1236,8 +1241,9 @@ def _compile_entry(func: F, dtype: np.dtype) -> F:
     if numba is None:  # pragma: no cover
         return func
     # without reference counting (see the module's docstring) where this numba has the
-    # (private) option; with it the same loops are correct, only slower
-    options: dict[str, Any] = {"error_model": "numpy"}
+    # (private) option; with it the same loops are correct, only slower; called from
+    # Python only (no C wrapper)
+    options: dict[str, Any] = {"error_model": "numpy", "no_cfunc_wrapper": True}
     cpu = importlib.import_module("numba.core.cpu")
     if hasattr(getattr(cpu, "CPUTargetOptions", None), "_nrt"):
         options["_nrt"] = False
