@@ -1152,8 +1152,8 @@ def _entry_point(key: str, sydirk: bool, conjugation: bool) -> Any:
     ``_views`` of the function, which is made with a namespace of its own (this module's
     globals and those two), so that numba compiles the loop as the entry point itself
     rather than inlining it into one (numba's inlining deep-copies the inlined code block
-    by block, a cost that grows with the square of its size: 3 of the ~16 s of a so(3)
-    compile, measured). Its closure holds ``key`` (:data:`SHARED_KEY`) alone, which
+    by block, a cost that grows with the square of its size: about a fifth of the CPU time
+    of a first so(3) run, measured with ``benchmarks/compile_time.py``). Its closure holds ``key`` (:data:`SHARED_KEY`) alone, which
     numba's cache key hashes (with the bytecode), so that editing a shared rule recompiles
     it; the name (one cache file per entry point) tells the four apart."""
 
