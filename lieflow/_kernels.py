@@ -1153,9 +1153,9 @@ def _entry_point(key: str, sydirk: bool, conjugation: bool) -> Any:
     globals and those two), so that numba compiles the loop as the entry point itself
     rather than inlining it into one (numba's inlining deep-copies the inlined code block
     by block, a cost that grows with the square of its size: about a fifth of the CPU time
-    of a first so(3) run, measured with ``benchmarks/compile_time.py``). Its closure holds ``key`` (:data:`SHARED_KEY`) alone, which
-    numba's cache key hashes (with the bytecode), so that editing a shared rule recompiles
-    it; the name (one cache file per entry point) tells the four apart."""
+    of a first so(3) run, measured with ``benchmarks/compile_time.py``). Its closure holds
+    ``key`` (:data:`SHARED_KEY`) alone, which numba's cache key hashes (with the bytecode),
+    so that editing a shared rule recompiles it; the name (one cache file per entry point) tells the four apart."""
 
     def advance(
         start: Any, coefficients: Any, weights: Any, skew: bool, B_address: Any,
@@ -1184,7 +1184,9 @@ def _entry_point(key: str, sydirk: bool, conjugation: bool) -> Any:
         scratch = workspace[o + 4 * s * n * n : o + 9 * s * n * n].reshape((5, s, n, n))
         err2 = real_workspace[: depth + 1]
         res = real_workspace[depth + 1 : depth + 1 + settings[MAX_ITER]]
-        x, x0, xf, x0f, m0, m1, m2, m3 = _views(work, scratch)  # noqa: F821 - see above
+        # _views and _step: globals of the entry point's own namespace (see above)
+        parts = _views(work, scratch)  # type: ignore[name-defined] # noqa: F821
+        x, x0, xf, x0f, m0, m1, m2, m3 = parts
         for step in range(states.shape[0]):
             points = min(warm_counts[FILLED], warm_counts[TRUSTED])
             guessing = warm and points > 0
@@ -1194,9 +1196,10 @@ def _entry_point(key: str, sydirk: bool, conjugation: bool) -> Any:
                     _predict(history, kk, points, extrapolation, pred)
                 cur = start[kk] if step == 0 else states[step - 1, kk]
                 out = states[step, kk]
-                total = _step(cur, out, pred, solved[kk], guessing, coefficients,  # noqa: F821
-                              weights, x, x0, xf, x0f, m0, m1, m2, m3, B, B_params, skew,
-                              gemm, res, tolerances, settings)  # fmt: skip
+                total = _step(  # type: ignore[name-defined] # noqa: F821
+                    cur, out, pred, solved[kk], guessing, coefficients, weights, x, x0, xf,
+                    x0f, m0, m1, m2, m3, B, B_params, skew, gemm, res, tolerances, settings,
+                )  # fmt: skip
                 if total < 0:
                     return step
                 if projecting:
