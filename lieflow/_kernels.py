@@ -1155,7 +1155,8 @@ def _entry_point(key: str, sydirk: bool, conjugation: bool) -> Any:
     by block, a cost that grows with the square of its size: about a fifth of the CPU time
     of a first so(3) run, measured with ``benchmarks/compile_time.py``). Its closure holds
     ``key`` (:data:`SHARED_KEY`) alone, which numba's cache key hashes (with the bytecode),
-    so that editing a shared rule recompiles it; the name (one cache file per entry point) tells the four apart."""
+    so that editing a shared rule recompiles it; the name (one cache file per entry point)
+    tells the four apart."""
 
     def advance(
         start: Any, coefficients: Any, weights: Any, skew: bool, B_address: Any,
