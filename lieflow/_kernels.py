@@ -2,7 +2,7 @@
 
 One compiled driver and per-formulation map kernels:
 
-* :func:`_driver` is the chunk loop: warm-start extrapolation and trust
+* :func:`_entry_point` is the chunk loop: warm-start extrapolation and trust
   (:class:`~lieflow.flows.WarmStart`), the cold retry of a failed warm solve
   (:func:`lieflow.schemes.base.solve`), the per-step phase-space projection and the
   finiteness check; :func:`_solver` is the fixed-point loop, judged by
@@ -55,6 +55,7 @@ import hashlib
 import importlib
 import inspect
 import math
+import types
 from collections.abc import Callable
 from typing import Any, NamedTuple, TypeVar, cast
 
@@ -152,10 +153,15 @@ def _helper(func: F) -> F:
     """``numba.njit`` without a cache, for the helpers of the loops: numba links a function
     loaded from its own cache as machine code, which cannot be inlined into a caller, so the
     loops would call ``_matmul`` and friends instead of inlining them whenever they are
-    recompiled (a new stopping rule) while the helpers' cache is still valid."""
+    recompiled (a new stopping rule) while the helpers' cache is still valid.
+
+    Only compiled code calls them, so numba makes neither of its wrappers for them (the
+    Python one, ``no_cpython_wrapper``, and the C one, ``no_cfunc_wrapper``), code that a
+    first run would otherwise compile for each helper (issue 37 item 11)."""
     if numba is None:  # pragma: no cover
         return func
-    return cast(F, numba.njit(error_model="numpy")(func))
+    options = {"no_cpython_wrapper": True, "no_cfunc_wrapper": True}
+    return cast(F, numba.njit(error_model="numpy", **options)(func))
 
 
 def compiled_map(func: F) -> F:
@@ -1028,74 +1034,6 @@ def _commit(
     warm_counts[FILLED] = min(filled + 1, depth)
 
 
-def _driver(fstep: Any, fviews: Any) -> Any:
-    """The chunk loop over the steps ``fstep`` (:func:`_sydirk_step` or
-    :func:`_reduced_step`, with views of the work arrays from ``fviews``): one source,
-    compiled once per formulation."""
-
-    def advance(args: Any) -> int:
-        """Advance the stack ``start`` (``(K, n, n)``) by up to ``states.shape[0]`` steps of
-        ``fstep``: ``args`` are the :class:`LoopArguments`, with ``B``, ``project`` and
-        ``gemm`` as functions. Writes each step's states and its iteration count (max over
-        the stack) and returns how many steps completed; fewer than asked means the next
-        step failed and nothing of it was committed.
-        """
-        (
-            start, coefficients, weights, skew, B, B_params, project, project_params,
-            projecting, tolerances, settings, history, extrapolation, warm_counts, states,
-            iterations, gemm, workspace, real_workspace,
-        ) = args  # fmt: skip
-        K, n, s = start.shape[0], start.shape[1], weights.shape[0]
-        warm = settings[WARM_STARTS] != 0
-        depth, m = history.shape[0], history.shape[2]
-        # the work arrays, carved out as workspace() sizes them
-        solved = workspace[: K * m].reshape((K, m))
-        pred = workspace[K * m : K * m + m]
-        acc = workspace[K * m + m : K * m + 2 * m]
-        o = K * m + 2 * m
-        work = workspace[o : o + 4 * s * n * n].reshape((2, 2, s, n, n))
-        scratch = workspace[o + 4 * s * n * n : o + 9 * s * n * n].reshape((5, s, n, n))
-        err2 = real_workspace[: depth + 1]
-        res = real_workspace[depth + 1 : depth + 1 + settings[MAX_ITER]]
-        x, x0, xf, x0f, m0, m1, m2, m3 = fviews(work, scratch)
-        for step in range(states.shape[0]):
-            points = min(warm_counts[FILLED], warm_counts[TRUSTED])
-            guessing = warm and points > 0
-            most = 0
-            for kk in range(K):
-                if guessing:
-                    _predict(history, kk, points, extrapolation, pred)
-                cur = start[kk] if step == 0 else states[step - 1, kk]
-                out = states[step, kk]
-                total = fstep(cur, out, pred, solved[kk], guessing, coefficients, weights, x,
-                              x0, xf, x0f, m0, m1, m2, m3, B, B_params, skew, gemm, res,
-                              tolerances, settings)  # fmt: skip
-                if total < 0:
-                    return step
-                if projecting:
-                    project(out, project_params, out)
-                for a in range(n):
-                    for c in range(n):
-                        if not _finite(out[a, c]):
-                            return step
-                most = max(most, total)
-            if warm:
-                _commit(solved, history, warm_counts, extrapolation, acc, err2)
-            iterations[step] = most
-        return states.shape[0]
-
-    return _inner(advance, f"_advance_{fstep.__name__}")
-
-
-#: The chunk loops of each formulation, for the commutator update and the conjugation one.
-_advance_sydirk, _advance_sydirk_conjugation = (
-    _driver(_sydirk_step_of(c), _sydirk_views) for c in (False, True)
-)
-_advance_reduced, _advance_reduced_conjugation = (
-    _driver(_reduced_step_of(c), _reduced_views) for c in (False, True)
-)
-
-
 class LoopArguments(NamedTuple):
     """The arguments of an entry point (:func:`entry`), by name and in order: the loops'
     interface. The loops read the inputs and write ``states``, ``iterations`` and the warm
@@ -1192,39 +1130,97 @@ if numba is not None:
     _product_at = _at(lambda dtype: _PRODUCT_SIGNATURES[np.dtype(dtype)])
 
 
+#: The steps of each formulation and update, and the views of the work arrays they take:
+#: ``(sydirk, conjugation) -> (step, views)`` (:func:`_entry_point`).
+_STEPS = {
+    (True, False): (_sydirk_step_of(False), _sydirk_views),
+    (True, True): (_sydirk_step_of(True), _sydirk_views),
+    (False, False): (_reduced_step_of(False), _reduced_views),
+    (False, True): (_reduced_step_of(True), _reduced_views),
+}
+
+
 def _entry_point(key: str, sydirk: bool, conjugation: bool) -> Any:
     """The entry point of one formulation (``sydirk``: a composition of midpoint steps, else
-    the reduced stage form) and update: a closure over ``key`` (:data:`SHARED_KEY`),
-    ``sydirk`` and ``conjugation``, so that numba's cache key (which hashes closure
-    variables) changes with the shared rules; the formulation's and update's loop is the
-    one compiled (the branches on the constants are pruned). It takes the
+    the reduced stage form) and update: the chunk loop over the steps of
+    :data:`_STEPS` (:func:`_sydirk_step_of` or :func:`_reduced_step_of`, with views of the
+    work arrays from :func:`_sydirk_views` or :func:`_reduced_views`). It takes the
     :class:`LoopArguments`, the system's maps and the product by address (``int64``, see
-    :func:`_at`)."""
+    :func:`_at`).
+
+    One source for the four: the step and the views are the globals ``_step`` and
+    ``_views`` of the function, which is made with a namespace of its own (this module's
+    globals and those two), so that numba compiles the loop as the entry point itself
+    rather than inlining it into one (numba's inlining deep-copies the inlined code block
+    by block, a cost that grows with the square of its size: about a fifth of the CPU time
+    of a first so(3) run, measured with ``benchmarks/compile_time.py``). Its closure holds
+    ``key`` (:data:`SHARED_KEY`) alone, which numba's cache key hashes (with the bytecode),
+    so that editing a shared rule recompiles it; the name (one cache file per entry point)
+    tells the four apart."""
 
     def advance(
-        start: Any, coefficients: Any, weights: Any, skew: bool, B: Any, B_params: Any,
-        project: Any, project_params: Any, projecting: bool, tolerances: Any, settings: Any,
-        history: Any, extrapolation: Any, warm_counts: Any, states: Any, iterations: Any,
-        gemm: Any, workspace: Any, real_workspace: Any,
+        start: Any, coefficients: Any, weights: Any, skew: bool, B_address: Any,
+        B_params: Any, project_address: Any, project_params: Any, projecting: bool,
+        tolerances: Any, settings: Any, history: Any, extrapolation: Any, warm_counts: Any,
+        states: Any, iterations: Any, gemm_address: Any, workspace: Any, real_workspace: Any,
     ) -> int:  # fmt: skip
+        """Advance the stack ``start`` (``(K, n, n)``) by up to ``states.shape[0]`` steps of
+        ``_step``. Writes each step's states and its iteration count (max over the stack)
+        and returns how many steps completed; fewer than asked means the next step failed
+        and nothing of it was committed.
+        """
         key  # noqa: B018 - part of the cache key
-        args = (
-            start, coefficients, weights, skew, _map_at(B, start), B_params,
-            _map_at(project, start), project_params, projecting, tolerances, settings,
-            history, extrapolation, warm_counts, states, iterations, _product_at(gemm, start),
-            workspace, real_workspace,
-        )  # fmt: skip
-        if sydirk:
-            if conjugation:
-                return _advance_sydirk_conjugation(args)
-            return _advance_sydirk(args)
-        if conjugation:
-            return _advance_reduced_conjugation(args)
-        return _advance_reduced(args)
+        B = _map_at(B_address, start)
+        project = _map_at(project_address, start)
+        gemm = _product_at(gemm_address, start)
+        K, n, s = start.shape[0], start.shape[1], weights.shape[0]
+        warm = settings[WARM_STARTS] != 0
+        depth, m = history.shape[0], history.shape[2]
+        # the work arrays, carved out as workspace() sizes them
+        solved = workspace[: K * m].reshape((K, m))
+        pred = workspace[K * m : K * m + m]
+        acc = workspace[K * m + m : K * m + 2 * m]
+        o = K * m + 2 * m
+        work = workspace[o : o + 4 * s * n * n].reshape((2, 2, s, n, n))
+        scratch = workspace[o + 4 * s * n * n : o + 9 * s * n * n].reshape((5, s, n, n))
+        err2 = real_workspace[: depth + 1]
+        res = real_workspace[depth + 1 : depth + 1 + settings[MAX_ITER]]
+        # _views and _step: globals of the entry point's own namespace (see above)
+        parts = _views(work, scratch)  # type: ignore[name-defined] # noqa: F821
+        x, x0, xf, x0f, m0, m1, m2, m3 = parts
+        for step in range(states.shape[0]):
+            points = min(warm_counts[FILLED], warm_counts[TRUSTED])
+            guessing = warm and points > 0
+            most = 0
+            for kk in range(K):
+                if guessing:
+                    _predict(history, kk, points, extrapolation, pred)
+                cur = start[kk] if step == 0 else states[step - 1, kk]
+                out = states[step, kk]
+                total = _step(  # type: ignore[name-defined] # noqa: F821
+                    cur, out, pred, solved[kk], guessing, coefficients, weights, x, x0, xf,
+                    x0f, m0, m1, m2, m3, B, B_params, skew, gemm, res, tolerances, settings,
+                )  # fmt: skip
+                if total < 0:
+                    return step
+                if projecting:
+                    project(out, project_params, out)
+                for a in range(n):
+                    for c in range(n):
+                        if not _finite(out[a, c]):
+                            return step
+                most = max(most, total)
+            if warm:
+                _commit(solved, history, warm_counts, extrapolation, acc, err2)
+            iterations[step] = most
+        return states.shape[0]
 
+    step, views = _STEPS[sydirk, conjugation]
     name = f"{'sydirk' if sydirk else 'reduced'}_advance{'_conjugation' if conjugation else ''}"
-    advance.__name__ = advance.__qualname__ = name  # one cache file per entry point
-    return advance
+    namespace = {**globals(), "_step": step, "_views": views}
+    made = types.FunctionType(advance.__code__, namespace, name, None, advance.__closure__)
+    made.__qualname__ = name  # one cache file per entry point
+    return made
 
 
 def _entry_signature(dtype: np.dtype) -> Any:
@@ -1249,8 +1245,9 @@ def _compile_entry(func: F, dtype: np.dtype) -> F:
     if numba is None:  # pragma: no cover
         return func
     # without reference counting (see the module's docstring) where this numba has the
-    # (private) option; with it the same loops are correct, only slower
-    options: dict[str, Any] = {"error_model": "numpy"}
+    # (private) option; with it the same loops are correct, only slower; called from
+    # Python only (no C wrapper)
+    options: dict[str, Any] = {"error_model": "numpy", "no_cfunc_wrapper": True}
     cpu = importlib.import_module("numba.core.cpu")
     if hasattr(getattr(cpu, "CPUTargetOptions", None), "_nrt"):
         options["_nrt"] = False

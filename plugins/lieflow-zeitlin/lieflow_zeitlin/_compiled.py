@@ -46,14 +46,6 @@ def params(shift: float, planetary: Any, factors: tuple[Any, ...]) -> Any:
 
 
 @cached_njit
-def _factor(params: Any, k: int, N: int, nb: int, b: int) -> Any:
-    """The ``k``-th factor array ``(nb, b, 2(N+1))`` of ``params`` (a view)."""
-    size = nb * b * 2 * (N + 1)
-    start = HEADER + N + k * size
-    return params[start : start + size].reshape(nb, b, 2 * (N + 1))
-
-
-@cached_njit
 def zeitlin_B(W: Any, params: Any, out: Any) -> None:
     """``out = B(V) - c V`` for the su(N) projection ``V`` of ``W`` (module docs)."""
     N = W.shape[0]
@@ -73,13 +65,16 @@ def zeitlin_B(W: Any, params: Any, out: Any) -> None:
     mean = mean / N
     for i in range(N):
         buf[i * C] -= mean
+    # the five factor arrays (nb, b, 2(N+1)) of params: views of one stack
+    size = nb * b * 2 * C
+    factors = params[HEADER + N : HEADER + N + 5 * size].reshape(5, nb, b, 2 * C)
     _sweep_compiled(
         buf.view(np.float64).reshape(1, nb, b, 2 * C),
-        _factor(params, 0, N, nb, b),
-        _factor(params, 1, N, nb, b),
-        _factor(params, 2, N, nb, b),
-        _factor(params, 3, N, nb, b),
-        _factor(params, 4, N, nb, b),
+        factors[0],
+        factors[1],
+        factors[2],
+        factors[3],
+        factors[4],
     )
     mean = 0.0j
     for i in range(N):
