@@ -55,7 +55,10 @@ inside ``lax.while_loop``. For NumPy, CuPy and PyTorch the history is written in
 
 from __future__ import annotations
 
+import functools
+import importlib.util
 import math
+from types import ModuleType
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -181,9 +184,13 @@ def update(state: AndersonState, x: Array, g: Array) -> tuple[AndersonState, Arr
     """Record the map value ``g = F(x)`` and return ``(state, x_next)``: the accelerated
     iterate (module docs), or ``g`` itself for every problem that is not mixed this
     update (not engaged, restarted, at roundoff, or without history yet)."""
+    nb = state.gram.ndim - 2  # batch axes
+    if nb == 0 and type(g) is np.ndarray and type(x) is np.ndarray:
+        kernel = _kernel()
+        if kernel is not None and g.dtype == x.dtype == state.dF.dtype and g.dtype.kind in "fc":
+            return _update_host(state, x, g, kernel)
     xp = namespace(x, g)
     depth = state.dF.shape[0]
-    nb = state.gram.ndim - 2  # batch axes
     core = tuple(range(nb, x.ndim))
     real = state.gram.dtype
     f = g - x
@@ -233,6 +240,94 @@ def update(state: AndersonState, x: Array, g: Array) -> tuple[AndersonState, Arr
         head=(state.head + advance) % depth,
     )
     return new, x_next
+
+
+def _update_host(
+    state: AndersonState, x: np.ndarray, g: np.ndarray, kernel: ModuleType
+) -> tuple[AndersonState, np.ndarray]:
+    """:func:`update` of one NumPy problem (no batch axes) with numba installed: the same
+    rule in two compiled passes over the numbers (:mod:`lieflow.solvers._anderson_kernel`:
+    the residual, the new columns, the Gram row and the norms in one; the correction in
+    the other) and the small problem in Python floats, in place of about a dozen NumPy
+    passes and forty calls on ``m``-vectors (N = 256 Euler–Zeitlin, ``m = 5``, one thread:
+    1.6 -> 0.xx ms per update). The history's columns that are not valid are neither read
+    nor used."""
+    depth = state.dF.shape[0]
+    have = int(state.seen) > 0
+    slot = int(state.head)
+    valid = state.valid.copy()
+    others = np.flatnonzero(valid)
+    others = others[others != slot]
+    real = _real_view(g).dtype
+    flat = (-1,)
+    dF = _real_view(state.dF).reshape(depth, -1)
+    dG = _real_view(state.dG).reshape(depth, -1)
+    # the residual overwrites the last one (the state is consumed), but never the zeros
+    # that start() shares between f and g
+    f = state.f if have else np.empty_like(g)
+    row = np.zeros(depth)
+    ff, gg, df_f = kernel.record(
+        _real_view(x).reshape(flat), _real_view(g).reshape(flat),
+        _real_view(state.f).reshape(flat), _real_view(state.g).reshape(flat),
+        _real_view(f).reshape(flat), dF, dG, slot, others, have, row,
+    )  # fmt: skip
+    finfo = np.finfo(real)
+    rel2 = ff / max(gg, float(finfo.smallest_normal))
+    # safeguards (module docs)
+    grew = have and bool(state.mixed) and ff > float(state.norm2)
+    engaged = bool(state.engaged)
+    if not engaged and have and accelerates(x):
+        engaged = rel2 > ENGAGE * ENGAGE * float(state.rel2)
+    quiet = rel2 <= (QUIET * float(finfo.eps)) ** 2
+    gram = state.gram.copy()
+    if have:
+        valid[slot] = True
+        gram[slot, :] = row
+        gram[:, slot] = row
+    if grew:
+        valid[:] = False
+    rhs = state.rhs + row
+    rhs[slot] = df_f
+    mix = engaged and not grew and not quiet
+    x_next = g
+    if mix:
+        diagonal = np.diagonal(gram)
+        use = np.flatnonzero(valid & (diagonal > 0))
+        if use.size:
+            sub = gram[np.ix_(use, use)]
+            sub[np.diag_indices(use.size)] *= 1 + REGULARIZATION
+            gamma = np.linalg.solve(sub, rhs[use])
+            x_next = np.empty_like(g)
+            kernel.correct(
+                _real_view(g).reshape(flat), dG, use, gamma.astype(real, copy=False),
+                _real_view(x_next).reshape(flat),
+            )  # fmt: skip
+    new = AndersonState(
+        dF=state.dF,
+        dG=state.dG,
+        f=f,
+        g=g,
+        gram=gram,
+        rhs=rhs,
+        valid=valid,
+        norm2=np.asarray(ff, dtype=real),
+        rel2=np.asarray(rel2, dtype=real),
+        engaged=np.asarray(engaged),
+        mixed=np.asarray(mix and bool(valid.any())),
+        seen=state.seen + 1,
+        head=(state.head + int(have)) % depth,
+    )
+    return new, x_next
+
+
+@functools.cache
+def _kernel() -> ModuleType | None:
+    """:mod:`lieflow.solvers._anderson_kernel` where numba is installed, else ``None``."""
+    if importlib.util.find_spec("numba") is None:
+        return None
+    from . import _anderson_kernel
+
+    return _anderson_kernel
 
 
 def _coefficients(gram: Array, rhs: Array, use: Array, xp: Any) -> Array:
