@@ -65,6 +65,14 @@ class MidpointProblem(StageProblem):
         self._scratch: Array | None = None
 
     @property
+    def skew_unknowns(self) -> bool:
+        """Whether the unknown ``M`` is skew-Hermitian (skew-symmetric if real) up to
+        roundoff: for skew algebras, whose ``W0`` and ``BM - (BM)^†`` are, and ``BMB``
+        is up to the rounding of its products. What lets Anderson acceleration read the
+        upper triangles alone (:func:`lieflow.solvers.anderson.update`)."""
+        return self.skew
+
+    @property
     def x0(self) -> Array:
         """``W0 + warm`` (cold: ``W0``), a new array on each access: the solver reads it
         once, and no copy outlives the first update."""
