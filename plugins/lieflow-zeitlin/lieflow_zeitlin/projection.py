@@ -86,8 +86,18 @@ def su_project(X: Any, fallback: Any) -> Array:
     flat = np.ascontiguousarray(X).reshape(-1, N, N)
     out = np.empty(flat.shape, dtype=X.dtype)
     real = flat.real.dtype
-    _skew_part_compiled(flat.view(real), out.view(real))
-    # the trace, as lieflow.SU.project removes it
-    diagonal = out.reshape(-1, N * N)[:, :: N + 1]
-    diagonal -= diagonal.sum(axis=-1, keepdims=True) / N
+    skew_part_into(flat.view(real), out.view(real))
+    remove_trace(out.reshape(-1, N * N)[:, :: N + 1], N)
     return out.reshape(X.shape)
+
+
+def skew_part_into(X: Array, out: Array) -> None:
+    """``out = (X - X^†)/2`` for real views ``(K, N, 2N)`` of complex matrices (numba
+    installed): :func:`_skew_part_loops`, compiled."""
+    _skew_part_compiled(X, out)
+
+
+def remove_trace(diagonal: Array, N: int) -> None:
+    """Subtract the mean of each row of ``diagonal`` (the diagonals of ``N × N`` matrices,
+    a view), as :meth:`lieflow.SU.project` removes the trace: its operations, its bits."""
+    diagonal -= diagonal.sum(axis=-1, keepdims=True) / N

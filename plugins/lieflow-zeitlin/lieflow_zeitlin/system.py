@@ -349,6 +349,14 @@ class EulerZeitlin(lieflow.IsospectralSystem):
         r"""``σ (Δ_N - F)^{-1}(W - F_f)`` (``σ`` times the stream matrix), broadcasting."""
         return self.laplacian.solve(self._anomaly(W))
 
+    def stage_B(self, W: Array) -> Array:
+        """``B(project_stage(W))``, bit for bit: without rotation the su(N) projection is
+        formed in the Laplacian solve's own buffer (:meth:`HoppeYauLaplacian.solve`'s
+        ``skew_part``: one ``N × N`` array and two passes over it less per update)."""
+        if self.rotation == 0.0 and type(W) is np.ndarray:
+            return self.laplacian.solve(W, skew_part=True)
+        return self.B(self.project_stage(W))
+
     def compiled_B(self, shift: float = 0.0) -> tuple[Any, Array] | None:
         r"""``B`` for lieflow's compiled engine (complex128 data): the su(N) projection of a
         stage value, the same Laplacian sweeps as :meth:`B`, compiled, minus ``shift``
