@@ -91,9 +91,7 @@ def minus_dagger(X: Array) -> Array:
     return out
 
 
-def skew_combination(
-    X: Array, s: Any, A: Array, Y: Array | None = None, t: Any = None
-) -> Array:
+def skew_combination(X: Array, s: Any, A: Array, Y: Array | None = None, t: Any = None) -> Array:
     r"""``((X - X^†) s + A) + Y t`` over the last two axes (``+ Y t`` only where ``Y`` is
     given), a new array: the tail of the midpoint map, ``W_0 + q (BM - MB) + q^2 BMB``
     for skew algebras (``MB = (BM)^†``), and of the commutator update,

@@ -31,8 +31,19 @@ _FAST = {"reassoc", "contract"}
 
 
 def _record(
-    x: Any, g: Any, f_prev: Any, g_prev: Any, f: Any, dF: Any, dG: Any, slot: int,
-    columns: Any, have: bool, row: Any, parts: int, triangle: bool,
+    x: Any,
+    g: Any,
+    f_prev: Any,
+    g_prev: Any,
+    f: Any,
+    dF: Any,
+    dG: Any,
+    slot: int,
+    columns: Any,
+    have: bool,
+    row: Any,
+    parts: int,
+    triangle: bool,
 ) -> tuple[float, float, float]:  # pragma: no cover - compiled
     """One pass over the numbers: the residual ``f = g - x`` (written to ``f``, which may
     be ``f_prev``), and where ``have`` the new columns ``dF[slot] = f - f_prev``,

@@ -436,9 +436,11 @@ class FixedPoint:
         x = problem.x0
         res: list[float] = []
         # one NumPy problem: the lean check alone (no monitor object per solve)
-        check = lean_check(self.rule, problem.core_ndim, x, res)
-        shared = check is not None  # the lean test takes Anderson's norms
-        if check is None:
+        lean = lean_check(self.rule, problem.core_ndim, x, res)
+        check: Callable[[Array, Array], str | None]
+        if lean is not None:
+            check = lean
+        else:
             monitor = IterationMonitor(self.rule, problem.core_ndim, x, self.check_every)
             check, res = monitor.check, monitor.residuals
         # Anderson acceleration (lieflow.solvers.anderson), where it can pay (problems of
@@ -455,12 +457,12 @@ class FixedPoint:
         one = x.ndim == problem.core_ndim
         while True:
             g = F(x)
-            if shared and state is not None:
+            if lean is not None and state is not None:
                 # one NumPy problem, accelerated: the update first, its norms judged (the
                 # last update of a solve is then computed and dropped: cheaper than the
                 # test's own pass over both arrays on every update)
                 state, x_next = anderson.update(state, x, g, skew)
-                reason = check(g, x, (float(state.gnorm2), float(state.norm2)))
+                reason = lean(g, x, (float(state.gnorm2), float(state.norm2)))
             else:
                 reason = check(g, x)
             if reason is not None:
@@ -468,7 +470,7 @@ class FixedPoint:
                 return SolveResult(g if ok else x, ok, len(res), tuple(res), reason, self.name)
             if not depth:
                 x = g
-            elif shared and state is not None:
+            elif lean is not None and state is not None:
                 x = x_next
             elif state is not None:
                 state, x = anderson.update(state, x, g, skew)
