@@ -283,9 +283,10 @@ def _update_host(
     rule in two compiled passes over the numbers (:mod:`lieflow.solvers._anderson_kernel`:
     the residual, the new columns, the Gram row and the norms in one; the correction in
     the other) and the small problem in Python floats, in place of about a dozen NumPy
-    passes and forty calls on ``m``-vectors (N = 256 Euler–Zeitlin, ``m = 5``, one thread:
-    1.6 -> 0.xx ms per update). The history's columns that are not valid are neither read
-    nor used."""
+    passes and forty calls on ``m``-vectors; the history's columns that are not valid are
+    neither read nor used (N = 256 Euler–Zeitlin, ``m = 5``, one thread, with the stopping
+    test reading its norms: an accelerated update 1.24 -> 1.11 times a plain one).
+    ``skew``: :func:`update`'s."""
     depth = state.dF.shape[0]
     have = int(state.seen) > 0
     slot = int(state.head)
