@@ -103,8 +103,7 @@ def skew_combination(X: Array, s: Any, A: Array, Y: Array | None = None, t: Any 
     of another library, operands of other shapes or dtypes than ``X``'s, small matrices
     (``n <= 64``) and without numba. NumPy float64/complex128 matrices with numba installed
     take one compiled pass (:mod:`lieflow._skew_kernel`) in place of five passes and a
-    temporary
-    (measured, one thread, complex128, n = 256: 0.56 -> 0.15-0.2 ms)."""
+    temporary (measured, one thread, complex128, n = 256: 0.56 -> 0.15-0.2 ms)."""
     n = X.shape[-1]
     kernel = _skew_kernel() if type(X) is np.ndarray and n > _BLOCK else None
     if (

@@ -214,7 +214,11 @@ def update(
     (half the memory traffic; inner products weigh the off-diagonal entries twice: the
     Frobenius product of skew-Hermitian matrices) and returns a mixed iterate whose lower
     triangle is the mirror image ``-conj`` of its upper one; everywhere else it is
-    ignored (the full arrays are used)."""
+    ignored (the full arrays are used).
+
+    One NumPy problem with numba installed writes a mixed iterate into one of the state's
+    two :attr:`~AndersonState.spare` arrays (never the ``x`` passed in): it is overwritten
+    two mixed updates later, so copy an iterate to keep it."""
     nb = state.gram.ndim - 2  # batch axes
     if nb == 0 and type(g) is np.ndarray and type(x) is np.ndarray:
         kernel = _kernel()
