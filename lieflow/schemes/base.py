@@ -9,7 +9,7 @@ from typing import Any, TypeVar
 import attrs
 import numpy as np
 
-from ..algebras import Array, minus_dagger, transpose
+from ..algebras import Array, minus_dagger, skew_combination, transpose
 from ..backends import is_numpy, namespace
 from ..errors import ConvergenceError
 from ..solvers.base import ImplicitProblem, Solver, SolveResult, einsum
@@ -235,6 +235,8 @@ class StageProblem:
         if self.skew:
             C = B.dot(W) if one and self._small else B @ W
             del W, B
+            if one:  # W0 + h (C - C^†) in one pass (the same roundings as below)
+                return skew_combination(C, real_scalar(float(hb), W0), W0)
             C = minus_dagger(C)
         else:
             C = B @ W - W @ B

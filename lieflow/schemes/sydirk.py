@@ -7,7 +7,7 @@ from typing import Any
 import attrs
 import numpy as np
 
-from ..algebras import Array, minus_dagger
+from ..algebras import Array, skew_combination
 from ..backends import copy, identity, is_numpy, namespace
 from ..errors import TableauError
 from ..solvers.base import Solver
@@ -65,6 +65,14 @@ class MidpointProblem(StageProblem):
         self._scratch: Array | None = None
 
     @property
+    def skew_unknowns(self) -> bool:
+        """Whether the unknown ``M`` is skew-Hermitian (skew-symmetric if real) up to
+        roundoff: for skew algebras, whose ``W0`` and ``BM - (BM)^†`` are, and ``BMB``
+        is up to the rounding of its products. What lets Anderson acceleration read the
+        upper triangles alone (:func:`lieflow.solvers.anderson.update`)."""
+        return self.skew
+
+    @property
     def x0(self) -> Array:
         """``W0 + warm`` (cold: ``W0``), a new array on each access: the solver reads it
         once, and no copy outlives the first update."""
@@ -100,14 +108,13 @@ class MidpointProblem(StageProblem):
             if guard:
                 BM = self.guard(BM)
             BMB = BM @ B
-        if self.skew:  # MB = (BM)^†: BM - MB without a transposed temporary
+        if self.skew:  # MB = (BM)^†: the whole sum in one pass, the same roundings
             del B
-            out = minus_dagger(BM)
-        else:
-            MB = M @ B
-            del B
-            out = BM - MB
-            del MB
+            return skew_combination(BM, self._q, self.W0, BMB, self._qq)
+        MB = M @ B
+        del B
+        out = BM - MB
+        del MB
         out *= self._q
         out += self.W0
         BMB *= self._qq

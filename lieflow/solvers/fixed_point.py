@@ -167,11 +167,14 @@ def stopping_verdict(
 
 def lean_check(
     rule: StoppingRule, core_ndim: int, x0: Array, residuals: list[float]
-) -> Callable[[Array, Array], str | None] | None:
+) -> Callable[..., str | None] | None:
     """The stopping test of one problem (no batch axes) of real or complex NumPy iterates,
-    as a function ``check(new, old)`` -> ``None`` to go on, else the reason to stop; it
-    appends each relative update to ``residuals``. ``None`` for any other ``x0`` (a batch,
-    an array of another library): :class:`IterationMonitor` judges those.
+    as a function ``check(new, old, norms=None)`` -> ``None`` to go on, else the reason to
+    stop; it appends each relative update to ``residuals``. ``None`` for any other ``x0``
+    (a batch, an array of another library): :class:`IterationMonitor` judges those.
+    ``norms``: ``(||new||², ||new - old||²)`` where the caller has them already (Anderson's
+    update computes both: :attr:`lieflow.solvers.anderson.AndersonState.gnorm2`,
+    ``norm2``), so the test reads neither array again.
 
     The same numbers as :meth:`IterationMonitor.check` on a batch of one, as Python floats:
     a few NumPy calls instead of a dozen array reductions per update, and the rule's
@@ -202,12 +205,16 @@ def lean_check(
     last: Array | None = None
     last_entries: list[float] = []
 
-    def check(new: Array, old: Array) -> str | None:
+    def check(new: Array, old: Array, norms: tuple[float, float] | None = None) -> str | None:
         nonlocal size0, last, last_entries
         # ||new|| first: when it is finite, ``new - old`` raises no floating-point warning
         # (``old`` is the last finite iterate or the guess; inf or nan there propagate
         # quietly), so no ``np.errstate`` (a context switch per update) is needed.
-        if hypot:
+        if norms is not None:
+            size2 = norms[0]
+            step = math.sqrt(norms[1]) if size2 < _INF else _NAN
+            size = math.sqrt(size2)
+        elif hypot:
             # (a norm whose square overflows counts as infinite, as the sums below)
             entries = new.ravel().tolist()
             size = math.hypot(*entries)
@@ -244,9 +251,9 @@ def lean_check(
             residuals.append(_NAN)
             return "non_finite"
         if not residuals:  # the first update, from x0: ||x0|| as the iterates' norms
-            if hypot:  # (its entries, read for the step above)
+            if hypot and norms is None:  # (its entries, read for the step above)
                 norm0 = math.hypot(*before)
-            elif dot:
+            elif dot and norms is None:
                 flat = old.ravel()
                 norm0 = math.sqrt(float(vdot(flat, flat)))
             else:
@@ -429,8 +436,11 @@ class FixedPoint:
         x = problem.x0
         res: list[float] = []
         # one NumPy problem: the lean check alone (no monitor object per solve)
-        check = lean_check(self.rule, problem.core_ndim, x, res)
-        if check is None:
+        lean = lean_check(self.rule, problem.core_ndim, x, res)
+        check: Callable[[Array, Array], str | None]
+        if lean is not None:
+            check = lean
+        else:
             monitor = IterationMonitor(self.rule, problem.core_ndim, x, self.check_every)
             check, res = monitor.check, monitor.residuals
         # Anderson acceleration (lieflow.solvers.anderson), where it can pay (problems of
@@ -441,18 +451,29 @@ class FixedPoint:
         if depth and not anderson.accelerates(x, problem.core_ndim):
             depth = 0
         state: anderson.AndersonState | None = None
+        # the unknowns are skew(-Hermitian) matrices: Anderson may read half of each
+        skew = bool(getattr(problem, "skew_unknowns", False))
         pairs: list[tuple[Array, Array]] = []
         one = x.ndim == problem.core_ndim
         while True:
             g = F(x)
-            reason = check(g, x)
+            if lean is not None and state is not None:
+                # one NumPy problem, accelerated: the update first, its norms judged (the
+                # last update of a solve is then computed and dropped: cheaper than the
+                # test's own pass over both arrays on every update)
+                state, x_next = anderson.update(state, x, g, skew)
+                reason = lean(g, x, (float(state.gnorm2), float(state.norm2)))
+            else:
+                reason = check(g, x)
             if reason is not None:
                 ok = reason in ("converged", "roundoff")
                 return SolveResult(g if ok else x, ok, len(res), tuple(res), reason, self.name)
             if not depth:
                 x = g
+            elif lean is not None and state is not None:
+                x = x_next
             elif state is not None:
-                state, x = anderson.update(state, x, g)
+                state, x = anderson.update(state, x, g, skew)
             elif one and not (len(res) > 1 and res[-1] > anderson.ENGAGE * res[-2]):
                 pairs.append((x, g))
                 del pairs[: -min(depth + 1, _REPLAY)]
@@ -460,9 +481,9 @@ class FixedPoint:
             else:
                 state = anderson.start(x, depth, problem.core_ndim)
                 for old in pairs:
-                    state, _ = anderson.update(state, *old)
+                    state, _ = anderson.update(state, *old, skew)
                 pairs.clear()
-                state, x = anderson.update(state, x, g)
+                state, x = anderson.update(state, x, g, skew)
 
 
 @attrs.frozen

@@ -86,6 +86,7 @@ from lieflow.backends import device_of, is_foreign_array, is_numpy, namespace
 
 from ._recurrences import _Kernel, have_numba
 from .cyclic_reduction import CyclicReduction
+from .projection import remove_trace, skew_part_into, su_project
 
 Array = NDArray[Any]
 
@@ -403,9 +404,15 @@ class HoppeYauLaplacian:
         out[..., :-1, :] += self._e[1:] * Y[..., 1:, :]
         return out.reshape(*batch, N * C)[..., : N * N].reshape(P.shape)
 
-    def solve(self, W: ArrayLike) -> Array:
+    def solve(self, W: ArrayLike, skew_part: bool = False) -> Array:
         r"""``scale · L^+ W``: the traceless ``P`` with ``L P = scale · (W - (tr W/N) I)``,
         ``L = Δ_N - shift``.
+
+        ``skew_part``: solve for the su(N) projection of ``W`` instead,
+        ``solve(su_project(W))`` bit for bit (:func:`~lieflow_zeitlin.projection.su_project`),
+        the projection formed directly in the solve's buffer (one ``N × N`` array and two
+        passes over it less) where numba is installed and ``W`` is a complex128 NumPy
+        array; else it is that composition.
 
         One partitioned Thomas sweep over the packed layout (module docs) solves the
         ``2N-1`` tridiagonal systems of all matrices of the batch at once: O(N²) work,
@@ -416,6 +423,9 @@ class HoppeYauLaplacian:
         derivative needed by Newton's method.
         """
         W = self._check(W, "W")
+        fused = skew_part and is_numpy(W) and W.dtype == np.complex128 and have_numba()
+        if skew_part and not fused:
+            W = su_project(W, lieflow.SU(self.N).project)
         if not is_numpy(W):
             return self._solve_arrays(W)
         single = W.dtype in (np.dtype(np.complex64), np.dtype(np.float32))
@@ -427,9 +437,14 @@ class HoppeYauLaplacian:
         batch = W.shape[:-2]
         K = math.prod(batch)
         buf = np.empty((K, nb * b * C), dtype=dtype)
-        buf[:, : N * N] = W.reshape(K, N * N)
-        buf[:, N * N :] = 0
         diag = buf[:, : N * N : C]
+        if fused:  # su_project's operations, into the buffer
+            rows = np.ascontiguousarray(W).reshape(K, N, N).view(real)
+            skew_part_into(rows, buf[:, : N * N].view(real).reshape(K, N, 2 * N))
+            remove_trace(diag, N)
+        else:
+            buf[:, : N * N] = W.reshape(K, N * N)
+        buf[:, N * N :] = 0
         _remove_mean(diag)
         Y = buf.view(real).reshape(K, nb, b, 2 * C)
         sweep = _sweep_compiled.dispatcher() if have_numba() else _sweep

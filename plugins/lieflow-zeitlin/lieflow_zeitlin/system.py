@@ -349,6 +349,14 @@ class EulerZeitlin(lieflow.IsospectralSystem):
         r"""``σ (Δ_N - F)^{-1}(W - F_f)`` (``σ`` times the stream matrix), broadcasting."""
         return self.laplacian.solve(self._anomaly(W))
 
+    def stage_B(self, W: Array) -> Array:
+        """``B(project_stage(W))``, bit for bit: without rotation the su(N) projection is
+        formed in the Laplacian solve's own buffer (:meth:`HoppeYauLaplacian.solve`'s
+        ``skew_part``: one ``N × N`` array and two passes over it less per update)."""
+        if self.rotation == 0.0 and type(W) is np.ndarray:
+            return self.laplacian.solve(W, skew_part=True)
+        return self.B(self.project_stage(W))
+
     def compiled_B(self, shift: float = 0.0) -> tuple[Any, Array] | None:
         r"""``B`` for lieflow's compiled engine (complex128 data): the su(N) projection of a
         stage value, the same Laplacian sweeps as :meth:`B`, compiled, minus ``shift``
@@ -413,9 +421,15 @@ class EulerZeitlin(lieflow.IsospectralSystem):
         stack = [np.broadcast_to(np.eye(self.N), A.shape), A]
         for _ in range(2, top + 1):
             stack.append(stack[-1] @ A)
+        # the transposed factors copied once each (contiguous: the products then read two
+        # arrays along their rows, not one down its columns; the same products, the same
+        # C-ordered temporaries and sums, the same bits; N = 256: 0.96 -> 0.79 ms)
+        transposed = {
+            b: np.ascontiguousarray(np.swapaxes(stack[b], -1, -2))
+            for b in {k - k // 2 for k in powers}
+        }
         out = [
-            np.real(np.sum(stack[k // 2] * np.swapaxes(stack[k - k // 2], -1, -2), axis=(-2, -1)))
-            for k in powers
+            np.real(np.sum(stack[k // 2] * transposed[k - k // 2], axis=(-2, -1))) for k in powers
         ]
         return np.stack(out, axis=-1)
 

@@ -153,7 +153,21 @@ def test_compiled_sweep_gives_the_numpy_bits(
         assert _rel(L.apply(plain), 1.7 * traceless) <= tol
 
 
-@pytest.mark.parametrize("N", [2, 3, 17, 64])
+@pytest.mark.parametrize("N", [5, 100])
+@pytest.mark.parametrize("rotation", [0.0, 2.0])
+def test_stage_B_is_B_of_the_projected_stage_bit_for_bit(N: int, rotation: float) -> None:
+    """EulerZeitlin.stage_B (the projection formed in the Laplacian's buffer) returns the
+    bits of B(project_stage(W)), in both precisions, for stacks and for real input."""
+    system = lz.EulerZeitlin(N, rotation=rotation, lamb=0.5)
+    X = _random_complex(N, seed=N, batch=(2,))
+    for Y in (X, X[0], X.astype(np.complex64), X.real, np.swapaxes(X, -1, -2)):
+        expected = system.B(system.project_stage(Y))
+        got = system.stage_B(Y)
+        assert got.dtype == expected.dtype and got.shape == expected.shape
+        assert np.array_equal(got, expected)
+
+
+@pytest.mark.parametrize("N", [2, 3, 17, 64, 100])
 @pytest.mark.parametrize("batch", [(), (3,), (2, 2)])
 def test_projection_gives_the_bits_of_su_project(
     monkeypatch: pytest.MonkeyPatch, N: int, batch: tuple[int, ...]

@@ -1,0 +1,57 @@
+"""The fused loop of :func:`lieflow.algebras.skew_combination` on NumPy arrays, compiled with
+numba. Imports numba: import it only where numba is installed."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .numba_cache import cached_njit
+
+#: Rows of ``X^†`` gathered at a time (a band of ``BAND`` columns of ``X``, conjugated).
+BAND = 32
+#: Padding of the band's rows (numbers): rows a multiple of 4 KiB apart map to the same
+#: cache sets, so a gather writing down a column of the band would evict its own lines.
+PAD = 16
+
+
+def _combine(
+    X: Any, s: float, A: Any, Y: Any, t: float, with_y: bool, parts: int, out: Any
+) -> None:  # pragma: no cover - compiled
+    """``out = ((X - X^†) s + A) + Y t`` (``+ Y t`` only ``with_y``) over ``K`` matrices of
+    ``n × n`` numbers given as real views ``(K, n, parts · n)`` (``parts = 2``: complex
+    numbers, real and imaginary parts interleaved), entry by entry the operations NumPy
+    performs for ``D = X - X^†; D *= s; D += A; Y *= t; D += Y``, each a separate rounding
+    (numba contracts no multiply–add without ``fastmath``).
+
+    Band by band: ``BAND`` rows of ``X^†`` are first gathered, conjugated, into a small
+    buffer (``-y`` for an imaginary part ``y``: ``a - (-y)`` is IEEE's ``a + y``, the
+    imaginary part of ``X_ij - conj(X_ji)``), so the arithmetic runs along whole
+    contiguous rows."""
+    K, n = X.shape[0], X.shape[1]
+    width = parts * n
+    T = np.empty((BAND, width + PAD))
+    for k in range(K):
+        for ib in range(0, n, BAND):
+            rows = min(BAND, n - ib)
+            for j in range(n):
+                for a in range(rows):
+                    T[a, parts * j] = X[k, j, parts * (ib + a)]
+                    if parts == 2:
+                        T[a, 2 * j + 1] = -X[k, j, 2 * (ib + a) + 1]
+            for a in range(rows):
+                x = X[k, ib + a]
+                z = A[k, ib + a]
+                o = out[k, ib + a]
+                d = T[a]
+                if with_y:
+                    y = Y[k, ib + a]
+                    for c in range(width):
+                        o[c] = ((x[c] - d[c]) * s + z[c]) + y[c] * t
+                else:
+                    for c in range(width):
+                        o[c] = (x[c] - d[c]) * s + z[c]
+
+
+combine = cached_njit(_combine)
