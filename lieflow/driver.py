@@ -5,7 +5,8 @@ r"""The one stepping loop and the one consumer loop.
 :func:`lieflow.integrate`, ``lieflow run`` and ``lieflow sweep`` — and owns what happens
 after a step: which states are saved, the diagnostics (:class:`Diagnostics`, computed once
 per chunk), the monitor, the failure policy and the checkpoint cadence; it hands each chunk
-to :class:`~lieflow.sinks.Sink`\ s that only store it. A flow may advance many steps per call
+to :class:`Sink`\ s that only store it (the protocol is defined here, by the loop that
+feeds it; :mod:`lieflow.sinks` holds the sinks). A flow may advance many steps per call
 (:class:`MultiStepFlow`, e.g. the compiled engine); a step it does not finish is then taken
 by its plain :meth:`~lieflow.flows.Flow.step` from the last good state, so failures read
 the same on every engine.
@@ -18,7 +19,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import Any, Literal, Protocol, runtime_checkable
 
 import attrs
 import numpy as np
@@ -31,19 +32,18 @@ from .flows import Flow
 from .steps import StepStats
 from .systems.base import IsospectralSystem
 
-if TYPE_CHECKING:
-    from .sinks import Ending, Sink
-
 __all__ = [
     "Cadence",
     "Chunk",
     "ChunkDiagnostics",
     "DeferredDiagnostics",
     "Diagnostics",
+    "Ending",
     "Monitor",
     "MultiStepFlow",
     "Outcome",
     "Recording",
+    "Sink",
     "advance",
     "batch_steps",
     "chunk_steps",
@@ -568,6 +568,49 @@ class DeferredDiagnostics:
     def initial(self) -> Diagnostics:
         """The run's :class:`Diagnostics` before any chunk (a run whose first step failed)."""
         return Diagnostics.of(self.system, self.W0, save_every=self.save_every)
+
+
+#: How a run ended: every step done, stopped by Ctrl-C (resumable), or a step failed.
+Ending = Literal["complete", "interrupted", "failed"]
+
+
+@runtime_checkable
+class Sink(Protocol):
+    """Receives a run's steps from :func:`lieflow.driver.run`.
+
+    The driver calls :meth:`record` for every chunk of steps, in order; :meth:`checkpoint`
+    at its checkpoint cadence and once at the end; :meth:`close` exactly once, however the
+    run ends; :meth:`result` after that, for what the caller gets back.
+
+    The driver holds interrupts (:func:`lieflow._signals.deferred`) while it takes the last
+    checkpoint and closes the sinks, so that a second Ctrl-C cannot split the two. A sink
+    that keeps nothing outside the process may say so with a class attribute
+    ``durable = False`` (:class:`~lieflow.sinks.MemorySink`); a run whose sinks all do skips
+    that section (two signal-handler swaps per call). Without the attribute a sink is
+    durable.
+    """
+
+    def record(self, chunk: Chunk, keep: Array, diagnostics: ChunkDiagnostics | None) -> None:
+        """Store the chunk's steps: the states where ``keep`` is true (a boolean per step),
+        its iterations, residuals and solvers, and its ``diagnostics`` (``None`` when the
+        run computes none). May buffer; nothing recorded is final until :meth:`checkpoint`."""
+        ...
+
+    def checkpoint(self, *, keep_last: bool = False) -> None:
+        """Make everything recorded durable, with a resume point at the last recorded step
+        (its state and the chunk's flow state resume bit-for-bit). ``keep_last``: also save
+        the last recorded state (a failed run keeps its last good state)."""
+        ...
+
+    def close(self, status: Ending, failure: ConvergenceError | None, wall_time: float) -> None:
+        """The run ended with ``status`` (the error of a failed step in ``failure``) after
+        ``wall_time`` seconds of stepping; release what the sink holds."""
+        ...
+
+    def result(self) -> Any:
+        """What the run gives its caller (:func:`lieflow.integrate` returns it): a
+        :class:`~lieflow.Solution` for the built-in sinks."""
+        ...
 
 
 @attrs.frozen

@@ -1,5 +1,6 @@
-r"""Where a run's steps go: the :class:`Sink` protocol, and :class:`MemorySink` (a
-:class:`~lieflow.Solution`).
+r"""Where a run's steps go: :class:`MemorySink` (a :class:`~lieflow.Solution`), the file
+sinks found by suffix (:func:`open_sink`), and the :class:`Sink` protocol they follow (defined
+by the loop that feeds them, :mod:`lieflow.driver`, and importable from here).
 
 :func:`lieflow.driver.run` is the one consumer loop: it takes each
 :class:`~lieflow.driver.Chunk` of steps from :func:`lieflow.driver.advance`, decides which
@@ -24,18 +25,23 @@ import hashlib
 import json
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar, Literal, Protocol, runtime_checkable
+from typing import Any, ClassVar, Protocol
 
 import attrs
 import numpy as np
 
 from .algebras import Array
 from .backends import to_numpy
+from .driver import (  # the Sink protocol is the driver's: what its loop feeds
+    Chunk,
+    ChunkDiagnostics,
+    DeferredDiagnostics,
+    Diagnostics,
+    Ending,
+    Sink,
+)
 from .errors import ConvergenceError, InputError
 from .solution import Solution, Status
-
-if TYPE_CHECKING:
-    from .driver import Chunk, ChunkDiagnostics, DeferredDiagnostics, Diagnostics
 
 __all__ = [
     "DEFAULT_SUFFIX",
@@ -51,53 +57,12 @@ __all__ = [
     "to_host",
 ]
 
-#: How a run ended: every step done, stopped by Ctrl-C (resumable), or a step failed.
-Ending = Literal["complete", "interrupted", "failed"]
-
 
 def to_host(x: Any) -> Array:
     """``x`` as a numpy array in host memory: the one device → host conversion of the sinks
     (:func:`lieflow.backends.to_numpy`: a no-op for numpy arrays, one copy for an array of
     another library)."""
     return to_numpy(x)
-
-
-@runtime_checkable
-class Sink(Protocol):
-    """Receives a run's steps from :func:`lieflow.driver.run`.
-
-    The driver calls :meth:`record` for every chunk of steps, in order; :meth:`checkpoint`
-    at its checkpoint cadence and once at the end; :meth:`close` exactly once, however the
-    run ends; :meth:`result` after that, for what the caller gets back.
-
-    The driver holds interrupts (:func:`lieflow._signals.deferred`) while it takes the last
-    checkpoint and closes the sinks, so that a second Ctrl-C cannot split the two. A sink
-    that keeps nothing outside the process may say so with a class attribute
-    ``durable = False`` (:class:`MemorySink`); a run whose sinks all do skips that section
-    (two signal-handler swaps per call). Without the attribute a sink is durable.
-    """
-
-    def record(self, chunk: Chunk, keep: Array, diagnostics: ChunkDiagnostics | None) -> None:
-        """Store the chunk's steps: the states where ``keep`` is true (a boolean per step),
-        its iterations, residuals and solvers, and its ``diagnostics`` (``None`` when the
-        run computes none). May buffer; nothing recorded is final until :meth:`checkpoint`."""
-        ...
-
-    def checkpoint(self, *, keep_last: bool = False) -> None:
-        """Make everything recorded durable, with a resume point at the last recorded step
-        (its state and the chunk's flow state resume bit-for-bit). ``keep_last``: also save
-        the last recorded state (a failed run keeps its last good state)."""
-        ...
-
-    def close(self, status: Ending, failure: ConvergenceError | None, wall_time: float) -> None:
-        """The run ended with ``status`` (the error of a failed step in ``failure``) after
-        ``wall_time`` seconds of stepping; release what the sink holds."""
-        ...
-
-    def result(self) -> Any:
-        """What the run gives its caller (:func:`lieflow.integrate` returns it): a
-        :class:`~lieflow.Solution` for the built-in sinks."""
-        ...
 
 
 class ResumePoint(Protocol):

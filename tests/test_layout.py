@@ -38,18 +38,22 @@ def _is_module(name: str) -> bool:
     return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
 
 
-def _imports(path: Path, *, anywhere: bool, module: str | None = None) -> list[str]:
+def _imports(
+    path: Path, *, anywhere: bool, module: str | None = None, typing: bool = True
+) -> list[str]:
     """Absolute names of the modules (or module attributes) a file imports: at module level,
-    or ``anywhere`` (inside functions too, and ``importlib.import_module("...")`` strings).
+    or ``anywhere`` (inside functions too, and ``importlib.import_module("...")`` strings);
+    with ``typing``, those under ``if TYPE_CHECKING:`` too (read by type checkers only).
     ``module``: the file's module name (by default from its place in the package)."""
     module = module or _module_name(path)
     package = module if path.name == "__init__.py" else module.rpartition(".")[0]
     tree = ast.parse(path.read_text())
     nodes = ast.walk(tree) if anywhere else tree.body
-    # imports under ``if TYPE_CHECKING:`` are read by type checkers only, never run
-    unrun = {id(n) for block in ast.walk(tree) if isinstance(block, ast.If)
-             and "TYPE_CHECKING" in ast.unparse(block.test)
-             for stmt in block.body for n in ast.walk(stmt)}  # fmt: skip
+    unrun = set() if typing else {
+        id(n) for block in ast.walk(tree) if isinstance(block, ast.If)
+        and "TYPE_CHECKING" in ast.unparse(block.test)
+        for stmt in block.body for n in ast.walk(stmt)
+    }  # fmt: skip
     names: list[str] = []
     for node in nodes:
         if id(node) in unrun:
@@ -133,9 +137,10 @@ def test_import_lieflow_loads_no_application_module() -> None:
     assert out.stdout.strip() == "[]"
 
 
-def _circle(paths: list[Path], *, anywhere: bool) -> list[str]:
+def _circle(paths: list[Path], *, anywhere: bool, typing: bool = True) -> list[str]:
     """A circle in the graph of imports between the modules of ``paths`` (module-level, or
-    ``anywhere``: inside functions too), ``[]`` if there is none."""
+    ``anywhere``: inside functions too; ``typing``: ``TYPE_CHECKING`` blocks too), ``[]`` if
+    there is none."""
     modules = {_module_name(p): p for p in paths}
 
     def ancestors(name: str) -> set[str]:
@@ -145,7 +150,7 @@ def _circle(paths: list[Path], *, anywhere: bool) -> list[str]:
     graph: dict[str, set[str]] = {}
     for name, path in modules.items():
         edges = set()
-        for m in _imports(path, anywhere=anywhere):
+        for m in _imports(path, anywhere=anywhere, typing=typing):
             # importing a.b.c runs the __init__ of a and a.b first: edges too, except to the
             # importer's own packages (they are being imported already: the package's
             # modules import each other, not the package, unless they name it)
@@ -173,20 +178,22 @@ def _circle(paths: list[Path], *, anywhere: bool) -> list[str]:
 
 def test_the_package_has_no_import_circle_even_inside_functions() -> None:
     """Issue 36: the graph of imports between lieflow's modules — core and application, at
-    module level and inside functions (``TYPE_CHECKING`` blocks aside), a package's
+    module level and inside functions (``TYPE_CHECKING`` blocks aside: the top-level package
+    names the application's functions it loads lazily for type checkers), a package's
     ``__init__`` counted wherever one of its modules is imported — is acyclic. The
     application's layers import downwards only: ``config`` (a TOML file parsed and checked,
     then built into a run) -> ``io`` (file headers, writer, reader; running a configuration
     into a file) -> ``salvage``; ``datasets`` and ``zarr_sink`` (the results' formats and
     readers) -> ``sweeps`` -> ``reports`` -> ``studies`` -> ``reproduce`` -> ``plotting``,
     ``cli``."""
-    assert _circle(list(PACKAGE.rglob("*.py")), anywhere=True) == []
+    assert _circle(list(PACKAGE.rglob("*.py")), anywhere=True, typing=False) == []
 
 
 def test_the_core_has_no_import_circle_even_inside_functions() -> None:
     """Issue 36: the core's layers — errors, algebras, tableaus, backends; systems, schemes,
     solvers; flows, warm starts; engines; driver; sinks, solution; integration — import
-    downwards only, at module level and inside functions (the registry checks what it holds
+    downwards only, at module level, inside functions and in ``TYPE_CHECKING`` blocks (the
+    driver defines the ``Sink`` protocol its loop feeds; the registry checks what it holds
     by shape, systems name lieflow's compiled maps instead of importing the engine)."""
     assert _circle(_core_files(), anywhere=True) == []
 
