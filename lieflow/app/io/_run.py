@@ -96,7 +96,8 @@ def run(
     """
     with _signals.Interrupts() as stop:  # Ctrl-C held from here until stepping, raised there
         spec = setup.spec()  # W0 on its device first: a device not there leaves no file
-        writer = open_sink(setup.output, setup.info(), resume=resume, replace=setup.replace,
+        info = spec.info(config_text=setup.config.text, config_source=setup.config.source)
+        writer = open_sink(setup.output, info, resume=resume, replace=setup.replace,
                            make_directory=True)  # fmt: skip
         assert isinstance(writer, TrajectoryWriter)
         try:
