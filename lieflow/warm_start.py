@@ -12,6 +12,8 @@ a loop over the entries (the loops cannot call NumPy: see :mod:`lieflow._kernels
 
 from __future__ import annotations
 
+import functools
+import importlib.util
 import math
 import operator
 from collections.abc import Sequence
@@ -135,13 +137,52 @@ def _stacked(history: Sequence[Any]) -> np.ndarray | None:
     return np.array(history).reshape(len(history), -1)
 
 
+@functools.cache
+def _kernel() -> Any:
+    """:mod:`lieflow._warm_kernel` where numba is installed, else ``None``."""
+    if importlib.util.find_spec("numba") is None:
+        return None
+    from . import _warm_kernel
+
+    return _warm_kernel
+
+
+def _flat(arrays: Sequence[Any]) -> tuple[tuple[Any, ...], int] | None:
+    """Flat real views of ``arrays`` and how many reals a number is (2: complex), where
+    the compiled passes (:mod:`lieflow._warm_kernel`) take them: C-contiguous float64 or
+    complex128 NumPy arrays of one shape and dtype, more than :data:`_STACKED` numbers
+    each (smaller histories are stacked instead), numba installed; else ``None``."""
+    first = arrays[0]
+    if not (type(first) is np.ndarray and first.dtype.char in "dD" and first.size > _STACKED):
+        return None
+    for x in arrays:
+        if not (
+            type(x) is np.ndarray
+            and x.shape == first.shape
+            and x.dtype == first.dtype
+            and x.flags.c_contiguous
+        ):
+            return None
+    if _kernel() is None:
+        return None
+    parts = 2 if first.dtype.char == "D" else 1
+    return tuple(x.reshape(-1).view(np.float64) for x in arrays), parts
+
+
 def _combine(weights: Sequence[int], history: Sequence[Any], stack: Any = None) -> Any:
     """``sum_j weights[j] * history[j]`` leaf by leaf (the history's arrays are never
     written). ``stack``: :func:`_stacked` of a history that ``history`` begins, if the
-    caller has it (its first ``len(weights)`` rows are used)."""
+    caller has it (its first ``len(weights)`` rows are used). Large NumPy histories: one
+    compiled pass with the same roundings (:func:`lieflow._warm_kernel.extrapolate`)."""
     m = len(weights)
     if m == 1 and isinstance(history[0], np.ndarray):
         return history[0].copy()
+    flat = _flat(history[:m]) if stack is None else None
+    if flat is not None:
+        out = np.empty_like(history[0])
+        w = _VECTORS[m] if m < len(_VECTORS) else np.array(weights, dtype=float)
+        _kernel().extrapolate(w, flat[0], m, flat[1], out.reshape(-1).view(np.float64))
+        return out
     if stack is None:
         stack = _stacked(history[:m])
     if stack is not None:
@@ -347,6 +388,14 @@ def _advanced(state: WarmStart, solved: Any, history: list[Any], stack: Any) -> 
             # one solution kept (warm_start=1), as below without the stacking
             errors = [squared_norm(solved), squared_norm(solved - last)]
             return WarmStart(solved, (), trusted_points(errors, 1, 1))
+    flat = _flat([solved, *history]) if history and stack is None else None
+    if flat is not None:  # one compiled pass over the solution and the history
+        sums = np.empty(len(history) + 1)
+        views = flat[0]
+        C = extrapolation_matrix(len(history))
+        _kernel().errors(views[0], views[1:], C, sums)
+        best = trusted_points(sums.tolist(), len(history), state.depth)
+        return state.replaced([solved, *history], best)
     errors = [
         squared_norm(solved) if isinstance(solved, np.ndarray) else tree.sum_of_squares(solved)
     ]

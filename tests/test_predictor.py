@@ -176,3 +176,57 @@ def test_resumed_runs_equal_uninterrupted_ones_bit_for_bit(engine: str) -> None:
     assert np.array_equal(a, b)
     assert np.array_equal(np.concatenate([c.iterations for c in whole]),
                           np.concatenate([c.iterations for c in first + rest]))  # fmt: skip
+
+
+def _leaf_sum(weights: tuple[int, ...], history: list[np.ndarray]) -> np.ndarray:
+    """The plain NumPy extrapolation, as the leaf-by-leaf form writes it."""
+    acc = weights[0] * history[0]
+    for w, x in zip(weights[1:], history[1:], strict=False):
+        acc += w * x
+    return acc
+
+
+def _large_history(dtype: str, points: int) -> list[np.ndarray]:
+    """``points`` arrays above the stacking size, with exact zeros of both signs and
+    entries of all magnitudes (where a fused multiply-add would round differently)."""
+    rng = np.random.default_rng(points)
+    shape = (1, 160, 160)
+    out = []
+    for _ in range(points):
+        x = rng.standard_normal(shape) * 10.0 ** rng.integers(-8, 8, shape)
+        if dtype == "complex":
+            x = x + 1j * rng.standard_normal(shape)
+        flat = x.reshape(-1).view(np.float64)
+        flat[rng.random(flat.size) < 0.05] = 0.0
+        flat[rng.random(flat.size) < 0.05] = -0.0
+        out.append(x)
+    return out
+
+
+@pytest.mark.parametrize("dtype", ["real", "complex"])
+@pytest.mark.parametrize("points", [2, 3, 5, 7])
+def test_compiled_extrapolation_has_numpys_bits(dtype: str, points: int) -> None:
+    """Large histories take one compiled pass (lieflow._warm_kernel): the guess is the
+    plain NumPy sum's, bit for bit (signs of zeros too), and the prediction errors are its
+    squared norms up to the order of their sums; ``trusted`` is what the NumPy sums give."""
+    pytest.importorskip("numba")
+    from lieflow import warm_start
+
+    history = _large_history(dtype, points)
+    assert warm_start._flat(history) is not None  # the compiled pass is what is tested
+    weights = extrapolation_weights(points)
+    guess = warm_start._combine(weights, history)
+    expected = _leaf_sum(weights, history)
+    assert np.array_equal(guess, expected)
+    assert np.array_equal(np.signbit(guess.view(np.float64)), np.signbit(expected.view(np.float64)))
+    solved = _leaf_sum(extrapolation_weights(2), history[:2]) + 1e-3 * history[-1]
+    state = WarmStart.keeping(points + 1).replaced(history, points)
+    advanced = state.advance(solved)
+    predictions = [_leaf_sum(extrapolation_weights(m), history) for m in range(1, points + 1)]
+    errors = [float(np.vdot(d, d).real) for d in [solved] + [solved - p for p in predictions]]
+    sums = np.empty(points + 1)
+    views = [x.reshape(-1).view(np.float64) for x in [solved, *history]]
+    warm_start._kernel().errors(views[0], tuple(views[1:]), extrapolation_matrix(points), sums)
+    np.testing.assert_allclose(sums, errors, rtol=1e-12)
+    assert advanced.trusted == lf.warm_start.trusted_points(errors, points, points + 1)
+    assert advanced.last is solved and len(advanced.history()) == points + 1

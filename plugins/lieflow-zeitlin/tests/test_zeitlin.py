@@ -197,6 +197,46 @@ def test_projection_gives_the_bits_of_su_project(
     np.testing.assert_allclose(system.project_stage(P), P, rtol=0, atol=1e-15)
 
 
+@pytest.mark.parametrize("N", [4, 33, 100])
+@pytest.mark.parametrize("batch", [(), (3,)])
+def test_fused_casimirs_are_the_plain_traces(
+    monkeypatch: pytest.MonkeyPatch, N: int, batch: tuple[int, ...]
+) -> None:
+    """The Casimirs tr((iW)^k), k = 2, 3, 4, from one product and one compiled pass
+    (lieflow_zeitlin.traces, numba installed) are NumPy's ``Re Σ_ij (A^a)_ij (A^b)_ji``
+    up to the order of the sums, for any complex matrix (not only su(N)), a transposed
+    view too, and the eigenvalue sums on su(N); the hamiltonian's one dot product is
+    ``-½ Re Σ conj(W) B(W)``."""
+    from lieflow_zeitlin import system as system_module
+
+    if not system_module._rec.have_numba():
+        pytest.skip("numba is not installed")
+    system = lz.EulerZeitlin(N)
+    X = _random_complex(N, seed=N, batch=batch)
+    for Y in (X, np.swapaxes(X, -1, -2), lf.SU(N).project(X)):
+        A = 1j * Y
+        A2 = A @ A
+        plain = np.stack(
+            [np.real(np.sum(F * np.swapaxes(G, -1, -2), axis=(-2, -1))) for F, G in
+             ((A, A), (A, A2), (A2, A2))],
+            axis=-1,
+        )  # fmt: skip
+        fused = system.casimirs(Y)
+        assert fused.shape == (*batch, 3)
+        tol = {"rtol": 1e-13, "atol": 1e-13 * np.abs(plain).max()}
+        np.testing.assert_allclose(fused, plain, **tol)
+        monkeypatch.setattr(system_module._rec, "have_numba", lambda: False)
+        np.testing.assert_allclose(system.casimirs(Y), plain, **tol)  # NumPy's alone
+        monkeypatch.undo()
+    W = lf.SU(N).project(X)
+    lam = np.linalg.eigvalsh(1j * W)
+    expected = np.stack([np.sum(lam**k, axis=-1) for k in (2, 3, 4)], axis=-1)
+    np.testing.assert_allclose(system.casimirs(W), expected, rtol=1e-12)
+    H = -0.5 * np.real(np.sum(np.conj(W) * system.B(W), axis=(-2, -1)))
+    np.testing.assert_allclose(system.hamiltonian(W), H, rtol=1e-13)
+    np.testing.assert_allclose(system.hamiltonian(W.astype(np.complex64)), H, rtol=1e-5)
+
+
 # --------------------------------------------------------------------------- quantization
 @pytest.mark.parametrize("N", [2, 5, 9])
 def test_quantization_round_trips(N: int) -> None:

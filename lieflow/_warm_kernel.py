@@ -1,0 +1,102 @@
+"""The warm start's extrapolations and prediction errors over large NumPy histories
+(:mod:`lieflow.warm_start`), compiled with numba. Imports numba: import it only where numba
+is installed.
+
+The arrays come as flat real views (complex numbers as interleaved real and imaginary
+parts, ``parts = 2``). An extrapolation ``Σ_j w_j x_j`` is formed entry by entry as NumPy
+forms ``acc = w_0 * x_0; acc += w_1 * x_1; ...`` with Python-int weights: for complex
+arrays each ``w * x`` is the complex product ``(w + 0i)(a + bi) = (w a - 0 b) + (w b + 0 a) i``
+(numba contracts no multiply–add without ``fastmath``): the same bits. The prediction
+errors' sums of squares add in the compiler's order (vectorized): they only rank the
+predictions against each other."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .numba_cache import cached_njit
+
+#: Real numbers handled at a time (the chunk of an extrapolation stays in the L1 cache
+#: while the history's arrays stream past it).
+CHUNK = 2048
+
+
+def _extrapolate(w: Any, xs: Any, m: int, parts: int, out: Any) -> None:  # pragma: no cover
+    """``out = Σ_{j < m} w[j] xs[j]`` with NumPy's roundings (module docs); ``m >= 2``."""
+    n = out.size
+    for start in range(0, n, CHUNK):
+        stop = min(start + CHUNK, n)
+        _weighted_sum(w, xs, m, parts, start, stop, out[start:stop])
+
+
+def _weighted_sum(
+    w: Any, xs: Any, m: int, parts: int, start: int, stop: int, acc: Any
+) -> None:  # pragma: no cover - compiled
+    """``acc = Σ_{j < m} w[j] xs[j][start:stop]``, NumPy's roundings (``m >= 1``)."""
+    x = xs[0]
+    c = w[0]
+    if parts == 2:
+        for i in range(0, stop - start, 2):
+            a = x[start + i]
+            b = x[start + i + 1]
+            acc[i] = c * a - 0.0 * b
+            acc[i + 1] = c * b + 0.0 * a
+        for j in range(1, m):
+            x = xs[j]
+            c = w[j]
+            for i in range(0, stop - start, 2):
+                a = x[start + i]
+                b = x[start + i + 1]
+                acc[i] = acc[i] + (c * a - 0.0 * b)
+                acc[i + 1] = acc[i + 1] + (c * b + 0.0 * a)
+    else:
+        for i in range(stop - start):
+            acc[i] = c * x[start + i]
+        for j in range(1, m):
+            x = xs[j]
+            c = w[j]
+            for i in range(stop - start):
+                acc[i] = acc[i] + c * x[start + i]
+
+
+def _errors(solved: Any, xs: Any, C: Any, out: Any) -> None:  # pragma: no cover - compiled
+    """``out[0] = ||solved||²`` and ``out[m] = ||solved - p_m||²`` for ``m = 1 .. M``
+    (``M = len(xs)``), ``p_m = Σ_{j < m} C[m - 1, j] xs[j]`` (``p_1 = xs[0]``) with the
+    values :func:`_extrapolate` gives (formed as real sums: a complex product's ``0 b``
+    term changes at most the sign of a zero, which its square does not see)."""
+    M = len(xs)
+    n = solved.size
+    p = np.empty(CHUNK)
+    sums = np.zeros(M + 1)
+    for start in range(0, n, CHUNK):
+        stop = min(start + CHUNK, n)
+        s = solved[start:stop]
+        sums[0] += _squares(s, s, False)
+        sums[1] += _squares(s, xs[0][start:stop], True)
+        for m in range(2, M + 1):
+            _weighted_sum(C[m - 1], xs, m, 1, start, stop, p)
+            sums[m] += _squares(s, p[: stop - start], True)
+    for m in range(M + 1):
+        out[m] = sums[m]
+
+
+def _squares(s: Any, p: Any, difference: bool) -> float:  # pragma: no cover - compiled
+    """``Σ_i (s_i - p_i)²`` (``Σ_i s_i²`` without ``difference``), summed in the compiler's
+    order (``reassoc``: vectorized)."""
+    acc = 0.0
+    if difference:
+        for i in range(s.size):
+            d = s[i] - p[i]
+            acc += d * d
+    else:
+        for i in range(s.size):
+            acc += s[i] * s[i]
+    return acc
+
+
+_weighted_sum = cached_njit(_weighted_sum)
+_squares = cached_njit(_squares, fastmath={"reassoc"})
+extrapolate = cached_njit(_extrapolate)
+errors = cached_njit(_errors)
