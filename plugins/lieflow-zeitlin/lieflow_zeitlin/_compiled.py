@@ -30,19 +30,20 @@ from . import laplacian
 #: them).
 _sweep_compiled = laplacian._sweep_compiled.dispatcher()
 
-#: ``params = [c, nb, b, 1, Im diag F_f (N entries), lower, upper, carry_fwd, carry_bwd,
-#: dinv]`` (each factor ``(nb, b, 2(N+1))``, flattened; :func:`params`); the ``1`` is the
-#: parameter of ``lieflow.compiled.skew_hermitian_part`` that removes the trace.
+#: ``params = [c, nb, b, 1, Im diag F_f (N entries), factors]`` (the ``(4, nb, b, 2(N+1))``
+#: stack of the sweeps' factors, flattened; :func:`params`); the ``1`` is the parameter
+#: of ``lieflow.compiled.skew_hermitian_part`` that removes the trace.
 HEADER = 4
 
 
-def params(shift: float, planetary: Any, factors: tuple[Any, ...]) -> Any:
+def params(shift: float, planetary: Any, factors: Any) -> Any:
     """The ``params`` vector of :func:`zeitlin_B`: the shift ``c``, the block layout of the
-    factors, the imaginary diagonal of the planetary vorticity matrix ``F_f`` and the five
-    double-precision factor arrays of the partitioned sweeps."""
-    nb, b = factors[0].shape[:2]
+    factors, the imaginary diagonal of the planetary vorticity matrix ``F_f`` and the
+    double-precision compact factors of the partitioned sweeps
+    (``_BlockedFactor.compact``, ``(4, nb, b, 2(N+1))``)."""
+    nb, b = factors.shape[1:3]
     parts = [np.array([shift, nb, b, 1.0], dtype=float), np.imag(np.diagonal(planetary))]
-    return np.concatenate(parts + [np.ravel(f) for f in factors]).astype(np.float64)
+    return np.concatenate([*parts, np.ravel(factors)]).astype(np.float64)
 
 
 @cached_njit
@@ -65,17 +66,10 @@ def zeitlin_B(W: Any, params: Any, out: Any) -> None:
     mean = mean / N
     for i in range(N):
         buf[i * C] -= mean
-    # the five factor arrays (nb, b, 2(N+1)) of params: views of one stack
+    # the sweeps' factors (4, nb, b, 2(N+1)) of params
     size = nb * b * 2 * C
-    factors = params[HEADER + N : HEADER + N + 5 * size].reshape(5, nb, b, 2 * C)
-    _sweep_compiled(
-        buf.view(np.float64).reshape(1, nb, b, 2 * C),
-        factors[0],
-        factors[1],
-        factors[2],
-        factors[3],
-        factors[4],
-    )
+    factors = params[HEADER + N : HEADER + N + 4 * size].reshape(4, nb, b, 2 * C)
+    _sweep_compiled(buf.view(np.float64).reshape(1, nb, b, 2 * C), factors)
     mean = 0.0j
     for i in range(N):
         mean += buf[i * C]

@@ -366,8 +366,7 @@ class EulerZeitlin(lieflow.IsospectralSystem):
         from . import _compiled
 
         lap = self.laplacian
-        factor = lap._double  # the double-precision factors of the sweeps
-        factors = (factor.lower, factor.upper, factor.carry_fwd, factor.carry_bwd, factor.dinv)
+        factors = lap._double.compact  # the double-precision factors of the sweeps
         return _compiled.zeitlin_B, _compiled.params(shift, self.planetary, factors)
 
     def B_derivative(self, W: Array, dW: Array) -> Array:
