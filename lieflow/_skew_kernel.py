@@ -17,7 +17,17 @@ PAD = 16
 
 
 def _combine(
-    X: Any, s: float, A: Any, Y: Any, t: float, with_y: bool, parts: int, out: Any
+    X: Any,
+    s: float,
+    A: Any,
+    Y: Any,
+    t: float,
+    with_y: bool,
+    parts: int,
+    out: Any,
+    old: Any,
+    norms: bool,
+    rows_sums: Any,
 ) -> None:  # pragma: no cover - compiled
     """``out = ((X - X^†) s + A) + Y t`` (``+ Y t`` only ``with_y``) over ``K`` matrices of
     ``n × n`` numbers given as real views ``(K, n, parts · n)`` (``parts = 2``: complex
@@ -28,7 +38,11 @@ def _combine(
     Band by band: ``BAND`` rows of ``X^†`` are first gathered, conjugated, into a small
     buffer (``-y`` for an imaginary part ``y``: ``a - (-y)`` is IEEE's ``a + y``, the
     imaginary part of ``X_ij - conj(X_ji)``), so the arithmetic runs along whole
-    contiguous rows."""
+    contiguous rows.
+
+    With ``norms``, each output row's ``Σ out²`` and ``Σ (out - old)²`` (``old`` of ``out``'s
+    shape) go to ``rows_sums[k, row]``, summed while the row is in the cache
+    (:func:`_row_squares`); the caller adds the rows."""
     K, n = X.shape[0], X.shape[1]
     width = parts * n
     T = np.empty((BAND, width + PAD))
@@ -52,6 +66,23 @@ def _combine(
                 else:
                     for c in range(width):
                         o[c] = (x[c] - d[c]) * s + z[c]
+                if norms:
+                    size2, step2 = _row_squares(o, old[k, ib + a])
+                    rows_sums[k, ib + a, 0] = size2
+                    rows_sums[k, ib + a, 1] = step2
 
 
+def _row_squares(o: Any, m: Any) -> tuple[float, float]:  # pragma: no cover - compiled
+    """``(Σ o², Σ (o - m)²)`` over a row, summed in the compiler's order (``reassoc``:
+    vectorized; the differences are IEEE's, as NumPy's ``o - m``)."""
+    size2 = 0.0
+    step2 = 0.0
+    for c in range(o.size):
+        d = o[c] - m[c]
+        size2 += o[c] * o[c]
+        step2 += d * d
+    return size2, step2
+
+
+_row_squares = cached_njit(_row_squares, fastmath={"reassoc"})
 combine = cached_njit(_combine)

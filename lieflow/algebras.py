@@ -104,28 +104,9 @@ def skew_combination(X: Array, s: Any, A: Array, Y: Array | None = None, t: Any 
     (``n <= 64``) and without numba. NumPy float64/complex128 matrices with numba installed
     take one compiled pass (:mod:`lieflow._skew_kernel`) in place of five passes and a
     temporary (measured, one thread, complex128, n = 256: 0.56 -> 0.15-0.2 ms)."""
-    n = X.shape[-1]
-    kernel = _skew_kernel() if type(X) is np.ndarray and n > _BLOCK else None
-    if (
-        kernel is not None
-        and X.dtype.char in "dD"
-        and A.shape == X.shape
-        and A.dtype == X.dtype
-        and (Y is None or (Y.shape == X.shape and Y.dtype == X.dtype))
-    ):
-        parts = 2 if X.dtype.char == "D" else 1
-        out = np.empty(X.shape, dtype=X.dtype)
-
-        def rows(Z: Array) -> Array:  # (K, n, parts n) real numbers, a view of a copy
-            Z = np.ascontiguousarray(Z)
-            return (Z.view(np.float64) if parts == 2 else Z).reshape(-1, n, parts * n)
-
-        A = rows(A)
-        kernel.combine(
-            rows(X), float(s), A, A if Y is None else rows(Y), 0.0 if t is None else float(t),
-            Y is not None, parts, rows(out),
-        )  # fmt: skip
-        return out
+    fused = _fused_combination(X, s, A, Y, t, None)
+    if fused is not None:
+        return fused[0]
     out = minus_dagger(X)
     out *= s
     out += A
@@ -133,6 +114,61 @@ def skew_combination(X: Array, s: Any, A: Array, Y: Array | None = None, t: Any 
         Y = Y * t
         out += Y
     return out
+
+
+def skew_combination_norms(
+    X: Array, s: Any, A: Array, Y: Array, t: Any, old: Array
+) -> tuple[Array, tuple[float, float] | None]:
+    """``out = skew_combination(X, s, A, Y, t)`` (the same bits) and, where its compiled
+    pass computes it, ``(||out||², ||out - old||²)`` summed in that pass (the squares of
+    each output row added while the row is in the cache, in the compiler's order, then the
+    rows in order: the sums do not depend on anything but the numbers); ``None`` where
+    ``out`` is computed otherwise (the caller then forms the norms itself). The stopping
+    test of a fixed-point update reads them (``old`` its iterate) instead of two more
+    passes over ``out`` and ``old`` and a temporary."""
+    fused = _fused_combination(X, s, A, Y, t, old)
+    if fused is None:
+        return skew_combination(X, s, A, Y, t), None
+    return fused
+
+
+def _fused_combination(
+    X: Array, s: Any, A: Array, Y: Array | None, t: Any, old: Array | None
+) -> tuple[Array, tuple[float, float] | None] | None:
+    """:func:`skew_combination` by its compiled pass (and the norms against ``old``, where
+    given), or ``None`` where it does not apply (see :func:`skew_combination`)."""
+    n = X.shape[-1]
+    kernel = _skew_kernel() if type(X) is np.ndarray and n > _BLOCK else None
+    if not (
+        kernel is not None
+        and X.dtype.char in "dD"
+        and A.shape == X.shape
+        and A.dtype == X.dtype
+        and (Y is None or (Y.shape == X.shape and Y.dtype == X.dtype))
+        and (
+            old is None
+            or (type(old) is np.ndarray and old.shape == X.shape and old.dtype == X.dtype)
+        )
+    ):
+        return None
+    parts = 2 if X.dtype.char == "D" else 1
+    out = np.empty(X.shape, dtype=X.dtype)
+
+    def rows(Z: Array) -> Array:  # (K, n, parts n) real numbers, a view of a copy
+        Z = np.ascontiguousarray(Z)
+        return (Z.view(np.float64) if parts == 2 else Z).reshape(-1, n, parts * n)
+
+    A = rows(A)
+    o = rows(out)
+    sums = np.empty((o.shape[0], n, 2))
+    kernel.combine(
+        rows(X), float(s), A, A if Y is None else rows(Y), 0.0 if t is None else float(t),
+        Y is not None, parts, o, o if old is None else rows(old), old is not None, sums,
+    )  # fmt: skip
+    if old is None:
+        return out, None
+    total = sums.reshape(-1, 2).sum(axis=0)
+    return out, (float(total[0]), float(total[1]))
 
 
 @functools.cache

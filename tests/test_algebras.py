@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import importlib.util
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -154,6 +156,51 @@ def test_skew_combination_is_the_five_numpy_passes_bit_for_bit(
     got = skew_combination(X, s, A, Y if with_y else None, t if with_y else None)
     assert got.shape == X.shape and got.dtype == X.dtype
     np.testing.assert_array_equal(got, expected)
+
+
+@pytest.mark.parametrize("n", [8, 100])
+@pytest.mark.parametrize("kind", ["real", "complex"])
+def test_skew_combination_norms_are_the_numpy_norms(n: int, kind: str) -> None:
+    """skew_combination_norms: the combination's bits, and (where the compiled pass runs:
+    numba, n > 64) ||out||² and ||out - old||² summed in that pass — NumPy's sums up to
+    their order, the same on every call; elsewhere no norms."""
+    from lieflow.algebras import skew_combination, skew_combination_norms
+
+    rng = np.random.default_rng(n)
+
+    def draw() -> np.ndarray:
+        Z = rng.standard_normal((n, n))
+        return Z + 1j * rng.standard_normal((n, n)) if kind == "complex" else Z
+
+    X, A, Y, old = draw(), draw(), draw(), draw()
+    s, t = np.array(0.015625), np.array(1.5e-3)
+    out, norms = skew_combination_norms(X, s, A, Y, t, old)
+    np.testing.assert_array_equal(out, skew_combination(X, s, A, Y, t))
+    if n <= 64 or importlib.util.find_spec("numba") is None:
+        assert norms is None
+        return
+    assert norms is not None
+    size2 = float(np.sum(np.abs(out) ** 2))
+    step2 = float(np.sum(np.abs(out - old) ** 2))
+    assert norms[0] == pytest.approx(size2, rel=1e-13)
+    assert norms[1] == pytest.approx(step2, rel=1e-13)
+    assert skew_combination_norms(X, s, A, Y, t, old)[1] == norms
+
+
+def test_midpoint_map_with_norms_is_the_map() -> None:
+    """The midpoint map with its stopping-test norms returns the map's bits."""
+    pytest.importorskip("lieflow_zeitlin")
+    from lieflow.schemes.sydirk import MidpointProblem
+
+    system = lf.systems.get("euler_zeitlin", N=96)
+    W0 = system.random_state(seed=0)
+    problem = MidpointProblem(system, W0, 0.01)
+    M = problem.map(problem.x0)
+    g, norms = problem.map_with_norms(M)
+    np.testing.assert_array_equal(g, problem.map(M))
+    if norms is not None:
+        assert norms[0] == pytest.approx(float(np.sum(np.abs(g) ** 2)), rel=1e-13)
+        assert norms[1] == pytest.approx(float(np.sum(np.abs(g - M) ** 2)), rel=1e-13)
 
 
 def test_validate_returns_native_float64_for_any_byte_order() -> None:

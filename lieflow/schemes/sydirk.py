@@ -7,7 +7,7 @@ from typing import Any
 import attrs
 import numpy as np
 
-from ..algebras import Array, skew_combination
+from ..algebras import Array, skew_combination, skew_combination_norms
 from ..backends import copy, identity, is_numpy, namespace
 from ..errors import TableauError
 from ..solvers.base import Solver
@@ -79,6 +79,16 @@ class MidpointProblem(StageProblem):
         return self.W0 + self.warm if self.warm is not None else copy(self.W0)
 
     def map(self, M: Array) -> Array:
+        return self._map(M, False)[0]
+
+    def map_with_norms(self, M: Array) -> tuple[Array, tuple[float, float] | None]:
+        """``(F(M), norms)``: :meth:`map` (the same bits) and, where the map's last pass
+        computes them (:func:`~lieflow.algebras.skew_combination_norms`), the squared
+        norms ``(||F(M)||², ||F(M) - M||²)`` that a fixed-point update's stopping test
+        reads (:func:`lieflow.solvers.fixed_point.lean_check`); else ``None``."""
+        return self._map(M, True)
+
+    def _map(self, M: Array, norms: bool) -> tuple[Array, tuple[float, float] | None]:
         # W0 + q (BM - MB) + q^2 BMB with the same roundings (``x += y`` is ``y + x``).
         # One small NumPy matrix: ``ndarray.dot`` (the BLAS product ``@`` calls, without the
         # ufunc machinery: 3×3 0.9 -> 0.34 µs); larger ones and stacks write the products
@@ -87,6 +97,7 @@ class MidpointProblem(StageProblem):
         # (lieflow.backends): the same operations on fresh arrays. B is :meth:`B`, the
         # system's stage_B called directly (one Python frame less per update).
         guard = self.tau  # the underflow guard (lieflow.underflow): M, B and BM before products
+        iterate = M
         if guard:
             M = self.guard(M)
             B = self.guard(self._stage_B(M))
@@ -110,7 +121,9 @@ class MidpointProblem(StageProblem):
             BMB = BM @ B
         if self.skew:  # MB = (BM)^†: the whole sum in one pass, the same roundings
             del B
-            return skew_combination(BM, self._q, self.W0, BMB, self._qq)
+            if norms:
+                return skew_combination_norms(BM, self._q, self.W0, BMB, self._qq, iterate)
+            return skew_combination(BM, self._q, self.W0, BMB, self._qq), None
         MB = M @ B
         del B
         out = BM - MB
@@ -119,7 +132,7 @@ class MidpointProblem(StageProblem):
         out += self.W0
         BMB *= self._qq
         out += BMB
-        return out
+        return out, None
 
     def map_derivative(self, M: Array, dM: Array) -> Array:
         B = self.B(M)

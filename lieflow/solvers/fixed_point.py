@@ -430,6 +430,14 @@ class FixedPoint:
     def _map(self, problem: ImplicitProblem) -> Callable[[Array], Array]:
         return problem.map
 
+    def _map_with_norms(
+        self, problem: ImplicitProblem
+    ) -> Callable[[Array], tuple[Array, tuple[float, float] | None]] | None:
+        """The problem's ``map_with_norms`` (the map and the stopping test's squared norms
+        from one pass, where it has one: :meth:`MidpointProblem.map_with_norms
+        <lieflow.schemes.sydirk.MidpointProblem.map_with_norms>`), else ``None``."""
+        return getattr(problem, "map_with_norms", None)
+
     def solve(self, problem: ImplicitProblem) -> SolveResult:
         """Iterate the scheme's map from ``problem.x0`` until the stopping rule fires."""
         F = self._map(problem)
@@ -455,15 +463,22 @@ class FixedPoint:
         skew = bool(getattr(problem, "skew_unknowns", False))
         pairs: list[tuple[Array, Array]] = []
         one = x.ndim == problem.core_ndim
+        # one NumPy problem, plain updates: the stopping test's norms from the map's own
+        # last pass where it computes them (no pass over g and x, no g - x)
+        fused = self._map_with_norms(problem) if lean is not None else None
         while True:
-            g = F(x)
-            if lean is not None and state is not None:
+            if fused is not None and lean is not None and state is None:
+                g, norms = fused(x)
+                reason = lean(g, x, norms)
+            elif lean is not None and state is not None:
+                g = F(x)
                 # one NumPy problem, accelerated: the update first, its norms judged (the
                 # last update of a solve is then computed and dropped: cheaper than the
                 # test's own pass over both arrays on every update)
                 state, x_next = anderson.update(state, x, g, skew)
                 reason = lean(g, x, (float(state.gnorm2), float(state.norm2)))
             else:
+                g = F(x)
                 reason = check(g, x)
             if reason is not None:
                 ok = reason in ("converged", "roundoff")
@@ -501,3 +516,6 @@ class FrozenB(FixedPoint):
 
     def _map(self, problem: ImplicitProblem) -> Callable[[Array], Array]:
         return problem.frozen_map
+
+    def _map_with_norms(self, problem: ImplicitProblem) -> None:
+        return None
