@@ -7,7 +7,13 @@ from typing import Any
 
 import numpy as np
 
-from .numba_cache import cached_njit
+from .numba_cache import SplitKernel, cached_njit, work_groups
+
+#: ``range`` here; ``numba.prange`` in a split kernel's parallel build
+#: (:class:`lieflow.numba_cache.SplitKernel`).
+prange = range
+
+__all__ = ["BAND", "PAD", "combine", "work_groups"]
 
 #: Rows of ``X^†`` gathered at a time (a band of ``BAND`` columns of ``X``, conjugated).
 BAND = 32
@@ -17,6 +23,7 @@ PAD = 16
 
 
 def _combine(
+    groups: int,
     X: Any,
     s: float,
     A: Any,
@@ -42,12 +49,19 @@ def _combine(
 
     With ``norms``, each output row's ``Σ out²`` and ``Σ (out - old)²`` (``old`` of ``out``'s
     shape) go to ``rows_sums[k, row]``, summed while the row is in the cache
-    (:func:`_row_squares`); the caller adds the rows."""
+    (:func:`_row_squares`); the caller adds the rows.
+
+    The bands of all matrices are split into ``groups`` runs of consecutive bands, one per
+    thread where ``groups > 1`` (:class:`lieflow.numba_cache.SplitKernel`): each band's
+    numbers are the same whoever computes them."""
     K, n = X.shape[0], X.shape[1]
     width = parts * n
-    T = np.empty((BAND, width + PAD))
-    for k in range(K):
-        for ib in range(0, n, BAND):
+    bands = (n + BAND - 1) // BAND
+    for g in prange(groups):
+        T = np.empty((BAND, width + PAD))
+        for task in range(g * K * bands // groups, (g + 1) * K * bands // groups):
+            k = task // bands
+            ib = (task % bands) * BAND
             rows = min(BAND, n - ib)
             for j in range(n):
                 for a in range(rows):
@@ -85,4 +99,4 @@ def _row_squares(o: Any, m: Any) -> tuple[float, float]:  # pragma: no cover - c
 
 
 _row_squares = cached_njit(_row_squares, fastmath={"reassoc"})
-combine = cached_njit(_combine)
+combine = SplitKernel(_combine)

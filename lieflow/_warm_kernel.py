@@ -16,70 +16,93 @@ from typing import Any
 
 import numpy as np
 
-from .numba_cache import cached_njit
+from .numba_cache import SplitKernel, cached_njit, work_groups
+
+__all__ = ["CHUNK", "errors", "extrapolate", "work_groups"]
+
+#: ``range`` here; ``numba.prange`` in a split kernel's parallel build
+#: (:class:`lieflow.numba_cache.SplitKernel`).
+prange = range
 
 #: Real numbers handled at a time (the chunk of an extrapolation stays in the L1 cache
 #: while the history's arrays stream past it).
 CHUNK = 2048
 
 
-def _extrapolate(w: Any, xs: Any, m: int, parts: int, out: Any) -> None:  # pragma: no cover
-    """``out = Σ_{j < m} w[j] xs[j]`` with NumPy's roundings (module docs); ``m >= 2``."""
+def _extrapolate(
+    groups: int, w: Any, xs: Any, m: int, parts: int, out: Any
+) -> None:  # pragma: no cover
+    """``out = Σ_{j < m} w[j] xs[j]`` with NumPy's roundings (module docs); ``m >= 2``. The
+    chunks are split into ``groups`` runs (one per thread where ``groups > 1``)."""
     n = out.size
-    for start in range(0, n, CHUNK):
-        stop = min(start + CHUNK, n)
-        _weighted_sum(w, xs, m, parts, start, stop, out[start:stop])
+    chunks = (n + CHUNK - 1) // CHUNK
+    for g in prange(groups):
+        for i in range(g * chunks // groups, (g + 1) * chunks // groups):
+            start = i * CHUNK
+            stop = min(start + CHUNK, n)
+            _weighted_sum(w, xs, m, parts, start, stop, out[start:stop])
 
 
 def _weighted_sum(
     w: Any, xs: Any, m: int, parts: int, start: int, stop: int, acc: Any
 ) -> None:  # pragma: no cover - compiled
-    """``acc = Σ_{j < m} w[j] xs[j][start:stop]``, NumPy's roundings (``m >= 1``)."""
-    x = xs[0]
+    """``acc = Σ_{j < m} w[j] xs[j][start:stop]``, NumPy's roundings (``m >= 1``). (Each
+    array is read through its slice, indexed from 0: indices the compiler knows are not
+    negative, so the loops are vectorized.)"""
+    n = stop - start
+    x = xs[0][start:stop]
     c = w[0]
     if parts == 2:
-        for i in range(0, stop - start, 2):
-            a = x[start + i]
-            b = x[start + i + 1]
+        for i in range(0, n, 2):
+            a = x[i]
+            b = x[i + 1]
             acc[i] = c * a - 0.0 * b
             acc[i + 1] = c * b + 0.0 * a
         for j in range(1, m):
-            x = xs[j]
+            x = xs[j][start:stop]
             c = w[j]
-            for i in range(0, stop - start, 2):
-                a = x[start + i]
-                b = x[start + i + 1]
+            for i in range(0, n, 2):
+                a = x[i]
+                b = x[i + 1]
                 acc[i] = acc[i] + (c * a - 0.0 * b)
                 acc[i + 1] = acc[i + 1] + (c * b + 0.0 * a)
     else:
-        for i in range(stop - start):
-            acc[i] = c * x[start + i]
+        for i in range(n):
+            acc[i] = c * x[i]
         for j in range(1, m):
-            x = xs[j]
+            x = xs[j][start:stop]
             c = w[j]
-            for i in range(stop - start):
-                acc[i] = acc[i] + c * x[start + i]
+            for i in range(n):
+                acc[i] = acc[i] + c * x[i]
 
 
-def _errors(solved: Any, xs: Any, C: Any, out: Any) -> None:  # pragma: no cover - compiled
+def _errors(groups: int, solved: Any, xs: Any, C: Any, out: Any) -> None:  # pragma: no cover
     """``out[0] = ||solved||²`` and ``out[m] = ||solved - p_m||²`` for ``m = 1 .. M``
     (``M = len(xs)``), ``p_m = Σ_{j < m} C[m - 1, j] xs[j]`` (``p_1 = xs[0]``) with the
     values :func:`_extrapolate` gives (formed as real sums: a complex product's ``0 b``
-    term changes at most the sign of a zero, which its square does not see)."""
+    term changes at most the sign of a zero, which its square does not see). Each chunk's
+    sums are kept and the chunks added in order, so the chunks may be split into
+    ``groups`` runs (one per thread) with the same result."""
     M = len(xs)
     n = solved.size
-    p = np.empty(CHUNK)
-    sums = np.zeros(M + 1)
-    for start in range(0, n, CHUNK):
-        stop = min(start + CHUNK, n)
-        s = solved[start:stop]
-        sums[0] += _squares(s, s, False)
-        sums[1] += _squares(s, xs[0][start:stop], True)
-        for m in range(2, M + 1):
-            _weighted_sum(C[m - 1], xs, m, 1, start, stop, p)
-            sums[m] += _squares(s, p[: stop - start], True)
+    chunks = (n + CHUNK - 1) // CHUNK
+    sums = np.zeros((chunks, M + 1))
+    for g in prange(groups):
+        p = np.empty(CHUNK)
+        for i in range(g * chunks // groups, (g + 1) * chunks // groups):
+            start = i * CHUNK
+            stop = min(start + CHUNK, n)
+            s = solved[start:stop]
+            sums[i, 0] = _squares(s, s, False)
+            sums[i, 1] = _squares(s, xs[0][start:stop], True)
+            for m in range(2, M + 1):
+                _weighted_sum(C[m - 1], xs, m, 1, start, stop, p)
+                sums[i, m] = _squares(s, p[: stop - start], True)
     for m in range(M + 1):
-        out[m] = sums[m]
+        total = 0.0
+        for i in range(chunks):
+            total += sums[i, m]
+        out[m] = total
 
 
 def _squares(s: Any, p: Any, difference: bool) -> float:  # pragma: no cover - compiled
@@ -98,5 +121,5 @@ def _squares(s: Any, p: Any, difference: bool) -> float:  # pragma: no cover - c
 
 _weighted_sum = cached_njit(_weighted_sum)
 _squares = cached_njit(_squares, fastmath={"reassoc"})
-extrapolate = cached_njit(_extrapolate)
-errors = cached_njit(_errors)
+extrapolate = SplitKernel(_extrapolate)
+errors = SplitKernel(_errors)

@@ -162,6 +162,7 @@ def _fused_combination(
     o = rows(out)
     sums = np.empty((o.shape[0], n, 2))
     kernel.combine(
+        kernel.work_groups(X.size * parts),
         rows(X), float(s), A, A if Y is None else rows(Y), 0.0 if t is None else float(t),
         Y is not None, parts, o, o if old is None else rows(old), old is not None, sums,
     )  # fmt: skip

@@ -15,12 +15,16 @@ imports numba: import this module only where numba is installed.
 
 from __future__ import annotations
 
+import functools
 import os
+import types
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
+import attrs
 import numba
+import numpy as np
 from numba.core import caching, config
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -89,3 +93,75 @@ def cached_njit(func: F, *, signature: Any = None, **options: Any) -> F:
         dispatcher.compile(signature)
         dispatcher.disable_compile()
     return dispatcher
+
+
+#: Passes over at least this many numbers (a ``512 × 512`` complex matrix) split their
+#: work among numba's threads (:class:`SplitKernel`); a smaller pass takes well under a
+#: millisecond, less than what starting the threads costs.
+SPLIT_SIZE = 2 * 512 * 512
+
+
+def _probe(out: Any) -> None:  # pragma: no cover - compiled
+    for i in numba.prange(out.size):
+        out[i] = i
+
+
+@functools.cache
+def _threads_safe() -> bool:
+    """Whether numba's threading layer lets several Python threads launch parallel code at
+    once (``tbb``, ``omp``; its ``workqueue`` aborts the process when they do): the layer
+    numba chose for a first, tiny parallel launch."""
+    cached_njit(_probe, parallel=True)(np.empty(2))
+    return str(numba.threading_layer()) != "workqueue"
+
+
+def work_groups(size: int) -> int:
+    """How many groups a :class:`SplitKernel` splits a pass over ``size`` numbers into: 1
+    below :data:`SPLIT_SIZE`, with one numba thread (``NUMBA_NUM_THREADS=1``,
+    ``numba.set_num_threads(1)``) or where the threading layer is not safe to launch from
+    several Python threads (:func:`_threads_safe`); else numba's thread count."""
+    if size < SPLIT_SIZE:
+        return 1
+    threads = numba.get_num_threads()
+    return threads if threads > 1 and _threads_safe() else 1
+
+
+@attrs.frozen
+class SplitKernel:
+    """A compiled pass whose first argument ``groups`` splits its work into that many
+    independent parts (a loop ``for g in prange(groups)``, each part writing its own
+    outputs, any sum over parts added in a fixed order), compiled twice: serial, for one
+    group, and ``parallel=True``, for more (on first use), with ``prange`` bound to
+    ``numba.prange`` (the module that defines the pass binds ``prange = range``, so that
+    it needs no numba to import). Each output number is the same
+    arithmetic on the same operands in either, so the bits do not depend on the number of
+    groups or threads (tested). ``options``: :func:`cached_njit`'s."""
+
+    func: Callable[..., Any]
+    options: dict[str, Any] = attrs.field(factory=dict)
+
+    def __call__(self, groups: int, *args: Any) -> Any:
+        return self.dispatcher(groups > 1)(groups, *args)
+
+    def dispatcher(self, parallel: bool = False) -> Any:
+        """numba's compiled function, serial or parallel (compiled once each)."""
+        options = tuple(
+            sorted((k, frozenset(v) if isinstance(v, set) else v) for k, v in self.options.items())
+        )
+        return _split_compile(self.func, parallel, options)
+
+
+@functools.cache
+def _split_compile(func: Callable[..., Any], parallel: bool, options: tuple[Any, ...]) -> Any:
+    if parallel:
+        # a copy under its own name (numba's disk cache tells functions apart by their
+        # qualified names and signatures, not by how they were compiled) whose ``prange``
+        # is numba's
+        names = dict(func.__globals__, prange=numba.prange)
+        copy = types.FunctionType(
+            func.__code__, names, func.__name__, func.__defaults__, func.__closure__
+        )
+        copy.__qualname__ = func.__qualname__ + "_parallel"
+        func = copy
+    kwargs = {k: set(v) if isinstance(v, frozenset) else v for k, v in options}
+    return cached_njit(func, parallel=parallel, **kwargs)

@@ -181,7 +181,8 @@ def _combine(weights: Sequence[int], history: Sequence[Any], stack: Any = None) 
     if flat is not None:
         out = np.empty_like(history[0])
         w = _VECTORS[m] if m < len(_VECTORS) else np.array(weights, dtype=float)
-        _kernel().extrapolate(w, flat[0], m, flat[1], out.reshape(-1).view(np.float64))
+        o = out.reshape(-1).view(np.float64)
+        _kernel().extrapolate(_kernel().work_groups(o.size), w, flat[0], m, flat[1], o)
         return out
     if stack is None:
         stack = _stacked(history[:m])
@@ -393,7 +394,7 @@ def _advanced(state: WarmStart, solved: Any, history: list[Any], stack: Any) -> 
         sums = np.empty(len(history) + 1)
         views = flat[0]
         C = extrapolation_matrix(len(history))
-        _kernel().errors(views[0], views[1:], C, sums)
+        _kernel().errors(_kernel().work_groups(views[0].size), views[0], views[1:], C, sums)
         best = trusted_points(sums.tolist(), len(history), state.depth)
         return state.replaced([solved, *history], best)
     errors = [

@@ -187,6 +187,27 @@ def test_skew_combination_norms_are_the_numpy_norms(n: int, kind: str) -> None:
     assert skew_combination_norms(X, s, A, Y, t, old)[1] == norms
 
 
+def test_split_combination_has_the_serial_bits() -> None:
+    """The combination's compiled pass split into groups of bands (numba's threads, for
+    large matrices: lieflow.numba_cache.SplitKernel) gives the serial pass's numbers and
+    row sums, bit for bit, for any number of groups; small passes are not split."""
+    pytest.importorskip("numba")
+    from lieflow import _skew_kernel as kernel
+    from lieflow.numba_cache import SPLIT_SIZE, work_groups
+
+    rng = np.random.default_rng(5)
+    X, A, Y, old = (rng.standard_normal((2, 70, 140)) for _ in range(4))
+    results = []
+    for groups in (1, 2, 3, 7, 300):
+        out = np.empty_like(X)
+        sums = np.empty((2, 70, 2))
+        kernel.combine(groups, X, 0.25, A, Y, 1e-3, True, 2, out, old, True, sums)
+        results.append((out, sums))
+    for out, sums in results[1:]:
+        assert np.array_equal(out, results[0][0]) and np.array_equal(sums, results[0][1])
+    assert work_groups(SPLIT_SIZE - 1) == 1
+
+
 def test_midpoint_map_with_norms_is_the_map() -> None:
     """The midpoint map with its stopping-test norms returns the map's bits."""
     pytest.importorskip("lieflow_zeitlin")

@@ -69,7 +69,7 @@ def zeitlin_B(W: Any, params: Any, out: Any) -> None:
     # the sweeps' factors (4, nb, b, 2(N+1)) of params
     size = nb * b * 2 * C
     factors = params[HEADER + N : HEADER + N + 4 * size].reshape(4, nb, b, 2 * C)
-    _sweep_compiled(buf.view(np.float64).reshape(1, nb, b, 2 * C), factors)
+    _sweep_compiled(1, buf.view(np.float64).reshape(1, nb, b, 2 * C), factors)
     mean = 0.0j
     for i in range(N):
         mean += buf[i * C]

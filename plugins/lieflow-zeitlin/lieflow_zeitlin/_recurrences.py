@@ -83,22 +83,36 @@ class _Kernel:
     func: Callable[..., Any]
     fastmath: bool = False
     reciprocal: bool = False
+    #: The function's first argument is the number of groups it splits its work into
+    #: (:class:`lieflow.numba_cache.SplitKernel`): more than one runs its parallel build.
+    split: bool = False
 
     def __call__(self, *args: Any) -> Any:
-        return self.dispatcher()(*args)
+        return self.dispatcher(self.split and args[0] > 1)(*args)
 
-    def dispatcher(self) -> Any:
+    def dispatcher(self, parallel: bool = False) -> Any:
         """numba's compiled function (compiled on the first call, then the same object): what
-        another compiled function calls."""
-        return _compile(self.func, self.fastmath, self.reciprocal)
+        another compiled function calls; ``parallel``: the build of a split kernel that
+        runs its groups on numba's threads."""
+        return _compile(self.func, self.fastmath, self.reciprocal, parallel)
 
 
 @functools.cache
-def _compile(func: Callable[..., Any], fastmath: bool, reciprocal: bool = False) -> Any:
-    from lieflow.numba_cache import cached_njit
+def _compile(
+    func: Callable[..., Any], fastmath: bool, reciprocal: bool = False, parallel: bool = False
+) -> Any:
+    from lieflow.numba_cache import SplitKernel
 
     flags = ({"reassoc", "contract"} | ({"arcp"} if reciprocal else set())) if fastmath else False
-    return cached_njit(func, nogil=True, fastmath=flags)
+    return SplitKernel(func, {"nogil": True, "fastmath": flags}).dispatcher(parallel)
+
+
+def work_groups(size: int) -> int:
+    """How many groups a split kernel divides a pass over ``size`` real numbers into
+    (:func:`lieflow.numba_cache.work_groups`); call it only where numba is installed."""
+    from lieflow.numba_cache import work_groups as groups
+
+    return groups(size)
 
 
 # ------------------------------------------------------------------ matrix harmonics

@@ -84,9 +84,13 @@ from numpy.typing import ArrayLike, NDArray
 import lieflow
 from lieflow.backends import device_of, is_foreign_array, is_numpy, namespace
 
-from ._recurrences import _Kernel, have_numba
+from ._recurrences import _Kernel, have_numba, work_groups
 from .cyclic_reduction import CyclicReduction
 from .projection import remove_trace, skew_part_into, su_project
+
+#: ``range`` here; ``numba.prange`` in a split kernel's parallel build
+#: (:class:`lieflow.numba_cache.SplitKernel`).
+prange = range
 
 Array = NDArray[Any]
 
@@ -260,7 +264,7 @@ def _sweep(Y: Array, L: Array, U: Array, F: Array, G: Array, dinv: Array) -> Non
         Y[:, :-1, 1:] += G[:-1, 1:] * Y[:, 1:, 0:1]
 
 
-def _sweep_loops(Y: Array, factors: Array) -> None:
+def _sweep_loops(groups: int, Y: Array, factors: Array) -> None:
     """:func:`_sweep` as explicit loops, compiled with numba when it is installed: the same
     operations on every entry (no fused multiply–adds) with the same operands, hence the
     same bits, without the ``O(√N)`` numpy calls (~10× faster at N = 64). ``factors``:
@@ -272,44 +276,56 @@ def _sweep_loops(Y: Array, factors: Array) -> None:
     before the scaling), the carry into its other rows, the scaling by ``dinv`` and the
     backward substitution inside the block, while the block is in the cache; then, from
     the last block back, the backward boundary update and its carry. Each entry sees the
-    operations of :func:`_sweep` in its order, with the same operands."""
+    operations of :func:`_sweep` in its order, with the same operands. The columns (each
+    its own recurrences) of all matrices are split into ``groups`` runs of consecutive
+    columns (one per thread where ``groups > 1``: the same numbers)."""
     K, nb, b, width = Y.shape
     L = factors[0]
     F = factors[1]
     G = factors[2]
     dinv = factors[3]
-    prev = np.empty(width, dtype=Y.dtype)
-    for k in range(K):
-        for j in range(nb):
-            X = Y[k, j]
-            for r in range(1, b):
-                for c in range(width):
-                    X[r, c] = X[r, c] - L[j, r, c] * X[r - 1, c]
-            if j > 0:
-                for c in range(width):
-                    X[b - 1, c] = X[b - 1, c] + F[j, b - 1, c] * prev[c]
-                for r in range(b - 1):
-                    for c in range(width):
-                        X[r, c] = X[r, c] + F[j, r, c] * prev[c]
-            for c in range(width):
-                prev[c] = X[b - 1, c]
-            for r in range(b):
-                for c in range(width):
-                    X[r, c] = X[r, c] * dinv[j, r, c]
-            for r in range(b - 2, -1, -1):
-                for c in range(width):
-                    X[r, c] = X[r, c] - L[j, r + 1, c] * X[r + 1, c]
-        for j in range(nb - 2, -1, -1):
-            X = Y[k, j]
-            Z = Y[k, j + 1, 0]
-            for c in range(width):
-                X[0, c] = X[0, c] + G[j, 0, c] * Z[c]
-            for r in range(1, b):
-                for c in range(width):
-                    X[r, c] = X[r, c] + G[j, r, c] * Z[c]
+    total = K * width
+    for g in prange(groups):
+        prev = np.empty(width, dtype=Y.dtype)
+        pos = g * total // groups
+        stop = (g + 1) * total // groups
+        while pos < stop:  # the columns [c0, c1) of matrix k
+            k = pos // width
+            # unsigned column bounds: numba then indexes without the check for negative
+            # indices, which would keep the loops from being vectorized
+            c0 = np.uint64(pos - k * width)
+            c1 = np.uint64(min(width, pos - k * width + stop - pos))
+            pos += int(c1 - c0)
+            for j in range(nb):
+                X = Y[k, j]
+                for r in range(1, b):
+                    for c in range(c0, c1):
+                        X[r, c] = X[r, c] - L[j, r, c] * X[r - 1, c]
+                if j > 0:
+                    for c in range(c0, c1):
+                        X[b - 1, c] = X[b - 1, c] + F[j, b - 1, c] * prev[c]
+                    for r in range(b - 1):
+                        for c in range(c0, c1):
+                            X[r, c] = X[r, c] + F[j, r, c] * prev[c]
+                for c in range(c0, c1):
+                    prev[c] = X[b - 1, c]
+                for r in range(b):
+                    for c in range(c0, c1):
+                        X[r, c] = X[r, c] * dinv[j, r, c]
+                for r in range(b - 2, -1, -1):
+                    for c in range(c0, c1):
+                        X[r, c] = X[r, c] - L[j, r + 1, c] * X[r + 1, c]
+            for j in range(nb - 2, -1, -1):
+                X = Y[k, j]
+                Z = Y[k, j + 1, 0]
+                for c in range(c0, c1):
+                    X[0, c] = X[0, c] + G[j, 0, c] * Z[c]
+                for r in range(1, b):
+                    for c in range(c0, c1):
+                        X[r, c] = X[r, c] + G[j, r, c] * Z[c]
 
 
-_sweep_compiled = _Kernel(_sweep_loops)
+_sweep_compiled = _Kernel(_sweep_loops, split=True)
 
 
 def _remove_mean(rows: Array) -> None:
@@ -463,7 +479,7 @@ class HoppeYauLaplacian:
         _remove_mean(diag)
         Y = buf.view(real).reshape(K, nb, b, 2 * C)
         if have_numba():
-            _sweep_compiled(Y, factor.compact)
+            _sweep_compiled(work_groups(Y.size), Y, factor.compact)
         else:
             _sweep(Y, factor.lower, factor.upper, factor.carry_fwd, factor.carry_bwd, factor.dinv)
         _remove_mean(diag)

@@ -25,7 +25,11 @@ from numpy.typing import NDArray
 
 from lieflow.backends import is_numpy
 
-from ._recurrences import _Kernel, have_numba
+from ._recurrences import _Kernel, have_numba, work_groups
+
+#: ``range`` here; ``numba.prange`` in a split kernel's parallel build
+#: (:class:`lieflow.numba_cache.SplitKernel`).
+prange = range
 
 Array = NDArray[Any]
 
@@ -38,18 +42,23 @@ _COMPLEX = (np.dtype(np.complex128), np.dtype(np.complex64))
 _BAND, _PAD = 32, 16
 
 
-def _skew_part_loops(X: Array, out: Array) -> None:
+def _skew_part_loops(groups: int, X: Array, out: Array) -> None:
     """``out = (X - X^†)/2`` for ``K`` complex ``N×N`` matrices given as real views
     ``(K, N, 2N)`` (real and imaginary parts interleaved): entry by entry the operations
     NumPy performs for ``X - X.conj().swapaxes(-1, -2)`` followed by ``*= 0.5``.
 
     Band by band: ``_BAND`` columns of ``X`` are first gathered, conjugated, as rows
     (``-y`` for an imaginary part ``y``: ``a - (-y)`` is IEEE's ``a + y``), so the
-    arithmetic runs along whole contiguous rows (N = 256: 0.20 -> 0.07 ms, one thread)."""
+    arithmetic runs along whole contiguous rows (N = 256: 0.20 -> 0.07 ms, one thread).
+    The bands of all matrices are split into ``groups`` runs of consecutive bands (one per
+    thread where ``groups > 1``: the same numbers)."""
     K, N = X.shape[0], X.shape[1]
-    T = np.empty((_BAND, 2 * N + _PAD), dtype=X.dtype)
-    for k in range(K):
-        for ib in range(0, N, _BAND):
+    bands = (N + _BAND - 1) // _BAND
+    for g in prange(groups):
+        T = np.empty((_BAND, 2 * N + _PAD), dtype=X.dtype)
+        for task in range(g * K * bands // groups, (g + 1) * K * bands // groups):
+            k = task // bands
+            ib = (task % bands) * _BAND
             rows = min(_BAND, N - ib)
             for j in range(N):
                 for a in range(rows):
@@ -63,7 +72,7 @@ def _skew_part_loops(X: Array, out: Array) -> None:
                     o[c] = (x[c] - d[c]) * 0.5
 
 
-_skew_part_compiled = _Kernel(_skew_part_loops)
+_skew_part_compiled = _Kernel(_skew_part_loops, split=True)
 
 
 def su_project(X: Any, fallback: Any) -> Array:
@@ -93,8 +102,8 @@ def su_project(X: Any, fallback: Any) -> Array:
 
 def skew_part_into(X: Array, out: Array) -> None:
     """``out = (X - X^†)/2`` for real views ``(K, N, 2N)`` of complex matrices (numba
-    installed): :func:`_skew_part_loops`, compiled."""
-    _skew_part_compiled(X, out)
+    installed): :func:`_skew_part_loops`, compiled (on numba's threads for large ``X``)."""
+    _skew_part_compiled(work_groups(X.size), X, out)
 
 
 def remove_trace(diagonal: Array, N: int) -> None:

@@ -24,7 +24,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ._recurrences import _Kernel
+from ._recurrences import _Kernel, work_groups
+
+#: ``range`` here; ``numba.prange`` in a split kernel's parallel build
+#: (:class:`lieflow.numba_cache.SplitKernel`).
+prange = range
 
 Array = NDArray[Any]
 
@@ -33,16 +37,20 @@ Array = NDArray[Any]
 _BAND, _PAD = 32, 16
 
 
-def _row_traces_loops(W: Array, P: Array, out: Array) -> None:
+def _row_traces_loops(groups: int, W: Array, P: Array, out: Array) -> None:
     """``out[k, i] = (Σ_j Re(W_ij W_ji), Σ_j Im(W_ij P_ji), Σ_j Re(P_ij P_ji))`` for ``K``
     complex ``N × N`` matrices ``W``, ``P`` given as real views ``(K, N, 2N)`` (real and
     imaginary parts interleaved); ``out`` of shape ``(K, N, 3)``. Each sum adds its terms
-    in the order of ``j``."""
+    in the order of ``j``. The bands of all matrices are split into ``groups`` runs of
+    consecutive bands (one per thread where ``groups > 1``: the same numbers)."""
     K, N = W.shape[0], W.shape[1]
-    TW = np.empty((_BAND, 2 * N + _PAD))
-    TP = np.empty((_BAND, 2 * N + _PAD))
-    for k in range(K):
-        for ib in range(0, N, _BAND):
+    bands = (N + _BAND - 1) // _BAND
+    for g in prange(groups):
+        TW = np.empty((_BAND, 2 * N + _PAD))
+        TP = np.empty((_BAND, 2 * N + _PAD))
+        for task in range(g * K * bands // groups, (g + 1) * K * bands // groups):
+            k = task // bands
+            ib = (task % bands) * _BAND
             rows = min(_BAND, N - ib)
             for j in range(N):
                 for a in range(rows):
@@ -69,7 +77,7 @@ def _row_traces_loops(W: Array, P: Array, out: Array) -> None:
                 out[k, ib + a, 2] = s4
 
 
-_row_traces = _Kernel(_row_traces_loops)
+_row_traces = _Kernel(_row_traces_loops, split=True)
 
 #: The powers :func:`casimirs_234` computes.
 POWERS = (2, 3, 4)
@@ -83,7 +91,8 @@ def casimirs_234(W: Array) -> Array:
     flat = np.ascontiguousarray(W).reshape(-1, N, N)
     P = np.matmul(flat, flat)
     rows = np.empty((flat.shape[0], N, 3))
-    _row_traces(flat.view(np.float64), P.view(np.float64), rows)
+    W2 = flat.view(np.float64)
+    _row_traces(work_groups(W2.size), W2, P.view(np.float64), rows)
     sums = rows.sum(axis=1)
     sums[:, 0] *= -1.0
     return sums.reshape(*W.shape[:-2], 3)

@@ -237,6 +237,38 @@ def test_fused_casimirs_are_the_plain_traces(
     np.testing.assert_allclose(system.hamiltonian(W.astype(np.complex64)), H, rtol=1e-5)
 
 
+def test_split_passes_have_the_serial_bits() -> None:
+    """The plugin's compiled passes split into groups (numba's threads for large states:
+    lieflow.numba_cache.SplitKernel) — the su(N) projection's skew part and the Casimir
+    traces by bands of rows, the Laplacian sweeps by runs of columns — give the serial
+    passes' bits for any number of groups."""
+    from lieflow_zeitlin import laplacian, projection, traces
+
+    if not laplacian.have_numba():
+        pytest.skip("numba is not installed")
+    N = 70
+    X = _random_complex(N, seed=3, batch=(2,))
+    R = X.view(np.float64)
+    L = lz.HoppeYauLaplacian(N)
+    factor = L._double
+    nb, b = factor.lower.shape[:2]
+    Y = np.zeros((2, nb * b * (N + 1)), dtype=np.complex128)
+    Y[:, : N * N] = X.reshape(2, -1)
+    Y = Y.view(np.float64).reshape(2, nb, b, 2 * (N + 1))
+    results = []
+    for groups in (1, 2, 3, 7, 1000):
+        part = np.empty_like(R)
+        projection._skew_part_compiled(groups, R, part)
+        rows = np.empty((2, N, 3))
+        traces._row_traces(groups, R, (X @ X).view(np.float64), rows)
+        swept = Y.copy()
+        laplacian._sweep_compiled(groups, swept, factor.compact)
+        results.append((part, rows, swept))
+    for got in results[1:]:
+        for a, e in zip(got, results[0], strict=True):
+            assert np.array_equal(a, e)
+
+
 # --------------------------------------------------------------------------- quantization
 @pytest.mark.parametrize("N", [2, 5, 9])
 def test_quantization_round_trips(N: int) -> None:
