@@ -7,7 +7,13 @@ from typing import Any
 
 import numpy as np
 
-from .numba_cache import cached_njit
+from .numba_cache import SplitKernel, cached_njit, work_groups
+
+__all__ = ["CHUNK", "count_below", "flush", "limits", "work_groups"]
+
+#: ``range`` here; ``numba.prange`` in a split kernel's parallel build
+#: (:class:`lieflow.numba_cache.SplitKernel`).
+prange = range
 
 
 def _largest(row: Any) -> float:  # pragma: no cover - compiled
@@ -22,11 +28,29 @@ def _largest(row: Any) -> float:  # pragma: no cover - compiled
 _largest_compiled = cached_njit(_largest, fastmath=True)
 
 
-def _limits(real: Any, tau: float) -> Any:  # pragma: no cover - compiled
-    """``tau`` times the largest ``|x|`` of each row (0 where that is not finite)."""
-    out = np.zeros(real.shape[0])
-    for r in range(real.shape[0]):
-        top = _largest_compiled(real[r])
+#: Numbers per task of the split passes (:class:`lieflow.numba_cache.SplitKernel`).
+CHUNK = 1 << 15
+
+
+def _limits(groups: int, real: Any, tau: float) -> Any:  # pragma: no cover - compiled
+    """``tau`` times the largest ``|x|`` of each row (0 where that is not finite): the
+    maxima of chunks of :data:`CHUNK` numbers, split into ``groups`` runs of chunks (one
+    per thread where ``groups > 1``), then their maximum (a maximum is exact in any
+    order: the same numbers)."""
+    rows, size = real.shape
+    chunks = (size + CHUNK - 1) // CHUNK
+    tops = np.zeros((rows, chunks))
+    tasks = rows * chunks
+    for g in prange(groups):
+        for task in range(g * tasks // groups, (g + 1) * tasks // groups):
+            r = task // chunks
+            c = task - r * chunks
+            tops[r, c] = _largest_compiled(real[r, c * CHUNK : min(size, (c + 1) * CHUNK)])
+    out = np.zeros(rows)
+    for r in range(rows):
+        top = 0.0
+        for c in range(chunks):
+            top = max(top, tops[r, c])
         if top < np.inf:
             out[r] = tau * top
     return out
@@ -44,21 +68,28 @@ def _count_below(real: Any, limits: Any) -> int:  # pragma: no cover - compiled
     return count
 
 
-def _flush(real: Any, limits: Any, out: Any, same: bool) -> None:  # pragma: no cover
+def _flush(groups: int, real: Any, limits: Any, out: Any, same: bool) -> None:  # pragma: no cover
     """``out = real`` with the numbers below their row's limit set to zero; ``same``: ``out``
-    is ``real`` (only those numbers are written)."""
-    for r in range(real.shape[0]):
-        limit = limits[r]
-        row = real[r]
-        dest = out[r]
-        for i in range(row.size):
-            a = row[i]
-            if abs(a) < limit:
-                dest[i] = 0.0
-            elif not same:
-                dest[i] = a
+    is ``real`` (only those numbers are written). By chunks of :data:`CHUNK` numbers,
+    split into ``groups`` runs (one per thread where ``groups > 1``)."""
+    rows, size = real.shape
+    chunks = (size + CHUNK - 1) // CHUNK
+    tasks = rows * chunks
+    for g in prange(groups):
+        for task in range(g * tasks // groups, (g + 1) * tasks // groups):
+            r = task // chunks
+            start = (task - r * chunks) * CHUNK
+            limit = limits[r]
+            row = real[r, start : min(size, start + CHUNK)]
+            dest = out[r, start : min(size, start + CHUNK)]
+            for i in range(row.size):
+                a = row[i]
+                if abs(a) < limit:
+                    dest[i] = 0.0
+                elif not same:
+                    dest[i] = a
 
 
-limits = cached_njit(_limits)
+limits = SplitKernel(_limits)
 count_below = cached_njit(_count_below)
-flush = cached_njit(_flush)
+flush = SplitKernel(_flush)

@@ -101,14 +101,15 @@ def flush_tiny(X: Array, tau: float, in_place: bool = False) -> Array:
             out = real if in_place else real.copy()
             np.copyto(out, 0.0, where=small)
         else:
-            limits = kernels.limits(real, float(tau))
+            groups = kernels.work_groups(real.size)
+            limits = kernels.limits(groups, real, float(tau))
             if in_place:
                 out = real
             elif kernels.count_below(real, limits):
                 out = np.empty_like(real)
             else:
                 return X
-            kernels.flush(real, limits, out, in_place)
+            kernels.flush(groups, real, limits, out, in_place)
         return out.view(X.dtype).reshape(X.shape)
     return _flush_array_api(X, tau)
 

@@ -216,3 +216,28 @@ def test_euler_zeitlin_guard_defaults_and_validation() -> None:
     reason = compiled.plan(system, lf.schemes.get("midpoint"), lf.solvers.FixedPoint(),
                            system.random_state(0))  # fmt: skip
     assert isinstance(reason, str) and "underflow guard" in reason
+
+
+def test_split_guard_passes_have_the_serial_bits() -> None:
+    """The guard's compiled passes split into groups of chunks (numba's threads for large
+    states: lieflow.numba_cache.SplitKernel) give the serial passes' limits and numbers."""
+    pytest.importorskip("numba")
+    from lieflow import _underflow_kernel as kernel
+
+    rng = np.random.default_rng(2)
+    real = rng.standard_normal((2, 3 * kernel.CHUNK + 17)) * 10.0 ** rng.integers(
+        -320, 0, (2, 3 * kernel.CHUNK + 17)
+    )
+    results = []
+    for groups in (1, 2, 3, 50):
+        limits = kernel.limits(groups, real, 2.0**-332)
+        out = np.full_like(real, np.nan)
+        kernel.flush(groups, real, limits, out, False)
+        inplace = real.copy()
+        kernel.flush(groups, inplace, limits, inplace, True)
+        results.append((limits, out, inplace))
+    np.testing.assert_array_equal(results[0][0], 2.0**-332 * np.abs(real).max(axis=1))
+    assert np.array_equal(results[0][1], results[0][2])
+    for got in results[1:]:
+        for a, e in zip(got, results[0], strict=True):
+            assert np.array_equal(a, e)
