@@ -95,10 +95,14 @@ def cached_njit(func: F, *, signature: Any = None, **options: Any) -> F:
     return dispatcher
 
 
-#: Passes over at least this many numbers (a ``512 × 512`` complex matrix) split their
-#: work among numba's threads (:class:`SplitKernel`); a smaller pass takes well under a
-#: millisecond, less than what starting the threads costs.
-SPLIT_SIZE = 2 * 512 * 512
+#: Passes over at least this many numbers (a ``1024 × 1024`` complex matrix, where a pass
+#: takes milliseconds) split their work among numba's threads (:class:`SplitKernel`).
+#: Only where the cores are the run's own: a thread that waits for a busy core holds up
+#: the whole pass (measured on a loaded 2-core machine, Euler–Zeitlin midpoint, numpy
+#: engine, two numba threads against one: N = 512 2.6x the CPU time and 2x the wall time,
+#: N = 1024 1.2x the CPU time, 3-4x the wall time). ``NUMBA_NUM_THREADS=1`` (or
+#: ``numba.set_num_threads(1)``) keeps every pass on one thread.
+SPLIT_SIZE = 2 * 1024 * 1024
 
 
 def _probe(out: Any) -> None:  # pragma: no cover - compiled
