@@ -14,13 +14,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ... import _signals, tree
+from ... import _signals, state_trees
 from ...algebras import Array
 from ...backends import is_foreign_array
-from ...driver import Chunk, ChunkDiagnostics
 from ...errors import ConvergenceError, LieflowError
 from ...sinks import Ending, RunInfo, to_host
 from ...solution import Solution, Status
+from ...stepping import Chunk, ChunkDiagnostics
 from ..config import BuiltRun, check_output_path
 from ._disk import (
     _ATTRIBUTES_ROOM,
@@ -81,7 +81,7 @@ class TrajectoryWriter:
     :class:`~lieflow.sinks.Sink` for ``.h5`` files (``TrajectorySink``).
 
     Create one with :meth:`create` (a new file), :meth:`reopen` (resume) or :meth:`open`
-    (either). :func:`lieflow.driver.run` feeds every :class:`~lieflow.driver.Chunk` of steps
+    (either). :func:`lieflow.stepping.run` feeds every :class:`~lieflow.stepping.Chunk` of steps
     to :meth:`record` (buffered), calls :meth:`checkpoint` at its checkpoint cadence (it
     appends the buffered diagnostics and saved states, writes a checkpoint and flushes) and
     :meth:`close` at the end. A checkpoint runs with interrupts deferred and writes to
@@ -285,7 +285,7 @@ class TrajectoryWriter:
             raise LieflowError(
                 f"{self._path}: a trajectory file records every step's diagnostics, and the "
                 "run passed none. To fix: run through lieflow.integrate(out=...) or "
-                "lieflow.runs.RunSpec.execute, or pass driver.run(diagnostics="
+                "lieflow.runs.RunSpec.execute, or pass stepping.run(diagnostics="
                 "Diagnostics.of(system, W0, save_every=...))"
             )
         keep = np.asarray(keep, dtype=bool)
@@ -407,7 +407,7 @@ class TrajectoryWriter:
         ``index`` to the spare slot with its SHA-256 digest, flush and fsync, then point
         ``current`` at it (the commit point; :meth:`checkpoint` flushes and fsyncs it)."""
         items: dict[str, Any] = {"W": W}
-        for path, leaf in tree.paths(state):  # a device's warm start comes to the host here
+        for path, leaf in state_trees.paths(state):  # a device's warm start comes to the host here
             host = to_host(leaf) if is_foreign_array(leaf) else leaf
             items[f"{_STATE}/{path}" if path else _STATE] = host
         slot_id = 1 - self._slot

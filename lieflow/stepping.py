@@ -229,7 +229,7 @@ class MultiStepFlow(Flow, Protocol):
 
     def step_many(self, W: Array, start: int, h: float, steps: int, state: Any) -> Chunk:
         """Up to ``steps`` steps from ``W`` after step ``start``. Fewer (possibly none) when
-        a step was not accepted; the driver then takes that step with :meth:`step`."""
+        a step was not accepted; the stepping loop then takes that step with :meth:`step`."""
         ...
 
 
@@ -522,7 +522,7 @@ class Diagnostics:
         if chunk.held is not None:
             raise ValueError(
                 "the chunk holds some of its states only and no energies: its flow computes "
-                "diagnostics when driver.run is given them (Recording.diagnostics)"
+                "diagnostics when stepping.run is given them (Recording.diagnostics)"
             )
         return self._of(chunk, self.energy(chunk.W), self.casimirs(chunk.W))
 
@@ -576,13 +576,13 @@ Ending = Literal["complete", "interrupted", "failed"]
 
 @runtime_checkable
 class Sink(Protocol):
-    """Receives a run's steps from :func:`lieflow.driver.run`.
+    """Receives a run's steps from :func:`lieflow.stepping.run`.
 
-    The driver calls :meth:`record` for every chunk of steps, in order; :meth:`checkpoint`
+    The stepping loop calls :meth:`record` for every chunk of steps, in order; :meth:`checkpoint`
     at its checkpoint cadence and once at the end; :meth:`close` exactly once, however the
     run ends; :meth:`result` after that, for what the caller gets back.
 
-    The driver holds interrupts (:func:`lieflow._signals.deferred`) while it takes the last
+    The stepping loop holds interrupts (:func:`lieflow._signals.deferred`) while it takes the last
     checkpoint and closes the sinks, so that a second Ctrl-C cannot split the two. A sink
     that keeps nothing outside the process may say so with a class attribute
     ``durable = False`` (:class:`~lieflow.sinks.MemorySink`); a run whose sinks all do skips
