@@ -95,7 +95,10 @@ def test_run_out_overrides_the_config(dirs: tuple[Path, Path]) -> None:
 
 
 def test_ctrl_c_then_resume_from_the_command_line(
-    dirs: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+    dirs: tuple[Path, Path],
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    one_step_chunks: None,
 ) -> None:
     cfg, out = dirs
     config = write(cfg, toml(run='h = 0.1\nsteps = 50\nsave_every = 10\noutput = "../out/a.h5"'))
