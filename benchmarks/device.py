@@ -167,11 +167,11 @@ def run_traced(
 ) -> tuple[Any, list[int], float]:
     """One untimed step of the traced engine (it compiles), then ``steps`` timed steps as
     one chunk: ``(W_end, updates per step, seconds)``."""
-    from lieflow import driver
+    from lieflow import stepping
     from lieflow.engines import scheme_flow
 
     flow = scheme_flow(system, scheme, solver, W, steps + 1, engine="jax")
-    recording = driver.Recording(save_every=steps + 1, last=steps + 1)
+    recording = stepping.Recording(save_every=steps + 1, last=steps + 1)
     first = flow.step_many(W, 0, h, 1, flow.init(W), recording=recording)
     if not first.size:
         raise lf.ConvergenceError("not_accepted", solver=solver.name, step=1)

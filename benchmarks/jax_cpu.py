@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 import lieflow as lf
-from lieflow import driver
+from lieflow import stepping
 from lieflow.engines import scheme_flow
 
 
@@ -82,7 +82,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         Wj = jax.numpy.asarray(W0)
         flow = scheme_flow(system, scheme, solver, Wj, args.steps, engine="jax")
-        recording = driver.Recording(save_every=args.steps, last=args.steps)
+        recording = stepping.Recording(save_every=args.steps, last=args.steps)
 
         def traced(flow: Any = flow, Wj: Any = Wj, h: float = h, rec: Any = recording) -> Any:
             done, W, state = 0, Wj, flow.init(Wj)

@@ -19,7 +19,7 @@ import importlib
 from importlib.metadata import PackageNotFoundError, version
 from typing import TYPE_CHECKING, Any
 
-from . import algebras, driver, flows, schemes, sinks, solvers, systems, tableaus
+from . import algebras, flows, schemes, sinks, solvers, stepping, systems, tableaus
 from .algebras import GL, SO, SU, LieAlgebra, U
 from .errors import (
     AlgebraError,
@@ -107,7 +107,6 @@ __all__ = [
     "__version__",
     "algebras",
     "default_registry",
-    "driver",
     "flows",
     "hookimpl",
     "integrate",
@@ -120,6 +119,7 @@ __all__ = [
     "schemes",
     "sinks",
     "solvers",
+    "stepping",
     "sweep",
     "systems",
     "tableaus",

@@ -1,11 +1,11 @@
 r"""Flows: one step ``W(t) -> W(t + h)`` with explicit state, and their compositions.
 
-A :class:`Flow` is what the driver (:mod:`lieflow.driver`) advances::
+A :class:`Flow` is what the stepping loop (:mod:`lieflow.stepping`) advances::
 
     state = flow.init(W0)
     W, state, stats = flow.step(W, t, h, state)
 
-``state`` is a tree of arrays (:mod:`lieflow.tree`) that the flow alone reads and writes —
+``state`` is a tree of arrays (:mod:`lieflow.state_trees`) that the flow alone reads and writes —
 the warm start of an implicit scheme, nothing for an exact sub-flow — and that a
 checkpoint stores leaf by leaf, so a run resumes bit-for-bit. ``stats`` is a
 :class:`StepStats`. Three flows come with lieflow (compare GeometricIntegrators.jl's
@@ -134,7 +134,7 @@ class SchemeFlow:
         state is not projected where that would return it unchanged, a real NumPy state
         of so(n) after a scheme that keeps exact skew-symmetry
         (:attr:`~lieflow.schemes.Scheme.keeps_skew`: the midpoint rule and its
-        compositions, commutator update). The driver (:func:`lieflow.driver.advance`)
+        compositions, commutator update). The stepping loop (:func:`lieflow.stepping.advance`)
         calls it for every step after the first of a run. (The one exception: an entry
         beyond ``2^1023``, which the projection would overflow to ``inf``.)"""
         return self._step(W, h, state, self._exact)

@@ -1,6 +1,6 @@
 """The one entry point that runs many steps, :func:`integrate` (over the one consumer loop,
-:func:`lieflow.driver.run`, into a :class:`~lieflow.sinks.Sink`), and the step stream
-:func:`iterate` (over the one stepping loop, :func:`lieflow.driver.advance`)."""
+:func:`lieflow.stepping.run`, into a :class:`~lieflow.sinks.Sink`), and the step stream
+:func:`iterate` (over the one stepping loop, :func:`lieflow.stepping.advance`)."""
 
 from __future__ import annotations
 
@@ -14,9 +14,8 @@ import attrs
 import numpy as np
 from numpy.typing import ArrayLike
 
-from . import driver
+from . import stepping
 from .algebras import Array
-from .driver import Monitor
 from .engines import Engine
 from .errors import InputError
 from .flows import Flow, SchemeFlow, StepStats, WarmStart
@@ -25,6 +24,7 @@ from .schemes.base import Scheme
 from .sinks import Sink, open_sink
 from .solution import Solution
 from .solvers.base import Solver
+from .stepping import Monitor
 from .systems.base import IsospectralSystem
 
 
@@ -56,7 +56,7 @@ def iterate(
     warm_start: bool | int = True,
 ) -> Iterator[Step]:
     """Yield steps ``start + 1, start + 2, ...`` from ``W0``: an endless stream over
-    :func:`lieflow.driver.advance` of a :class:`SchemeFlow`.
+    :func:`lieflow.stepping.advance` of a :class:`SchemeFlow`.
 
     The arguments are checked as :func:`integrate` checks them, when ``iterate`` is called
     (not at the first step): ``h`` positive and finite, ``W0`` in the system's phase space,
@@ -79,7 +79,7 @@ def iterate(
     if not isinstance(scheme, Scheme):
         raise InputError(
             f"iterate steps a Scheme, got {type(scheme).__name__}; step a Flow with "
-            "lieflow.driver.advance, or run it with lieflow.integrate"
+            "lieflow.stepping.advance, or run it with lieflow.integrate"
         )
     if isinstance(start, bool) or not isinstance(start, (int, np.integer)) or start < 0:
         raise InputError(f"start must be a non-negative step index, got {start!r}")
@@ -89,7 +89,7 @@ def iterate(
 
 
 def _steps(flow: Flow, W0: Array, h: float, start: int, warm: Any) -> Iterator[Step]:
-    for chunk in driver.advance(flow, W0, h, sys.maxsize, start=start, state=warm):
+    for chunk in stepping.advance(flow, W0, h, sys.maxsize, start=start, state=warm):
         yield Step(
             chunk.stop,
             chunk.stop * h,
@@ -170,7 +170,7 @@ def integrate(
         with ``status = FAILED`` and the error in ``failure``.
     progress : bool or Monitor
         ``True`` shows a progress bar (needs ``rich``); a
-        :class:`~lieflow.driver.Monitor` receives the progress instead.
+        :class:`~lieflow.stepping.Monitor` receives the progress instead.
     engine : {"auto", "numpy", "compiled", "jax"}
         How a scheme's steps are computed (:mod:`lieflow.engines`). ``"numpy"``: the eager
         engine, one vectorised step at a time on the array's own library (any system,
@@ -181,7 +181,7 @@ def integrate(
         lattice, point vortices, Euler–Zeitlin, and any system with ``B(W) = S ⊙ W``),
         schemes with a compiled form (SyDIRK, reduced-form BlockGauss), float64 data or
         complex128 data on u(n)/su(N), and ``FixedPoint`` (or ``Auto``) solvers (see
-        :mod:`lieflow.compiled`). ``"jax"``: the traced engine
+        :mod:`lieflow.engines.compiled`). ``"jax"``: the traced engine
         (:mod:`lieflow.engines.traced`, ``pip install jax``): the whole step compiled by
         ``jax.jit`` and run on the array's device, a chunk of steps per call (NumPy arrays
         run on JAX's default device). Both run the same iterations and stopping rule, give
@@ -189,7 +189,7 @@ def integrate(
         raise :class:`InputError` naming what is missing or not supported. ``"auto"``
         (default): for NumPy arrays the compiled loops where supported, numba is installed
         and they are faster (``n <= 128``, complex ``n <= 96``, and at least 1000
-        trajectory-steps, see :func:`lieflow.compiled.wins`: a function of the run alone, so
+        trajectory-steps, see :func:`lieflow.engines.compiled.wins`: a function of the run alone, so
         the same run gives the same bits in any process), else numpy; for JAX arrays (and
         CuPy or PyTorch arrays on a GPU JAX runs on) the traced engine where it runs the
         case, else the eager engine.

@@ -1,5 +1,5 @@
 """The progress bar of long runs (``integrate(..., progress=True)`` and ``lieflow run``): a
-:class:`~lieflow.driver.Monitor`."""
+:class:`~lieflow.stepping.Monitor`."""
 
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ class ProgressBar:
     """A rich progress bar on stderr: steps done of the total, steps per second, mean
     iterations per step and, when reported, the largest relative energy error so far.
 
-    A :class:`~lieflow.driver.Monitor`: the bar appears at :meth:`start` and stays on the
+    A :class:`~lieflow.stepping.Monitor`: the bar appears at :meth:`start` and stays on the
     terminal after :meth:`stop`. The numbers are refreshed at most every 0.1 s (the bar
     itself on every call), so a fast run does not spend its time drawing.
     An interrupt in a run's first milliseconds stops a whole bar (:func:`start_live`).

@@ -12,12 +12,12 @@ A run is validated and set up in one place, :meth:`RunSpec.build`, whoever asks:
   the engine is chosen for that device), with the Casimir shift, and wrapped by the caller's
   ``compose`` (``lieflow run``'s ``[splitting]``);
 * its **cadences** fixed: the states kept (``save_every``), the checkpoints
-  (:class:`~lieflow.driver.Cadence`), the diagnostics.
+  (:class:`~lieflow.stepping.Cadence`), the diagnostics.
 
 :meth:`RunSpec.execute` then runs it into sinks — a :class:`~lieflow.sinks.MemorySink`
 (:meth:`RunSpec.memory_sink`), a trajectory file opened through
 :func:`lieflow.sinks.open_sink` with :meth:`RunSpec.info`, any other
-:class:`~lieflow.sinks.Sink` — through the one consumer loop (:func:`lieflow.driver.run`).
+:class:`~lieflow.sinks.Sink` — through the one consumer loop (:func:`lieflow.stepping.run`).
 **Resume** is decided there once too: a sink that continues a stored run has a ``start``
 (:class:`~lieflow.sinks.ResumePoint`), whose state and warm start :meth:`execute` moves to
 the run's device.
@@ -34,10 +34,9 @@ import attrs
 import numpy as np
 from numpy.typing import ArrayLike
 
-from . import _signals, driver, tree
+from . import _signals, state_trees, stepping
 from .algebras import Array
 from .backends import from_host, is_foreign_array, is_numpy, place, to_numpy
-from .driver import DeferredDiagnostics, Diagnostics, Monitor, Outcome
 from .engines import Engine, scheme_flow
 from .errors import InputError
 from .flows import Flow
@@ -45,6 +44,7 @@ from .schemes.base import Scheme
 from .sinks import MemorySink, RunInfo, Sink, run_identity
 from .solvers.base import Solver
 from .solvers.fixed_point import FixedPoint
+from .stepping import DeferredDiagnostics, Diagnostics, Monitor, Outcome
 from .systems.base import IsospectralSystem
 from .systems.shifted import CasimirShifted, shifted
 
@@ -56,7 +56,7 @@ DEFAULT_SOLVER = FixedPoint()
 
 #: The checkpoint cadence of ``checkpoint_seconds=1.0`` (the default), built once (a frozen
 #: value: its validators cost ~1 µs a call).
-DEFAULT_CADENCE = driver.Cadence(seconds=1.0)
+DEFAULT_CADENCE = stepping.Cadence(seconds=1.0)
 
 #: The most steps a run may ask for (indices and times stay exact in 64-bit integers).
 MAX_STEPS = 2**53
@@ -199,12 +199,12 @@ def check_memory(nbytes: int, steps: int, save_every: int) -> None:
     )
 
 
-def _cadence(seconds: float | None) -> driver.Cadence:
+def _cadence(seconds: float | None) -> stepping.Cadence:
     """The checkpoint cadence of ``seconds`` (``None``: at every chunk holding a saved
     state)."""
     if type(seconds) is float and seconds == 1.0:
         return DEFAULT_CADENCE
-    return driver.Cadence(seconds=seconds)
+    return stepping.Cadence(seconds=seconds)
 
 
 def _system_name(system: IsospectralSystem) -> str:
@@ -273,7 +273,7 @@ class RunSpec:
     steps: int
     save_every: int = 1
     diagnostics: bool = True
-    checkpoint: driver.Cadence = DEFAULT_CADENCE
+    checkpoint: stepping.Cadence = DEFAULT_CADENCE
     device: str = "cpu"
     identity: str | None = attrs.field(default=None, repr=False)
     names: tuple[str, str, str] | None = None
@@ -402,7 +402,7 @@ class RunSpec:
         on_failure: Literal["raise", "truncate"] = "truncate",
         interrupts: _signals.Interrupts | None = None,
     ) -> Outcome:
-        """Run into ``sinks`` (:func:`lieflow.driver.run`), from the resume point of the
+        """Run into ``sinks`` (:func:`lieflow.stepping.run`), from the resume point of the
         first sink if it continues a stored run (its state and warm start placed where the
         run lives), else from :attr:`W0_device`. Every sink is closed, however the run
         ends; a sink that fails to give its resume point is closed first (resumable)."""
@@ -415,7 +415,7 @@ class RunSpec:
                 if self.device != "cpu":  # placed once, where the run lives
                     like = self.W0_device
                     W = from_host(np.asarray(W_host), like)
-                    state = tree.map_leaves(
+                    state = state_trees.map_leaves(
                         lambda x: from_host(x, like) if isinstance(x, np.ndarray) else x, state
                     )
                 else:
@@ -425,7 +425,7 @@ class RunSpec:
                     sink.close("interrupted", None, 0.0)
                 raise
         durable = any(getattr(sink, "durable", True) for sink in sinks)
-        return driver.run(self.flow, W, self.h, self.steps, sinks=sinks,
+        return stepping.run(self.flow, W, self.h, self.steps, sinks=sinks,
                           diagnostics=self._diagnostics(durable=durable),
                           save_every=self.save_every, start=start, state=state,
                           monitor=monitor, checkpoint=self.checkpoint,

@@ -1,11 +1,11 @@
 r"""Where a run's steps go: :class:`MemorySink` (a :class:`~lieflow.Solution`), the file
 sinks found by suffix (:func:`open_sink`), and the :class:`Sink` protocol they follow (defined
-by the loop that feeds them, :mod:`lieflow.driver`, and importable from here).
+by the loop that feeds them, :mod:`lieflow.stepping`, and importable from here).
 
-:func:`lieflow.driver.run` is the one consumer loop: it takes each
-:class:`~lieflow.driver.Chunk` of steps from :func:`lieflow.driver.advance`, decides which
+:func:`lieflow.stepping.run` is the one consumer loop: it takes each
+:class:`~lieflow.stepping.Chunk` of steps from :func:`lieflow.stepping.advance`, decides which
 states are saved (every ``save_every``-th and the last), computes the diagnostics once
-(:class:`~lieflow.driver.ChunkDiagnostics`), and hands both to every sink. A sink only
+(:class:`~lieflow.stepping.ChunkDiagnostics`), and hands both to every sink. A sink only
 stores: in memory (:class:`MemorySink`, this module), in an HDF5 trajectory file (the
 application's ``TrajectorySink``, :mod:`lieflow.app.io`), or wherever a plugin writes.
 
@@ -14,7 +14,8 @@ A file format is found by its suffix in the plugin registry
 ``integrate(out="run.h5")`` reaches the application's writer without the core importing the
 application.
 
-The driver hands sinks chunks whose states are on the host already (:func:`lieflow.driver.run`
+The stepping loop hands sinks chunks whose states are on the host already
+(:func:`lieflow.stepping.run`
 copies another library's states once per chunk); a flow's state held for a checkpoint may
 still live on a device, and a sink copies it with :func:`to_host`.
 """
@@ -32,7 +33,9 @@ import numpy as np
 
 from .algebras import Array
 from .backends import to_numpy
-from .driver import (  # the Sink protocol is the driver's: what its loop feeds
+from .errors import ConvergenceError, InputError
+from .solution import Solution, Status
+from .stepping import (  # the Sink protocol is the stepping loop's: what its loop feeds
     Chunk,
     ChunkDiagnostics,
     DeferredDiagnostics,
@@ -40,8 +43,6 @@ from .driver import (  # the Sink protocol is the driver's: what its loop feeds
     Ending,
     Sink,
 )
-from .errors import ConvergenceError, InputError
-from .solution import Solution, Status
 
 __all__ = [
     "DEFAULT_SUFFIX",
@@ -247,7 +248,7 @@ class MemorySink:
     save_every : int
         Every ``save_every``-th state is saved (and the last): sizes the saved-state array.
     diagnostics : Diagnostics or DeferredDiagnostics, optional
-        The run's diagnostics (:func:`lieflow.driver.run` passes each chunk's to
+        The run's diagnostics (:func:`lieflow.stepping.run` passes each chunk's to
         :meth:`record`; the per-step arrays, zero at step 0, are allocated at the first);
         ``None``: the solution has none.
     """

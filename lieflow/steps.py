@@ -1,16 +1,16 @@
 r"""The step contract: what steps (:class:`Flow`) and what a step reports (:class:`StepStats`).
 
-One signature from the scheme to the driver, ``step(W, t, h, state) -> (W, state, stats)``:
+One signature from the scheme to the stepping loop, ``step(W, t, h, state) -> (W, state, stats)``:
 a :class:`Flow` advances a state ``W`` from time ``t`` by ``h``, carrying a state tree of its
-own (a warm start); the driver (:mod:`lieflow.driver`) and the engines
+own (a warm start); the stepping loop (:mod:`lieflow.stepping`) and the engines
 (:mod:`lieflow.engines`) call it, or its many-step form (``step_many(W, start, h, steps,
-state)``, :class:`lieflow.driver.MultiStepFlow`); a scheme's step
+state)``, :class:`lieflow.stepping.MultiStepFlow`); a scheme's step
 (:meth:`Scheme.step <lieflow.schemes.Scheme.step>`) is the same with what a
 :class:`~lieflow.flows.SchemeFlow` binds — the system and the solver — in place of the time
 (a scheme is autonomous). Every step reports its cost as :class:`StepStats`.
 
 This module sits at the bottom of the core's layers (it imports nothing of lieflow but the
-array type), so that schemes, flows, engines and the driver all speak it;
+array type), so that schemes, flows, engines and the stepping loop all speak it;
 :mod:`lieflow.flows` is where users find both names.
 """
 

@@ -2,12 +2,13 @@ r"""Warm starts: initial guesses of an implicit step from the previous steps' so
 
 :class:`WarmStart` is the state a :class:`~lieflow.flows.SchemeFlow` carries between steps
 (SPEC §5): the last few solved offsets of the scheme's unknowns, and how many of them the
-next prediction extrapolates from. The compiled loops (:mod:`lieflow._kernels`) update the
+next prediction extrapolates from. The compiled loops (:mod:`lieflow.engines._compiled_loops`)
+update the
 same state in place, with the same extrapolation weights (:func:`extrapolation_matrix`) and
 the same trust rule (:func:`trusted_points`: plain scalar Python, which they compile, as
 they compile the stopping rule). The extrapolation itself, a weighted sum of the kept
 solutions, is written twice: here as one BLAS product (or leaf by leaf for trees), there as
-a loop over the entries (the loops cannot call NumPy: see :mod:`lieflow._kernels`).
+a loop over the entries (the loops cannot call NumPy: see :mod:`lieflow.engines._compiled_loops`).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from typing import Any
 import attrs
 import numpy as np
 
-from . import tree
+from . import state_trees
 from .backends import copy
 from .errors import InputError
 from .solvers.base import einsum, squared_norm
@@ -106,7 +107,8 @@ def trusted_points(errors: Any, filled: int, depth: int) -> int:
     ``errors[m]`` is the squared error ``||solved - p_m||^2`` of the prediction from ``m``
     points, ``m = 0 .. filled`` (``p_0 = 0``: the cold guess); a NaN error is never the
     closest. One source for both engines: :meth:`WarmStart.advance` calls it on a list, and
-    the compiled loops (:mod:`lieflow._kernels`) compile this very function on an array;
+    the compiled loops (:mod:`lieflow.engines._compiled_loops`) compile this very function on an
+    array;
     hence scalars and indexing only.
     """
     best = 0
@@ -200,7 +202,7 @@ def _combine(weights: Sequence[int], history: Sequence[Any], stack: Any = None) 
             acc += w * x
         return acc
 
-    return tree.map_leaves(leaf, *history[:m])
+    return state_trees.map_leaves(leaf, *history[:m])
 
 
 def _prediction_errors(solved: Any, history: Sequence[Any], stack: Any = None) -> list[float]:
@@ -222,7 +224,9 @@ def _prediction_errors(solved: Any, history: Sequence[Any], stack: Any = None) -
         errors: list[float] = einsum("ij,ij->i", E, E).tolist()
         return errors
     return [
-        tree.sum_of_squares(tree.map_leaves(operator.sub, solved, _combine(_weights(m), history)))
+        state_trees.sum_of_squares(
+            state_trees.map_leaves(operator.sub, solved, _combine(_weights(m), history))
+        )
         for m in range(1, len(history) + 1)
     ]
 
@@ -281,7 +285,7 @@ class WarmStart:
         How many solutions the next prediction extrapolates from (0: the cold guess).
         ``True``/``False`` (older checkpoints) read as 1 and 0.
 
-    The offsets may be one array or any tree of arrays (:mod:`lieflow.tree`); extrapolation
+    The offsets may be one array or any tree of arrays (:mod:`lieflow.state_trees`); extrapolation
     is leaf by leaf and errors are measured on the norm of the whole tree.
     """
 
@@ -398,7 +402,9 @@ def _advanced(state: WarmStart, solved: Any, history: list[Any], stack: Any) -> 
         best = trusted_points(sums.tolist(), len(history), state.depth)
         return state.replaced([solved, *history], best)
     errors = [
-        squared_norm(solved) if isinstance(solved, np.ndarray) else tree.sum_of_squares(solved)
+        squared_norm(solved)
+        if isinstance(solved, np.ndarray)
+        else state_trees.sum_of_squares(solved)
     ]
     if history:
         errors += _prediction_errors(solved, history, stack)

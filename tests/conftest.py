@@ -39,3 +39,11 @@ def children() -> Iterator[Children]:
         yield started
     finally:
         started.end()
+
+
+@pytest.fixture
+def one_step_chunks(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A numpy flow stepped one step per chunk (``lieflow.stepping.BATCH_STEPS = 1``), so a
+    monitor or an interrupt between chunks falls at any step a test names, not at the end
+    of a batch of steps."""
+    monkeypatch.setattr(lf.stepping, "BATCH_STEPS", 1)

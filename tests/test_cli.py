@@ -95,25 +95,28 @@ def test_run_out_overrides_the_config(dirs: tuple[Path, Path]) -> None:
 
 
 def test_ctrl_c_then_resume_from_the_command_line(
-    dirs: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+    dirs: tuple[Path, Path],
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    one_step_chunks: None,
 ) -> None:
     cfg, out = dirs
     config = write(cfg, toml(run='h = 0.1\nsteps = 50\nsave_every = 10\noutput = "../out/a.h5"'))
     assert main(["run", str(config), "--no-progress", "--out", str(out / "ref.h5")]) == 0
 
-    real_advance = lf.driver.advance
+    real_advance = lf.stepping.advance
 
-    def interrupted(*args: Any, **kwargs: Any) -> Iterator[lf.driver.Chunk]:
+    def interrupted(*args: Any, **kwargs: Any) -> Iterator[lf.stepping.Chunk]:
         for chunk in real_advance(*args, **kwargs):
             yield chunk
             if chunk.stop == 23:
                 raise KeyboardInterrupt  # as Ctrl-C would, between two steps
 
-    monkeypatch.setattr(lf.driver, "advance", interrupted)
+    monkeypatch.setattr(lf.stepping, "advance", interrupted)
     assert main(["run", str(config), "--no-progress"]) == 130
     assert "--resume" in capsys.readouterr().err
     assert io.read_checkpoint(out / "a.h5").step == 23
-    monkeypatch.setattr(lf.driver, "advance", real_advance)
+    monkeypatch.setattr(lf.stepping, "advance", real_advance)
 
     assert main(["run", str(config), "--no-progress", "--resume"]) == 0
     a, ref = io.read_trajectory(out / "a.h5"), io.read_trajectory(out / "ref.h5")

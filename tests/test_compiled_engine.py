@@ -18,9 +18,10 @@ import pytest
 from helpers import import_plugin
 
 import lieflow as lf
-from lieflow import compiled, driver
+from lieflow import stepping
 from lieflow.app import io
 from lieflow.app.cli import main
+from lieflow.engines import compiled
 
 numba = pytest.importorskip("numba")
 
@@ -50,7 +51,7 @@ def _agree(ref: lf.Solution, fast: lf.Solution, atol: float = 1e-12) -> None:
 def test_blas_products_above_n_8_agree_with_numpy(
     system: lf.IsospectralSystem, scheme: str
 ) -> None:
-    """Above n = 8 the loops multiply through ``_kernels.gemm`` (BLAS), with ``A^T B`` for
+    """Above n = 8 the loops multiply through ``_compiled_loops.gemm`` (BLAS), with ``A^T B`` for
     the reduced form's stage values and, on the symmetric Toda states, ``A B^T``."""
     W0 = 0.8 * system.random_state(seed=2)
     ref, fast = _both(system, lf.schemes.get(scheme), W0, 0.02, steps=40)
@@ -224,14 +225,14 @@ def test_toda_is_symmetrized_every_step_inside_the_loops() -> None:
 
 
 def test_compiled_B_defaults() -> None:
-    from lieflow import _kernels
+    from lieflow.engines import _compiled_loops
 
     body = lf.systems.RigidBody()
     got = body.compiled_B()
     assert got is not None
     fn, params = got
     assert fn == "hadamard_B_skew"  # lieflow's own map, by name (the system imports no engine)
-    assert compiled._by_name(got)[0] is _kernels.hadamard_B_skew
+    assert compiled._by_name(got)[0] is _compiled_loops.hadamard_B_skew
     np.testing.assert_array_equal(params, body.hadamard_factor.ravel())
     assert "no compiled map named 'no_such_map'" in compiled._by_name(("no_such_map", params))
     assert body.compiled_project() is None
@@ -266,7 +267,7 @@ def test_eligibility_is_asked_of_the_scheme_and_the_solver() -> None:
     _agree(ref, fast, atol=1e-13)
 
 
-# ------------------------------------------------------------------ one driver, chunks
+# ------------------------------------------------------------------ one stepping loop, chunks
 
 
 @attrs.frozen(eq=False)
@@ -285,15 +286,15 @@ class _Recorder:
     def step_many(self, W: np.ndarray, start: int, h: float, steps: int, state: Any) -> Any:
         self.asked.append(steps)
         n = np.zeros(steps, dtype=np.int64)
-        return driver.Chunk(start, h, np.repeat(W[None], steps, 0), n, n * 0.0,
+        return stepping.Chunk(start, h, np.repeat(W[None], steps, 0), n, n * 0.0,
                             ("",) * steps, state)  # fmt: skip
 
 
 def test_chunks_end_at_multiples_of_the_chunk_size_wherever_the_run_starts() -> None:
     W0 = np.zeros((3, 3))
-    size = driver.chunk_steps(W0)
+    size = stepping.chunk_steps(W0)
     flow = _Recorder()
-    ends = [c.stop for c in driver.advance(flow, W0, 0.1, 2 * size + 100, start=23)]
+    ends = [c.stop for c in stepping.advance(flow, W0, 0.1, 2 * size + 100, start=23)]
     assert ends == [size, 2 * size, 2 * size + 100]
     assert flow.asked == [size - 23, size, 100]
 
@@ -305,7 +306,7 @@ def test_a_complete_chunk_is_not_followed_by_a_numpy_step() -> None:
     W0 = body.random_state(0)
     flow = scheme_flow(body, lf.schemes.get("midpoint"), lf.solvers.FixedPoint(), W0, 2500,
                        engine="compiled")  # fmt: skip
-    chunks = list(driver.advance(flow, W0, 0.1, 2500))
+    chunks = list(stepping.advance(flow, W0, 0.1, 2500))
     assert [c.size for c in chunks] == [1024, 1024, 452]
     assert all(np.isnan(c.residuals).all() for c in chunks)  # every step compiled
 
@@ -328,7 +329,7 @@ class _Drag:
 
 
 def _split_run(flow: lf.Flow, W0: np.ndarray, h: float, steps: int) -> tuple[Any, Any]:
-    chunks = list(driver.advance(flow, W0, h, steps))
+    chunks = list(stepping.advance(flow, W0, h, steps))
     return np.concatenate([c.W for c in chunks]), np.concatenate([c.iterations for c in chunks])
 
 
@@ -461,18 +462,18 @@ def test_compiled_run_interrupted_and_resumed_is_bit_for_bit(
         encoding="utf-8",
     )
     assert main(["run", str(config), "--no-progress", "--out", str(tmp_path / "ref.h5")]) == 0
-    real_advance = driver.advance
+    real_advance = stepping.advance
 
-    def interrupted(*args: Any, **kwargs: Any) -> Iterator[driver.Chunk]:
+    def interrupted(*args: Any, **kwargs: Any) -> Iterator[stepping.Chunk]:
         for chunk in real_advance(*args, **kwargs):
             yield chunk
             if chunk.stop == 1024:
                 raise KeyboardInterrupt
 
-    monkeypatch.setattr(driver, "advance", interrupted)
+    monkeypatch.setattr(stepping, "advance", interrupted)
     assert main(["run", str(config), "--no-progress"]) == 130
     assert io.read_checkpoint(tmp_path / "a.h5").step == 1024
-    monkeypatch.setattr(driver, "advance", real_advance)
+    monkeypatch.setattr(stepping, "advance", real_advance)
     assert main(["run", str(config), "--no-progress", "--resume"]) == 0
     a, ref = io.read_trajectory(tmp_path / "a.h5"), io.read_trajectory(tmp_path / "ref.h5")
     assert a.completed_steps == ref.completed_steps == 2500
@@ -490,12 +491,12 @@ def test_the_loops_load_from_the_disk_cache_in_a_new_process() -> None:
     code = textwrap.dedent(
         """
         import lieflow as lf
-        from lieflow import _kernels
+        from lieflow.engines import _compiled_loops
         body = lf.systems.RigidBody()
         lf.integrate(body, lf.schemes.get("midpoint"), body.random_state(0), 0.1, steps=5,
                      engine="compiled")
-        print(sum(_kernels.entry("sydirk_advance").stats.cache_hits.values()),
-              sum(_kernels.entry("sydirk_advance").stats.cache_misses.values()))
+        print(sum(_compiled_loops.entry("sydirk_advance").stats.cache_hits.values()),
+              sum(_compiled_loops.entry("sydirk_advance").stats.cache_misses.values()))
         """
     )
     for _ in range(2):  # the first may compile (a fresh checkout); the second must not
@@ -554,14 +555,14 @@ def test_a_run_compiles_only_the_loop_of_its_own_update(tmp_path: Path) -> None:
     code = textwrap.dedent(
         """
         import lieflow as lf
-        from lieflow import _kernels
+        from lieflow.engines import _compiled_loops
         body = lf.systems.RigidBody()
         for update in ("commutator", "conjugation"):
             lf.integrate(body, lf.schemes.get("midpoint", update=update), body.random_state(0),
                          0.1, steps=5, engine="compiled")
-            print(update, len(_kernels._gauss_jordan.signatures),
-                  len(_kernels._orthonormalize.signatures),
-                  sorted(k[2] for k in _kernels._ENTRIES if k[0] == "sydirk_advance"))
+            print(update, len(_compiled_loops._gauss_jordan.signatures),
+                  len(_compiled_loops._orthonormalize.signatures),
+                  sorted(k[2] for k in _compiled_loops._ENTRIES if k[0] == "sydirk_advance"))
         """
     )
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}  # an empty cache: all compiled

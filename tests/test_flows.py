@@ -1,4 +1,4 @@
-"""Flows, splittings and the one driver (issue 12).
+"""Flows, splittings and the one stepping loop (issue 12).
 
 Expected values come from outside lieflow: the exact solution of a linear drag, and an
 independent high-order integrator (scipy's DOP853 at rtol 1e-13) of the combined ODE
@@ -16,7 +16,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import lieflow as lf
-from lieflow import driver, tree
+from lieflow import state_trees, stepping
 from lieflow.app.config import build, parse_config
 from lieflow.flows import Splitting, StepStats
 from lieflow.systems.shifted import CasimirShifted
@@ -209,9 +209,9 @@ def test_projected_scheme_flow_projects_once_per_step() -> None:
     system = Counting(inertia=(1.0, 2.0, 3.0))
     W0 = system.random_state(1)
     flow = lf.SchemeFlow(system, lf.schemes.get("midpoint"))
-    alone = [c.W for c in driver.advance(flow, W0, 0.1, 5)]
+    alone = [c.W for c in stepping.advance(flow, W0, 0.1, 5)]
     system.calls.clear()
-    wrapped = [c.W for c in driver.advance(lf.Projected(flow, system), W0, 0.1, 5)]
+    wrapped = [c.W for c in stepping.advance(lf.Projected(flow, system), W0, 0.1, 5)]
     assert len(system.calls) == 5
     np.testing.assert_array_equal(np.concatenate(wrapped), np.concatenate(alone))
     shifted = CasimirShifted(system, 0.5)
@@ -224,13 +224,13 @@ def test_projected_scheme_flow_projects_once_per_step() -> None:
 
 def test_tree_round_trip() -> None:
     state = (lf.WarmStart(np.ones((2, 3)), None, False), None, {"k": np.arange(3.0), "x": 1.5})
-    flat = dict(tree.paths(state))
+    flat = dict(state_trees.paths(state))
     assert sorted(flat) == ["0/last", "0/previous", "0/trusted", "1", "2/k", "2/x"]
     template = (lf.WarmStart(), None, {"k": None, "x": 0.0})
-    back = tree.rebuild(template, flat)
+    back = state_trees.rebuild(template, flat)
     assert back[0].trusted is False and back[1] is None and back[2]["x"] == 1.5
     assert np.array_equal(back[0].last, np.ones((2, 3)))
-    assert tree.sum_of_squares(state) == pytest.approx(6 + 5)
+    assert state_trees.sum_of_squares(state) == pytest.approx(6 + 5)
 
 
 def test_driver_reports_the_failing_step() -> None:
@@ -246,7 +246,7 @@ def test_driver_reports_the_failing_step() -> None:
 
     chunks = []
     with pytest.raises(lf.ConvergenceError) as info:
-        for chunk in driver.advance(Blow(), np.eye(2), 0.1, 10):
+        for chunk in stepping.advance(Blow(), np.eye(2), 0.1, 10):
             chunks.append(chunk)
     assert [c.stop for c in chunks] == [1, 2, 3]
     assert info.value.step == 4 and info.value.reason == "non_finite"

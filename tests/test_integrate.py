@@ -156,7 +156,9 @@ def test_bad_run_arguments_are_refused(kwargs: dict, match: str) -> None:
         lf.integrate(body, lf.schemes.get("midpoint"), **args)
 
 
-def test_a_monitor_object_receives_every_step() -> None:
+def test_a_monitor_object_hears_of_every_step_chunk_by_chunk() -> None:
+    """A numpy flow's steps come in chunks of at most ``BATCH_STEPS`` (issue 36: batched
+    whoever watches); the monitor hears of each, and of every step once."""
     seen: list[tuple[str, int]] = []
 
     class Log:
@@ -170,6 +172,8 @@ def test_a_monitor_object_receives_every_step() -> None:
             seen.append(("stop", 0))
 
     body = lf.systems.get("rigid_body", inertia=(1.0, 2.0, 3.0))
-    lf.integrate(body, lf.schemes.get("midpoint"), body.random_state(0), 0.1, steps=5,
+    lf.integrate(body, lf.schemes.get("midpoint"), body.random_state(0), 0.1, steps=150,
                  progress=Log(), engine="numpy")  # fmt: skip
-    assert seen == [("start", 5), *[("advance", 1)] * 5, ("stop", 0)]
+    sizes = [k for what, k in seen if what == "advance"]
+    assert seen[0] == ("start", 150) and seen[-1] == ("stop", 0) and len(seen) == len(sizes) + 2
+    assert sum(sizes) == 150 and sizes == [64, 64, 22]  # lf.stepping.BATCH_STEPS = 64

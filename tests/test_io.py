@@ -109,7 +109,9 @@ def test_datasets_are_chunked_and_resizable(reference: Path) -> None:
             assert f[name].maxshape[0] is None
 
 
-def test_ctrl_c_then_resume_is_bitwise_identical(tmp_path: Path, reference: Path) -> None:
+def test_ctrl_c_then_resume_is_bitwise_identical(
+    tmp_path: Path, reference: Path, one_step_chunks: None
+) -> None:
     setup = setup_for(write_config(tmp_path), tmp_path / "interrupted.h5")
     summary = io.run(setup, monitor=StopAt(37, KeyboardInterrupt()))
     assert summary.status == "interrupted" and summary.completed_steps == 37
@@ -158,7 +160,9 @@ def test_hard_kill_then_resume_is_bitwise_identical(tmp_path: Path, reference: P
     assert_same_file(out, reference)
 
 
-def test_resume_truncates_a_save_cut_off_half_way(tmp_path: Path, reference: Path) -> None:
+def test_resume_truncates_a_save_cut_off_half_way(
+    tmp_path: Path, reference: Path, one_step_chunks: None
+) -> None:
     setup = setup_for(write_config(tmp_path), tmp_path / "torn.h5")
     io.run(setup, monitor=StopAt(20, KeyboardInterrupt()))
     with h5py.File(setup.output, "r+") as f:  # rows of a save that never got its checkpoint

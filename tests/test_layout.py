@@ -191,9 +191,9 @@ def test_the_package_has_no_import_circle_even_inside_functions() -> None:
 
 def test_the_core_has_no_import_circle_even_inside_functions() -> None:
     """Issue 36: the core's layers — errors, algebras, tableaus, backends; systems, schemes,
-    solvers; flows, warm starts; engines; driver; sinks, solution; integration — import
+    solvers; flows, warm starts; engines; stepping; sinks, solution; integration — import
     downwards only, at module level, inside functions and in ``TYPE_CHECKING`` blocks (the
-    driver defines the ``Sink`` protocol its loop feeds; the registry checks what it holds
+    stepping loop defines the ``Sink`` protocol its loop feeds; the registry checks what it holds
     by shape, systems name lieflow's compiled maps instead of importing the engine)."""
     assert _circle(_core_files(), anywhere=True) == []
 

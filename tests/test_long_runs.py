@@ -35,9 +35,9 @@ NUMPY_ONLY = ("modin_viviani",)
 
 
 def _compiled_refusal(system_name: str, scheme_name: str) -> str | None:
-    """Why ``lieflow.compiled.plan`` refuses this pair, or ``None`` if it runs it."""
+    """Why ``lieflow.engines.compiled.plan`` refuses this pair, or ``None`` if it runs it."""
     pytest.importorskip("numba")
-    from lieflow import compiled
+    from lieflow.engines import compiled
 
     system = lf.systems.get(system_name)
     plan = compiled.plan(
@@ -126,7 +126,7 @@ TODA = lf.systems.get("periodic_toda")
     ],
 )
 def test_toda_gauss3_long_runs(seed: int, scale: float, engine: str, t_final: float) -> None:
-    from lieflow import compiled
+    from lieflow.engines import compiled
 
     if engine == "compiled" and not compiled.available():
         pytest.skip("numba is not installed")

@@ -21,8 +21,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import lieflow as lf
-from lieflow.driver import advance
 from lieflow.schemes import MidpointProblem
+from lieflow.stepping import advance
 
 EPS = float(np.finfo(float).eps)
 
@@ -212,7 +212,7 @@ def test_commutator_update_keeps_an_exactly_skew_state_exactly_skew(
     """``W1 = W0 + h (C - C^T)`` (the midpoint rule's update, ``C = B(P M) P M``) of an
     exactly skew ``W0`` with a +0 diagonal (what the projection returns) is exactly skew
     with a +0 diagonal for *any* stage value ``M`` and sign of ``h``: the projection
-    returns it bit for bit, so a driver may skip it (``SchemeFlow.step_from_phase_space``;
+    returns it bit for bit, so a stepping loop may skip it (``SchemeFlow.step_from_phase_space``;
     the proof is in ``StageProblem.commutator_update``)."""
     rng = np.random.default_rng(seed)
     dtype = np.float32 if single else np.float64
@@ -249,6 +249,6 @@ def test_a_run_skips_only_projections_that_return_the_state_unchanged(
     for k in range(steps):
         W, state, _ = flow.step(W, k * h, h, state)
         assert W.tobytes() == sol.W[k + 1].tobytes(), k
-    # the driver's step-by-step loop (a monitor or Ctrl-C handler watching) does the same
+    # the stepping loop's step-by-step loop (a monitor or Ctrl-C handler watching) does the same
     one_by_one = np.concatenate([c.W for c in advance(flow, W0, h, steps, batch=1)])
     assert one_by_one.tobytes() == sol.W[1:].tobytes()

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import lieflow as lf
-from lieflow import driver
+from lieflow import stepping
 from lieflow.app.reproduce import Case
 from lieflow.warm_start import (
     DEFAULT_DEPTH,
@@ -160,17 +160,17 @@ def test_resumed_runs_equal_uninterrupted_ones_bit_for_bit(engine: str) -> None:
     system, W0 = _grb()
     scheme, solver = lf.schemes.get("gauss2"), lf.solvers.FixedPoint()
     flow = scheme_flow(system, scheme, solver, W0, 30, engine=engine, warm_start=True)
-    whole = list(driver.advance(flow, W0, 0.1, 30))
+    whole = list(stepping.advance(flow, W0, 0.1, 30))
     cut = 7
-    first = [c for c in driver.advance(flow, W0, 0.1, cut)]
+    first = [c for c in stepping.advance(flow, W0, 0.1, cut)]
     last = first[-1]
     state = last.state
     # the state survives a round trip through its leaves (what a checkpoint stores)
-    from lieflow import tree
+    from lieflow import state_trees
 
-    state = tree.rebuild(flow.init(W0), {p: np.copy(v) if isinstance(v, np.ndarray) else v
-                                         for p, v in tree.paths(state)})  # fmt: skip
-    rest = list(driver.advance(flow, last.W[-1], 0.1, 30, start=cut, state=state))
+    state = state_trees.rebuild(flow.init(W0), {p: np.copy(v) if isinstance(v, np.ndarray) else v
+                                         for p, v in state_trees.paths(state)})  # fmt: skip
+    rest = list(stepping.advance(flow, last.W[-1], 0.1, 30, start=cut, state=state))
     a = np.concatenate([c.W for c in whole])
     b = np.concatenate([c.W for c in first + rest])
     assert np.array_equal(a, b)

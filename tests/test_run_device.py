@@ -56,13 +56,13 @@ def test_resume_on_a_device_continues_from_the_checkpoint(
     from lieflow import runs
 
     placed: list[Any] = []
-    real_place, real_advance = runs.from_host, lf.driver.advance
+    real_place, real_advance = runs.from_host, lf.stepping.advance
 
     def counting(a: Any, like: Any, dtype: Any = None) -> Any:
         placed.append(a)
         return real_place(a, like, dtype)
 
-    def interrupted(*args: Any, **kwargs: Any) -> Iterator[lf.driver.Chunk]:
+    def interrupted(*args: Any, **kwargs: Any) -> Iterator[lf.stepping.Chunk]:
         for chunk in real_advance(*args, **kwargs):
             assert not backends.is_numpy(chunk.W)  # the steps run on the device library
             yield chunk
@@ -70,11 +70,11 @@ def test_resume_on_a_device_continues_from_the_checkpoint(
                 raise KeyboardInterrupt
 
     monkeypatch.setattr(runs, "from_host", counting)
-    monkeypatch.setattr(lf.driver, "advance", interrupted)
+    monkeypatch.setattr(lf.stepping, "advance", interrupted)
     out = str(tmp_path / "dev.h5")
     assert main(["run", str(device), "--no-progress", "--out", out]) == 130
     assert io.read_checkpoint(tmp_path / "dev.h5").step == 23
-    monkeypatch.setattr(lf.driver, "advance", real_advance)
+    monkeypatch.setattr(lf.stepping, "advance", real_advance)
     before = len(placed)
     assert main(["run", str(device), "--no-progress", "--out", out, "--resume"]) == 0
     assert len(placed) > before + 1  # the state and the warm start's arrays

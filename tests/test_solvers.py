@@ -242,8 +242,8 @@ def test_the_cap_accepts_an_update_at_roundoff() -> None:
 
 def test_compiled_rule_agrees_at_the_cap() -> None:
     """The compiled engine's rule gives the same verdicts at the cap: the shared
-    ``stopping_verdict`` compiled with numba (``_kernels.verdict``, the same function)."""
-    from lieflow.compiled import kernels
+    ``stopping_verdict`` compiled with numba (``_compiled_loops.verdict``, the same function)."""
+    from lieflow.engines.compiled import kernels
     from lieflow.solvers.fixed_point import REASONS
 
     try:

@@ -41,7 +41,7 @@ import os, signal, sys
 from lieflow import progress
 from lieflow.app import config, io
 from lieflow.app.io import _writer
-from lieflow import driver
+from lieflow import stepping
 
 def interrupt():
     os.kill(os.getpid(), signal.SIGINT)
@@ -86,7 +86,7 @@ elif point in ("rich_set_live", "rich_hide_cursor"):  # inside rich's Live.start
         return result
     setattr(Console, name, method)
 elif point == "swallowed":
-    original_advance = driver.advance
+    original_advance = stepping.advance
     class Finalizer:
         def __del__(self):
             interrupt()  # the KeyboardInterrupt raised here is printed and swallowed
@@ -95,7 +95,7 @@ elif point == "swallowed":
             if i == 1:
                 Finalizer()
             yield chunk
-    driver.advance = advance
+    stepping.advance = advance
 from lieflow.app.cli import main
 sys.exit(main(sys.argv[2:]))
 """

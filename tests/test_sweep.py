@@ -212,7 +212,9 @@ class _StopAfter:
         pass
 
 
-def test_interrupted_runs_resume_bit_for_bit_and_steps_can_grow(tmp_path: Path) -> None:
+def test_interrupted_runs_resume_bit_for_bit_and_steps_can_grow(
+    tmp_path: Path, one_step_chunks: None
+) -> None:
     grid = write_grid(tmp_path, '"initial.seed" = [0, 1, 2]')
     g = load_sweep(grid)
     # two runs interrupted part-way (as by Ctrl-C or a killed job), one never started
@@ -276,7 +278,7 @@ class _LosingExecutor(cf.Executor):
         return fut
 
 
-def test_a_lost_task_is_redone_from_its_checkpoint(tmp_path: Path) -> None:
+def test_a_lost_task_is_redone_from_its_checkpoint(tmp_path: Path, one_step_chunks: None) -> None:
     grid = write_grid(tmp_path, '"initial.seed" = [0, 1]')
     res = sweep(grid, _LosingExecutor(lose=2, partial=10))
     assert res.ok

@@ -2,9 +2,9 @@
 source as the eager engine, run here on JAX's CPU backend.
 
 Its two pieces of control logic are held to the scalar code they restate — the stopping rule
-(:func:`lieflow.engines.loops.verdict` against
+(:func:`lieflow.engines.traced_loops.verdict` against
 :func:`lieflow.solvers.fixed_point.stopping_verdict`, code for code) and the warm start
-(:mod:`lieflow.engines.warm` against :class:`lieflow.WarmStart`) — and whole runs to the
+(:mod:`lieflow.engines.traced_warm` against :class:`lieflow.WarmStart`) — and whole runs to the
 physics: the Casimirs the flow conserves, and a composition against the scheme it equals."""
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import lieflow as lf
-from lieflow import driver
-from lieflow.engines import loops, scheme_flow, traced, warm
+from lieflow import stepping
+from lieflow.engines import scheme_flow, traced, traced_loops, traced_warm
 from lieflow.solvers.fixed_point import REASONS, StoppingRule, stopping_verdict
 
 jax = pytest.importorskip("jax")
@@ -64,7 +64,8 @@ def test_the_traced_stopping_rule_is_the_scalar_rule(case: Any) -> None:
                                 rule.window, rule.project)  # fmt: skip
     buffer = np.full(rule.max_iter, np.inf)
     buffer[: len(res)] = res
-    got = loops.verdict(rule, rule.roundoff_floor, jnp.asarray(buffer), len(res), met, growth)
+    floor = rule.roundoff_floor
+    got = traced_loops.verdict(rule, floor, jnp.asarray(buffer), len(res), met, growth)
     assert REASONS[int(got)] == REASONS[expected]
 
 
@@ -75,17 +76,17 @@ def test_the_warm_start_as_arrays_predicts_and_trusts_as_the_warm_start(depth: i
     down): every prediction and trust of the arrays equals :class:`WarmStart`'s."""
     rng = np.random.default_rng(depth)
     state = lf.WarmStart.keeping(depth)
-    arrays = warm.from_warm_start(state, (2, 3), np.float64, np)
+    arrays = traced_warm.from_warm_start(state, (2, 3), np.float64, np)
     for k in range(14):
         t = 0.3 * k
         solved = np.array([[np.sin(t), np.cos(2 * t), t * t], [1.0, -t, np.exp(-t)]])
         solved += (1e-3 if k % 5 == 4 else 1e-9) * rng.standard_normal(solved.shape)
         guess = state.predict().guess
-        mine = warm.predict(arrays, np)
+        mine = traced_warm.predict(arrays, np)
         np.testing.assert_allclose(mine, np.zeros((2, 3)) if guess is None else guess,
                                    rtol=1e-13, atol=1e-13)  # fmt: skip
         state = state.advance(solved)
-        arrays = warm.advance(arrays, solved, np)
+        arrays = traced_warm.advance(arrays, solved, np)
         assert int(arrays.trusted) == state.trusted
         assert int(arrays.count) == len(state.history())
     rows = [arrays.history[j] for j in range(int(arrays.count))]
@@ -140,7 +141,7 @@ def test_every_solver_runs_traced_with_the_eager_engines_updates(solver: Any) ->
 
 class _HostDiagnostics(type(_body()[0])):  # type: ignore[misc]
     """The rigid body with Casimirs written for NumPy only: they do not trace, so the chunk
-    brings every state to the host, where the driver computes the diagnostics."""
+    brings every state to the host, where the stepping loop computes the diagnostics."""
 
     def casimirs(self, W: Any) -> Any:
         W = np.asarray(W)
@@ -205,8 +206,8 @@ def test_chunks_end_at_the_states_needed_and_hold_them_only() -> None:
     np.testing.assert_allclose(system.casimirs(W0), base.casimirs(W0), rtol=1e-15)
     flow = scheme_flow(system, lf.schemes.get("midpoint"), lf.solvers.FixedPoint(),
                        jnp.asarray(W0), 12, engine="jax")  # fmt: skip
-    recording = driver.Recording(save_every=5, last=12, diagnostics=True)
-    chunks = list(driver.advance(flow, jnp.asarray(W0), 0.1, 12, recording=recording))
+    recording = stepping.Recording(save_every=5, last=12, diagnostics=True)
+    chunks = list(stepping.advance(flow, jnp.asarray(W0), 0.1, 12, recording=recording))
     assert [(c.start, c.size) for c in chunks] == [(0, 5), (5, 5), (10, 2)]
     for c in chunks:
         assert c.W.shape == (1, 3, 3) and c.held is not None and c.held.tolist() == [c.size - 1]

@@ -210,7 +210,7 @@ def test_euler_zeitlin_guard_defaults_and_validation() -> None:
     with pytest.raises(lf.InputError, match="underflow_guard"):
         lz.EulerZeitlin(64, underflow_guard=-1.0)
     # the compiled engine does not run it: refused, and auto takes numpy
-    from lieflow import compiled
+    from lieflow.engines import compiled
 
     system = lz.EulerZeitlin(16, underflow_guard=TAU)
     reason = compiled.plan(system, lf.schemes.get("midpoint"), lf.solvers.FixedPoint(),

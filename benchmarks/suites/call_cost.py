@@ -8,12 +8,12 @@ checked) and the projection onto the phase space, i.e. the algorithm of that ste
 
 * numpy engine: ``system.project(scheme.step(W0, h, system, solver, None).W)``;
 * compiled engine: the compiled loop called directly on its prepared arguments for one
-  step from the cold start (:meth:`lieflow.compiled.CompiledPlan.loop_call`: the same
+  step from the cold start (:meth:`lieflow.engines.compiled.CompiledPlan.loop_call`: the same
   loop, the same numba dispatch as the engine's), then ``system.project`` where the plan
   has no compiled projection (so(n): as the engine does after each chunk).
 
 What the overhead holds is everything else a call does: argument checks, validating
-``W0``, the engine's set-up (the compiled plan), the sink, the driver's set-up and teardown,
+``W0``, the engine's set-up (the compiled plan), the sink, the stepping loop's set-up and teardown,
 the step's bookkeeping (its warm start, its chunk; on the compiled engine the loops'
 arguments and results), the diagnostics of ``W0`` and of the step, and the
 :class:`~lieflow.Solution`.
@@ -41,11 +41,11 @@ the probes add ~0.3 µs each): argument checks 2; validating ``W0`` 6 / 7 (a cop
 finiteness, the algebra check); the engine's set-up 1.5 on numpy, 9 on the compiled engine
 (the system's compiled maps checked to be the ones checked before, ~5: each call asks the
 system for them again; the plan's and the flow's lookups); the sink's set-up 3; the
-driver's set-up 2; the step's bookkeeping beyond the bare step ~5 on numpy (the warm start,
+stepping loop's set-up 2; the step's bookkeeping beyond the bare step ~5 on numpy (the warm start,
 the chunk), ~10 on the compiled engine (the loops' arguments and results, the chunk);
 recording the chunk 5; closing the sink, the :class:`~lieflow.Solution` and the outcome 6.
 Diagnostics on add 20 (so(3)) / 31–35 (so(10)) for the energy, Casimirs and Casimir scale of
-``W0`` and the step's state (one batch: :meth:`lieflow.driver.Diagnostics.deferred`) and
+``W0`` and the step's state (one batch: :meth:`lieflow.stepping.Diagnostics.deferred`) and
 their errors, and ~6 in the sink (its per-step arrays, their recording). Each of these is a
 handful of NumPy calls of 0.5–2 µs each in a call's context (a call touches ~100); none
 is one large cost.
@@ -66,8 +66,8 @@ import numpy as np
 
 import lieflow as lf
 from lieflow.app.reproduce import Case
-from lieflow.compiled import CompiledSchemeFlow
 from lieflow.engines import scheme_flow
+from lieflow.engines.compiled import CompiledSchemeFlow
 from lieflow.runs import DEFAULT_SOLVER
 
 from ..config import BenchContext
@@ -93,7 +93,7 @@ LIMIT = (
     "step (diagnostics on: 20 µs on so(3), 31–35 on so(10), in one batch), validating W0 "
     "(6–7), on the compiled engine its set-up (9: the system's compiled maps are asked for "
     "and compared on every call) and the loops' arguments and results (~10), the sink, "
-    "its chunk and the Solution (~14), the argument checks and the driver (~4)"
+    "its chunk and the Solution (~14), the argument checks and the stepping loop (~4)"
 )
 
 #: Untimed calls of one step between a round's long run and its short calls (the steady
@@ -187,7 +187,7 @@ def bare_step(
     same cold solve (checked: ``updates`` updates) and the projection onto the phase space,
     without the call around it. numpy: ``scheme.step`` from no guess, then
     ``system.project``; compiled: the compiled loop called on its prepared arguments
-    (:meth:`lieflow.compiled.CompiledPlan.loop_call`, cold start: repeatable), then
+    (:meth:`lieflow.engines.compiled.CompiledPlan.loop_call`, cold start: repeatable), then
     ``system.project`` where the plan has no compiled projection (as the engine does)."""
     solver = DEFAULT_SOLVER
     W = system.validate(W0)

@@ -9,7 +9,7 @@ through the scheme's :class:`~lieflow.solvers.ImplicitProblem` and ``FixedPoint.
 
 At small n (issue 18) the products are negligible and what counts is everything around
 them: ``lieflow.integrate(..., engine="numpy", diagnostics=False)`` divided by the
-updates it took (warm starts, the step's update and projection and the driver included).
+updates it took (warm starts, the step's update and projection and the stepping loop included).
 Issue 27 measures that against :func:`plain_midpoint`, the same algorithm as a plain NumPy
 loop, timed interleaved in the same process (target: at most 1.3× its time per update).
 """
@@ -204,7 +204,7 @@ def small_n(ctx: BenchContext) -> tuple[Table, TargetCheck]:
         limit="NumPy call overhead (~0.3-1 µs a call on 3×3 arrays): ~15 calls per update "
         "(stage projection, B, two products, the combination, two norms), ~30 per step "
         "(warm-start extrapolation and its error check, the commutator update with its "
-        "stage projection, the driver's per-step chunk and finiteness check)",
+        "stage projection, the stepping loop's per-step chunk and finiteness check)",
     )
     return table, target
 
@@ -320,7 +320,7 @@ PLAIN_LIMIT = (
     "(so(3) 53 against 44 µs a step, so(10) 46 against 30): the commutator update with "
     "its stage projection (~4.8 µs; the loop skips the projection), the warm start's "
     "prediction and bookkeeping (~3.3 µs), the solve's guess, stopping test and result "
-    "(~2 µs), the step's problem (~1.3 µs), and the step's, flow's and driver's "
+    "(~2 µs), the step's problem (~1.3 µs), and the step's, flow's and stepping loop's "
     "results, chunk and finiteness check (~4 µs). The new state is not projected again "
     "on so(n) (SchemeFlow.step_from_phase_space: an exactly skew state stays exactly "
     "skew under the commutator update). so(10), 4 updates a step, needs ~6 µs less per "

@@ -4,7 +4,7 @@ A forced, dissipative run composes the isospectral step with exact sub-flows (St
 ``φ^{diss+force}_{h/2} ∘ Φ^{cons}_h ∘ φ^{diss+force}_{h/2}``, the dissipative and forcing
 sub-flows of the plugin, :mod:`lieflow_zeitlin.dissipation`). The compiled scheme flow
 takes its steps inside the splitting one at a time (a chunk of one step,
-:meth:`lieflow.compiled.CompiledSchemeFlow.step`); before, they silently ran on numpy.
+:meth:`lieflow.engines.compiled.CompiledSchemeFlow.step`); before, they silently ran on numpy.
 
 Compared in the same process, interleaved, median rounds: the conservative run on the
 compiled engine (many steps per call: the floor), the same isospectral step inside a
@@ -29,7 +29,7 @@ import attrs
 import numpy as np
 
 import lieflow as lf
-from lieflow import driver
+from lieflow import stepping
 from lieflow.engines import scheme_flow
 
 from ..config import BenchContext
@@ -58,7 +58,7 @@ class Run:
 def _advance(flow: lf.Flow, W0: np.ndarray, h: float, steps: int) -> float:
     """Run ``steps`` steps; the mean updates per step."""
     updates = 0
-    for chunk in driver.advance(flow, W0, h, steps):
+    for chunk in stepping.advance(flow, W0, h, steps):
         updates += int(chunk.iterations.sum())
     return updates / steps
 
@@ -70,7 +70,7 @@ def flows(N: int, seed: int) -> tuple[dict[str, Any], np.ndarray, float] | None:
         import lieflow_zeitlin as lz
     except ImportError:
         return None
-    from lieflow import compiled
+    from lieflow.engines import compiled
 
     if not compiled.available():
         return None

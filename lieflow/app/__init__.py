@@ -1,7 +1,7 @@
 """The application built on lieflow's numerical core: command line, files, studies.
 
 ``lieflow`` itself holds the numerics (algebras, systems, tableaus, schemes, solvers, flows,
-the driver and :func:`~lieflow.integrate`); this subpackage holds what turns them into runs
+the stepping loop and :func:`~lieflow.integrate`); this subpackage holds what turns them into runs
 on disk and figures:
 
 - :mod:`~lieflow.app.config` — TOML run configurations (``lieflow run``);

@@ -1,7 +1,7 @@
 """A sweep's runs written straight into its Zarr store: :class:`ZarrSink`.
 
 A sweep with ``store="zarr"`` feeds each run's steps to two sinks of one
-:func:`lieflow.driver.run` call: the run's trajectory file (the
+:func:`lieflow.stepping.run` call: the run's trajectory file (the
 :class:`~lieflow.app.io.TrajectoryWriter`, the resume point: checkpoints with the flow's
 state, checksums, the lock) and a :class:`ZarrSink` writing the run's group of the store
 (``DIRECTORY/runs.zarr/<id>``) as the steps come. The group holds what
@@ -9,7 +9,7 @@ state, checksums, the lock) and a :class:`ZarrSink` writing the run's group of t
 arrays, dtypes and attributes — so :func:`lieflow.open_sweep` gives the same dataset; the
 file is not read back.
 
-The sink checkpoints when the file does (the driver calls both), so the group's
+The sink checkpoints when the file does (the stepping loop calls both), so the group's
 ``lieflow_stored_steps`` (written last, in one write with the header) equals the file's
 checkpoint. A resume continues the group when it holds exactly the file's checkpoint;
 otherwise (a worker killed between the two checkpoints, a store added later) the sink
@@ -28,9 +28,9 @@ import numpy as np
 
 from .. import _signals
 from ..algebras import Array
-from ..driver import Chunk, ChunkDiagnostics, Diagnostics
 from ..errors import ConvergenceError
 from ..sinks import Ending, to_host
+from ..stepping import Chunk, ChunkDiagnostics, Diagnostics
 from .datasets import (
     _CHUNK_BYTES,
     _DIAGNOSTICS,
@@ -256,7 +256,7 @@ class ZarrSink:
                 "residual": [b[3] for b in buf],
             }
             for key, parts in columns.items():
-                # on the host: the driver hands sinks host chunks, their diagnostics too
+                # on the host: the stepping loop hands sinks host chunks, their diagnostics too
                 self._append(key, n0, np.concatenate(parts))
             self._n_diag = n0 + sum(len(b[2]) for b in buf)
             steps = np.concatenate([b[0] for b in buf]).astype(np.int64)

@@ -7,7 +7,7 @@ get ``numpy`` itself (no wrapper, no import of anything optional: the core stays
 numpy/scipy/attrs/pluggy); arrays of any other library (CuPy, PyTorch, JAX,
 ``array_api_strict``) get the standard-conforming namespace of ``array-api-compat``, the
 optional extra ``lieflow[array]``. The library is selected by the array passed in: a state on
-a GPU stays there, and data reach the host through :func:`to_numpy` (the driver, once per
+a GPU stays there, and data reach the host through :func:`to_numpy` (the stepping loop, once per
 chunk of states; sinks, for a checkpoint's warm start; the traced engine returns NumPy for
 a NumPy state).
 """

@@ -7,14 +7,14 @@ against the array API — and three ways to run it:
   a time, on NumPy or on the library of the array passed in (CuPy, PyTorch, JAX,
   ``array_api_strict``). Every system, scheme, solver and dtype.
 * ``"compiled"``: numba-compiled loops for small NumPy systems
-  (:mod:`lieflow.compiled`), many steps per call.
+  (:mod:`lieflow.engines.compiled`), many steps per call.
 * ``"jax"``, the traced engine (:mod:`lieflow.engines.traced`): the whole step compiled by
   ``jax.jit`` and run on the array's device, a chunk of steps per call with no host round
   trip per update — for JAX arrays and, through DLPack, CuPy and PyTorch arrays on a GPU;
   for NumPy arrays on JAX's CPU backend when asked by name.
 
 ``"auto"`` (the default) picks the compiled loops for small NumPy runs where they win
-(:func:`lieflow.compiled.wins`), the traced engine for arrays of a device library where it
+(:func:`lieflow.engines.compiled.wins`), the traced engine for arrays of a device library where it
 runs the case, and the eager engine otherwise. :func:`scheme_flow` makes the choice; a step
 an engine cannot finish is handed to the eager engine, so failures read the same on all.
 """
@@ -54,11 +54,11 @@ def scheme_flow(
     """The :class:`SchemeFlow` that runs ``scheme`` on ``system`` with ``engine``.
 
     ``"numpy"``: a plain :class:`SchemeFlow` (eager, on the array's own library).
-    ``"compiled"``: the numba loops (:class:`lieflow.compiled.CompiledSchemeFlow`), NumPy
+    ``"compiled"``: the numba loops (:class:`lieflow.engines.compiled.CompiledSchemeFlow`), NumPy
     arrays only. ``"jax"``: the traced engine
     (:class:`lieflow.engines.traced.TracedSchemeFlow`). Both raise :class:`InputError`
     naming what is missing or unsupported. ``"auto"``: for NumPy arrays the compiled loops
-    where supported, installed and faster (:func:`lieflow.compiled.wins`, judged for
+    where supported, installed and faster (:func:`lieflow.engines.compiled.wins`, judged for
     ``steps`` steps of ``W0``), else eager; for arrays of another library the traced engine
     where JAX runs the case on the array's device, else eager. The flow is built once, of
     the class it ends up with.
@@ -74,7 +74,7 @@ def scheme_flow(
             f"engine='compiled' runs NumPy arrays only, got a {type(W0).__module__} array; "
             "use engine='jax' (the traced engine) or 'auto'"
         )
-    from .. import compiled
+    from . import compiled
 
     if engine == "auto" and not compiled.available():
         return SchemeFlow(system, scheme, solver, warm_start)

@@ -5,16 +5,16 @@ device with no host round trip per update.
 Nothing here restates the numerics. The program is the scheme's own :meth:`Scheme.step
 <lieflow.schemes.Scheme.step>` on the system's own ``B`` and projection — the array-API
 source the eager engine runs op by op on a device — traced with a
-:class:`~lieflow.engines.loops.TracedSolver` (the solver's iteration as a
+:class:`~lieflow.engines.traced_loops.TracedSolver` (the solver's iteration as a
 ``lax.while_loop``) and the warm start as fixed-shape arrays
-(:mod:`lieflow.engines.warm`). What the engine adds is how they run:
+(:mod:`lieflow.engines.traced_warm`). What the engine adds is how they run:
 
 * a chunk of steps is one call: a ``lax.while_loop`` over the steps up to the next state the
-  run needs (:class:`lieflow.driver.Recording`: a save point, an extra diagnostic, the last
+  run needs (:class:`lieflow.stepping.Recording`: a save point, an extra diagnostic, the last
   step), with the energy and Casimirs of every step computed on the device when the run
   records diagnostics; the host sees the chunk's last state and a few numbers per step —
   one synchronisation per chunk;
-* a step that does not converge ends the chunk before it; the driver hands it to the eager
+* a step that does not converge ends the chunk before it; the stepping loop hands it to the eager
   engine (:meth:`TracedSchemeFlow.step` falls back to :meth:`SchemeFlow.step
   <lieflow.flows.SchemeFlow.step>`), which retries cold or raises the same
   :class:`~lieflow.errors.ConvergenceError` as every engine;
@@ -36,13 +36,13 @@ from typing import Any
 import attrs
 import numpy as np
 
-from .. import driver
+from .. import stepping
 from ..algebras import Array
 from ..backends import is_numpy, namespace
 from ..errors import InputError
 from ..flows import SchemeFlow, StepStats
 from ..warm_start import WarmStart
-from . import loops, warm
+from . import traced_loops, traced_warm
 
 __all__ = ["TracedSchemeFlow", "available", "jax_array", "plan"]
 
@@ -143,14 +143,14 @@ def plan(system: Any, scheme: Any, solver: Any, W0: Any) -> str | None:
     by tracing one step, without compiling it)."""
     if not available():
         return "JAX is not installed (pip install jax)"
-    reason = loops.supported(solver)
+    reason = traced_loops.supported(solver)
     if reason is not None:
         return reason
     jax = _jax()
     W = jax_array(W0)
     try:
         jax.eval_shape(
-            lambda W: _one_step(system, scheme, loops.TracedSolver(solver), W, 0.5, None)[0],
+            lambda W: _one_step(system, scheme, traced_loops.TracedSolver(solver), W, 0.5, None)[0],
             jax.ShapeDtypeStruct(W.shape, W.dtype),
         )
     except Exception as exc:  # a scheme or system whose code does not trace: named
@@ -162,7 +162,7 @@ def plan(system: Any, scheme: Any, solver: Any, W0: Any) -> str | None:
 
 
 def _one_step(
-    system: Any, scheme: Any, solver: loops.TracedSolver, W: Array, h: float, guess: Any
+    system: Any, scheme: Any, solver: traced_loops.TracedSolver, W: Array, h: float, guess: Any
 ) -> tuple[Array, Any, Array, Array, Array, Array]:
     """One traced step: ``(W1, offsets, accepted, updates, last relative update, solver
     index)``; ``W1`` on the phase space (:meth:`~lieflow.IsospectralSystem.project`)."""
@@ -183,12 +183,12 @@ class TracedSchemeFlow(SchemeFlow):
     with :func:`lieflow.engines.scheme_flow` (``engine="jax"``, or ``"auto"`` for arrays
     of a device library)."""
 
-    #: chunks end at the states a run needs, and hold only those (lieflow.driver.advance)
+    #: chunks end at the states a run needs, and hold only those (lieflow.stepping.advance)
     holds_needed_states = True
     _programs: dict[tuple[Any, ...], _Program] = attrs.field(init=False, factory=dict, repr=False)
     #: the warm start the last chunk returned and the arrays it was made of (reused when
     #: the next chunk starts from it: no conversion per chunk)
-    _carried: list[tuple[WarmStart, warm.History]] = attrs.field(
+    _carried: list[tuple[WarmStart, traced_warm.History]] = attrs.field(
         init=False, factory=list, repr=False
     )
 
@@ -217,8 +217,8 @@ class TracedSchemeFlow(SchemeFlow):
         h: float,
         steps: int,
         state: WarmStart | None,
-        recording: driver.Recording | None = None,
-    ) -> driver.Chunk:
+        recording: stepping.Recording | None = None,
+    ) -> stepping.Chunk:
         """Up to ``steps`` steps after step ``start`` (fewer if one is not accepted), the
         chunk holding the last state only, with each step's energy and Casimirs when
         ``recording`` asks for diagnostics."""
@@ -266,7 +266,7 @@ class TracedSchemeFlow(SchemeFlow):
             W_out = _like(last, W) if done else _like(last, W)[:0]
             kept = np.array([done - 1]) if done else np.zeros(0, dtype=np.int64)
         on_device = program.diagnostics and not program.holds_all
-        return driver.Chunk(
+        return stepping.Chunk(
             start,
             h,
             W_out,
@@ -279,14 +279,14 @@ class TracedSchemeFlow(SchemeFlow):
             casimirs=casimirs if on_device else None,
         )
 
-    def _history(self, state: WarmStart, program: _Program) -> warm.History:
+    def _history(self, state: WarmStart, program: _Program) -> traced_warm.History:
         """``state`` as the arrays the program carries: those the last chunk ended with
         when ``state`` is the warm start it returned, else converted."""
         for returned, history in self._carried:
             if returned is state:
                 return history
         shape = program.offsets
-        return warm.from_warm_start(state, tuple(shape.shape), shape.dtype, _jax().numpy)
+        return traced_warm.from_warm_start(state, tuple(shape.shape), shape.dtype, _jax().numpy)
 
     def _program(self, h: float, diagnostics: bool, depth: int, W: Any) -> _Program:
         """The compiled chunk program for step size ``h`` (built on first use, kept)."""
@@ -300,7 +300,7 @@ class TracedSchemeFlow(SchemeFlow):
         jax = _jax()
         jnp, lax = jax.numpy, jax.lax
         system, scheme, solver = self.system, self.scheme, self.solver
-        names = loops.TracedSolver(solver).names
+        names = traced_loops.TracedSolver(solver).names
         batch = tuple(W.shape[:-2])
         if diagnostics and _traces(lambda W: (system.hamiltonian(W), system.casimirs(W)), W):
             holds_all = False
@@ -310,14 +310,14 @@ class TracedSchemeFlow(SchemeFlow):
             holds_all, diagnostics = diagnostics, False
             casimirs = jax.ShapeDtypeStruct((*batch, 0), jnp.float64)
             per_step = math.prod(W.shape) if holds_all else 1
-        length = max(1, min(driver.CHUNK_STEPS, driver.CHUNK_ENTRIES // max(per_step, 1)))
+        length = max(1, min(stepping.CHUNK_STEPS, stepping.CHUNK_ENTRIES // max(per_step, 1)))
         stored = (length, *W.shape) if holds_all else (0, *W.shape)
         offsets = jax.eval_shape(
-            lambda W: _one_step(system, scheme, loops.TracedSolver(solver), W, h, None)[1],
+            lambda W: _one_step(system, scheme, traced_loops.TracedSolver(solver), W, h, None)[1],
             jax.ShapeDtypeStruct(W.shape, W.dtype),
         )
 
-        def run(W: Any, history: warm.History | None, steps: Any) -> tuple[Any, ...]:
+        def run(W: Any, history: traced_warm.History | None, steps: Any) -> tuple[Any, ...]:
             buffers = (
                 jnp.zeros(length, jnp.int64),
                 jnp.zeros(length, jnp.float64),
@@ -329,8 +329,8 @@ class TracedSchemeFlow(SchemeFlow):
 
             def body(carry: tuple[Any, ...]) -> tuple[Any, ...]:
                 j, _, W, history, buffers = carry
-                traced = loops.TracedSolver(solver)
-                guess = None if history is None else warm.predict(history, jnp)
+                traced = traced_loops.TracedSolver(solver)
+                guess = None if history is None else traced_warm.predict(history, jnp)
                 W1, offsets, accepted, updates, residual, which = _one_step(
                     system, scheme, traced, W, h, guess
                 )
@@ -345,7 +345,7 @@ class TracedSchemeFlow(SchemeFlow):
                     cas = cas.at[j].set(jnp.real(system.casimirs(W1)))
                 W = jnp.where(accepted, W1, W)
                 if history is not None:
-                    moved = warm.advance(history, offsets, jnp)
+                    moved = traced_warm.advance(history, offsets, jnp)
                     history = jax.tree_util.tree_map(
                         lambda a, b: jnp.where(accepted, a, b), moved, history
                     )

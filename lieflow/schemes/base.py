@@ -79,7 +79,8 @@ class Scheme(ABC):
         return False
 
     def compiled_form(self) -> tuple[str, Array, Array] | None:
-        """How the compiled engine (:mod:`lieflow.compiled`) can run this scheme, or ``None``
+        """How the compiled engine (:mod:`lieflow.engines.compiled`) can run this scheme, or
+        ``None``
         (the default: numpy only).
 
         ``("sydirk", A, b)``: a composition of midpoint steps of sizes ``b_i h`` (SPEC §4.2);
@@ -123,7 +124,8 @@ def retries_cold(converged: bool, warm: bool) -> bool:
     large). The iterations of both attempts count; a cold solve that fails fails the step.
 
     One source for both engines: :func:`retry` calls it, and the compiled loops
-    (:mod:`lieflow._kernels`) compile it for a solver that is a fixed-point iteration alone
+    (:mod:`lieflow.engines._compiled_loops`) compile it for a solver that is a fixed-point
+    iteration alone
     (:class:`~lieflow.solvers.Auto` hands a failed solve to its next solver first, so its
     compiled solve hands the step to the numpy path instead); hence scalars only."""
     return warm and not converged

@@ -62,7 +62,7 @@ def reduced_coefficients(h: float, A: np.ndarray, skew: bool) -> tuple[np.ndarra
     ``C_P = -hA``, and ``C_G = hA`` with ``B̃_j = B_j^†``, or on a skew-Hermitian algebra
     (``B^† = -B``) ``C_G = -hA`` with ``B̃_j = B_j``, so that no negated copy of a stack is
     made. One derivation for both engines: :class:`ReducedProblem` and the compiled
-    engine's plan (:mod:`lieflow.compiled`), which hands them to its loops."""
+    engine's plan (:mod:`lieflow.engines.compiled`), which hands them to its loops."""
     hA = h * A
     return (-hA if skew else hA), -hA
 

@@ -86,7 +86,8 @@ def skew_to_roundoff(defect: float, size: float, eps: float) -> bool:
     """Whether a ``B`` with ``||B + B^†|| = defect`` and ``||B|| = size`` is skew-Hermitian
     to roundoff (machine epsilon ``eps``), so that the conjugators built from it are
     unitary. One source for both engines: :func:`is_unitary_generator` calls it with NumPy
-    norms and the compiled loops (:mod:`lieflow._kernels`) compile it; scalars only."""
+    norms and the compiled loops (:mod:`lieflow.engines._compiled_loops`) compile it; scalars
+    only."""
     return defect <= UNITARY_TOLERANCE * eps * max(size, _TINY)
 
 
@@ -115,7 +116,7 @@ def newton_schulz_step(err: float, last: float, n: int, eps: float) -> int:
     decreasing, :data:`SCHULZ_REFUSED` when ``err >= 1`` at the start,
     :data:`SCHULZ_LAST` when the update takes ``||E||`` to roundoff (``err^2 <= eps``),
     else :data:`SCHULZ_GO`. One source for both engines: :func:`orthonormalize` calls it
-    and the compiled loops (:mod:`lieflow._kernels`) compile it; scalars and ``math``
+    and the compiled loops (:mod:`lieflow.engines._compiled_loops`) compile it; scalars and ``math``
     only."""
     if err <= math.sqrt(n) * eps or err >= last:
         return SCHULZ_DONE

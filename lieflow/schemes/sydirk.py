@@ -30,7 +30,7 @@ def midpoint_coefficients(h: float) -> tuple[float, float]:
     """The coefficients ``q = h/2`` and ``q^2`` of the midpoint map (SPEC §4.1), and ``q``
     the Cayley update's ``a`` (SPEC §4.7), for a (sub-)step of size ``h``. One derivation
     for both engines: :class:`MidpointProblem` and the compiled engine's plan
-    (:mod:`lieflow.compiled`), which hands them to its loops."""
+    (:mod:`lieflow.engines.compiled`), which hands them to its loops."""
     q = 0.5 * h
     return q, q * q
 

@@ -127,7 +127,7 @@ def stopping_verdict(
     code of the reason to stop (an index into :data:`REASONS`), :data:`GO` to go on.
 
     One source for both engines: :meth:`StoppingRule.verdict` calls it as plain Python (on
-    a list), and :mod:`lieflow.compiled` compiles this very function with numba (on an
+    a list), and :mod:`lieflow.engines.compiled` compiles this very function with numba (on an
     array); hence scalars, indexing and ``math`` only. ``met``: the last update meets the
     tolerance; ``growth``: the largest ``||x_k|| / ||x_0||``; ``floor``: the roundoff floor;
     ``divergence``: the divergence factor; the rest as in :class:`StoppingRule`.

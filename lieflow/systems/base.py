@@ -31,7 +31,7 @@ def _real_trace(P: Array) -> Array:
 def read_only(arr: np.ndarray) -> np.ndarray:
     """``arr`` made read-only (in place) and returned: a system's constant arrays, so that
     nothing can change a system after it was built (the compiled engine keeps values
-    derived from it, :func:`lieflow.compiled.plan`). Pass an array the system owns (a
+    derived from it, :func:`lieflow.engines.compiled.plan`). Pass an array the system owns (a
     copy)."""
     arr.setflags(write=False)
     return arr
@@ -119,7 +119,7 @@ class IsospectralSystem(ABC):
         return None
 
     def compiled_B(self, shift: float = 0.0) -> tuple[Any, Array] | None:
-        """``B`` of a stage value for the compiled engine (:mod:`lieflow.compiled`), or
+        """``B`` of a stage value for the compiled engine (:mod:`lieflow.engines.compiled`), or
         ``None`` (then the engine refuses the system and ``engine="auto"`` uses numpy).
 
         Returns ``(function, params)``: a numba-compiled ``function(W, params, out)`` that
@@ -135,12 +135,13 @@ class IsospectralSystem(ABC):
         projection): the Toda lattice, where ``B - cW`` is not skew. It reaches the loops
         as a typed first-class function, so numba's disk cache of the loops stays valid for
         every system; compile it with ``numba.njit(cache=True)`` at module level (or
-        the decorator :func:`lieflow.compiled.compiled_map`) so that it is cached too; lieflow's
-        own maps (:data:`lieflow.compiled.MAPS`) are returned by name (``("hadamard_B",
+        the decorator :func:`lieflow.engines.compiled.compiled_map`) so that it is cached too;
+        lieflow's
+        own maps (:data:`lieflow.engines.compiled.MAPS`) are returned by name (``("hadamard_B",
         params)``: the system need not import the engine) or called. The engine checks it
         against :meth:`B` and :meth:`project_stage` on the initial state (to roundoff)
         before use, once per system and dtype while this method returns the same function
-        and ``params`` (the engine keeps the check, :func:`lieflow.compiled.plan`; a system
+        and ``params`` (the engine keeps the check, :func:`lieflow.engines.compiled.plan`; a system
         whose ``B`` changes after it was built must show the change in ``params`` to be
         checked again). Importing numba inside this method keeps it optional.
 

@@ -42,7 +42,7 @@ written to disk by either function.
 from __future__ import annotations
 
 from ._build import BuiltRun, build, check_output_path
-from ._model import (
+from ._config import (
     Component,
     Config,
     InitialCondition,
@@ -50,8 +50,9 @@ from ._model import (
     RunSection,
     SplittingSection,
     identity_changes,
+    load_config,
+    parse_config,
 )
-from ._parse import load_config, parse_config
 from ._toml import ConfigError, read_toml_file
 
 __all__ = [

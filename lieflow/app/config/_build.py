@@ -21,7 +21,7 @@ from ...schemes.base import Scheme
 from ...sinks import RunInfo
 from ...solvers.base import Solver
 from ...systems.base import IsospectralSystem
-from ._model import Component, Config, Perturbation
+from ._config import Component, Config, Perturbation
 from ._toml import ConfigError
 
 

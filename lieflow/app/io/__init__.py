@@ -61,7 +61,7 @@ from __future__ import annotations
 # module that defines it. salvage_fix and trajectory_sink (the ``app`` plugin's ``.h5``
 # sink), public functions of the module before the split, are in ``__all__`` so that the
 # API page still documents them.
-from ...driver import Monitor
+from ...stepping import Monitor
 from ._format import FORMAT, FORMAT_VERSION, checkpoint_digest
 from ._format import _as_path as _as_path
 from ._format import _h5py as _h5py

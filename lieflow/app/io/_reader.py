@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 import attrs
 import numpy as np
 
-from ... import tree
+from ... import state_trees
 from ...algebras import Array
 from ...errors import LieflowError
 from ...flows import WarmStart
@@ -56,7 +56,7 @@ if TYPE_CHECKING:  # pragma: no cover
 class Checkpoint:
     """Where a run resumes (a :class:`lieflow.sinks.ResumePoint`): ``W`` after step ``step``
     and the flow's state then (what :meth:`lieflow.Flow.step` carries: a scheme's warm start,
-    a splitting's tuple of them), stored leaf by leaf under ``warm/`` (:mod:`lieflow.tree`:
+    a splitting's tuple of them), stored leaf by leaf under ``warm/`` (:mod:`lieflow.state_trees`:
     ``leaves`` maps each leaf's path to its value)."""
 
     step: int
@@ -66,7 +66,7 @@ class Checkpoint:
 
     def state(self, template: Any) -> Any:
         """The flow's state, shaped like ``template`` (the flow's ``init(W0)``)."""
-        return tree.rebuild(template, dict(self.leaves))
+        return state_trees.rebuild(template, dict(self.leaves))
 
     @property
     def warm(self) -> WarmStart:

@@ -10,9 +10,9 @@ from pathlib import Path
 import attrs
 
 from ... import _signals
-from ...driver import Monitor
 from ...errors import LieflowError
 from ...sinks import Sink, open_sink
+from ...stepping import Monitor
 from ..config import BuiltRun
 from ._writer import TrajectoryWriter
 

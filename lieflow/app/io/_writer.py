@@ -14,13 +14,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ... import _signals, driver, tree
+from ... import _signals, state_trees
 from ...algebras import Array
 from ...backends import is_foreign_array
-from ...driver import Chunk, ChunkDiagnostics, Diagnostics
 from ...errors import ConvergenceError, LieflowError
 from ...sinks import Ending, RunInfo, to_host
 from ...solution import Solution, Status
+from ...stepping import Chunk, ChunkDiagnostics
 from ..config import BuiltRun, check_output_path
 from ._disk import (
     _ATTRIBUTES_ROOM,
@@ -81,7 +81,7 @@ class TrajectoryWriter:
     :class:`~lieflow.sinks.Sink` for ``.h5`` files (``TrajectorySink``).
 
     Create one with :meth:`create` (a new file), :meth:`reopen` (resume) or :meth:`open`
-    (either). :func:`lieflow.driver.run` feeds every :class:`~lieflow.driver.Chunk` of steps
+    (either). :func:`lieflow.stepping.run` feeds every :class:`~lieflow.stepping.Chunk` of steps
     to :meth:`record` (buffered), calls :meth:`checkpoint` at its checkpoint cadence (it
     appends the buffered diagnostics and saved states, writes a checkpoint and flushes) and
     :meth:`close` at the end. A checkpoint runs with interrupts deferred and writes to
@@ -103,15 +103,6 @@ class TrajectoryWriter:
         self._file_id = _file_id(f)
         self._layout = layout = _check_format(f, self._path)
         at = layout.paths
-        extra, every = driver.extra_hook(header.system, header.save_every)
-        self._diagnostics = Diagnostics(
-            header.system,
-            f[at["energy"]][0],
-            f[at["casimirs"]][0],
-            header.system.casimir_scale(f[at["W0"]][()]),
-            extra,
-            every,
-        )
         self._header = header
         #: where a reopened file continues (:meth:`reopen`); ``None`` for a new file
         self.start: Checkpoint | None = None
@@ -287,18 +278,24 @@ class TrajectoryWriter:
     # -- writing ---------------------------------------------------------------------------
 
     def record(self, chunk: Chunk, keep: Array, diagnostics: ChunkDiagnostics | None) -> None:
-        """Buffer ``chunk``: its diagnostics (computed here when ``None``: a file always
-        records them), its states where ``keep`` is true, and its last state and flow state
-        for the next checkpoint. Nothing is written until :meth:`checkpoint`."""
-        diag = self._diagnostics.of_chunk(chunk) if diagnostics is None else diagnostics
+        """Buffer ``chunk``: its diagnostics, its states where ``keep`` is true, and its
+        last state and flow state for the next checkpoint. Nothing is written until
+        :meth:`checkpoint`."""
+        if diagnostics is None:  # a file records every step's: the run computes them
+            raise LieflowError(
+                f"{self._path}: a trajectory file records every step's diagnostics, and the "
+                "run passed none. To fix: run through lieflow.integrate(out=...) or "
+                "lieflow.runs.RunSpec.execute, or pass stepping.run(diagnostics="
+                "Diagnostics.of(system, W0, save_every=...))"
+            )
         keep = np.asarray(keep, dtype=bool)
         entry = (chunk.index[keep], to_host(chunk.states(keep)), to_host(chunk.iterations),
-                 to_host(chunk.residuals), diag)  # fmt: skip
+                 to_host(chunk.residuals), diagnostics)  # fmt: skip
         last = (chunk.stop, chunk.h, np.array(to_host(chunk.W[-1])), chunk.state)
         # one append and one assignment: recorded entirely or not at all
         self._buffer.append(entry)
         self._last = last
-        self._max_error = max(self._max_error, diag.max_energy_error)
+        self._max_error = max(self._max_error, diagnostics.max_energy_error)
         if keep.any():
             self._saved_to = int(chunk.index[keep][-1])
             self._buffered += entry[1].nbytes
@@ -410,7 +407,7 @@ class TrajectoryWriter:
         ``index`` to the spare slot with its SHA-256 digest, flush and fsync, then point
         ``current`` at it (the commit point; :meth:`checkpoint` flushes and fsyncs it)."""
         items: dict[str, Any] = {"W": W}
-        for path, leaf in tree.paths(state):  # a device's warm start comes to the host here
+        for path, leaf in state_trees.paths(state):  # a device's warm start comes to the host here
             host = to_host(leaf) if is_foreign_array(leaf) else leaf
             items[f"{_STATE}/{path}" if path else _STATE] = host
         slot_id = 1 - self._slot
@@ -506,7 +503,7 @@ class TrajectoryWriter:
             status=Status.SUCCESS if status == "complete" else Status.FAILED,
             failure=failure,
             wall_time=wall,
-            extra={} if self._diagnostics.extra is None else read_extra(self._path),
+            extra=read_extra(self._path),
         )
 
 

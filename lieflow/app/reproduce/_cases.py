@@ -7,9 +7,8 @@ from __future__ import annotations
 import attrs
 import numpy as np
 
-from ... import compiled
 from ...algebras import SO, Array
-from ...engines import Engine
+from ...engines import Engine, compiled
 from ...errors import InputError
 from ...integration import integrate
 from ...schemes import get as get_scheme

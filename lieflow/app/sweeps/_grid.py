@@ -18,7 +18,7 @@ from typing import Any
 import attrs
 
 from ..config import Config, ConfigError, parse_config, read_toml_file
-from ..config._parse import _SECTIONS
+from ..config._config import _SECTIONS
 from ..config._toml import _fail, _parse_toml, _Section
 from ..datasets import MANIFEST
 

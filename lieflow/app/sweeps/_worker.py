@@ -96,7 +96,7 @@ def _exit_with_parent() -> None:
 
 
 class _ProgressFile:
-    """A :class:`~lieflow.driver.Monitor` that writes a run's step count to a small JSON
+    """A :class:`~lieflow.stepping.Monitor` that writes a run's step count to a small JSON
     file (atomically, at most once a second) for the coordinator's progress display, and
     stops the run (:class:`KeyboardInterrupt`, which marks its file "interrupted") once the
     coordinator's stop file exists — how an interrupted sweep stops runs on Dask workers,

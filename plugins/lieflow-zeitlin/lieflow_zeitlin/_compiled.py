@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from lieflow.compiled import skew_hermitian_part
+from lieflow.engines.compiled import skew_hermitian_part
 from lieflow.numba_cache import cached_njit
 
 from . import laplacian
@@ -32,7 +32,7 @@ _sweep_compiled = laplacian._sweep_compiled.dispatcher()
 
 #: ``params = [c, nb, b, 1, Im diag F_f (N entries), factors]`` (the ``(4, nb, b, 2(N+1))``
 #: stack of the sweeps' factors, flattened; :func:`params`); the ``1`` is the parameter
-#: of ``lieflow.compiled.skew_hermitian_part`` that removes the trace.
+#: of ``lieflow.engines.compiled.skew_hermitian_part`` that removes the trace.
 HEADER = 4
 
 

@@ -473,7 +473,7 @@ class EulerZeitlin(lieflow.IsospectralSystem):
         ``diagnostics_levels`` (the default), the vorticity levels (eigenvalues of ``-iW``)
         and the Casimirs ``tr((iW)^k)``, k = 2, 3, 4, 5, 6, 8.
 
-        ``W`` is a state of a run of this system (the driver's), so only its shape is
+        ``W`` is a state of a run of this system (the stepping loop's), so only its shape is
         checked; :func:`~lieflow_zeitlin.diagnostics.snapshot` also checks that a state from
         elsewhere is in su(N). Cost per sample, in midpoint steps (h = 1/N, rtol 1e-14;
         ``benchmarks/suites/euler_zeitlin.py``): the spectra 0.04–0.09 (one compiled pass of

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import lieflow as lf
-from lieflow import _kernels, compiled
+from lieflow.engines import _compiled_loops, compiled
 
 lz = pytest.importorskip("lieflow_zeitlin")
 pytest.importorskip("numba")
@@ -88,7 +88,7 @@ def test_the_plan_uses_the_plugins_map_and_the_su_projection() -> None:
     assert isinstance(plan, compiled.CompiledPlan)
     assert plan.dtype == np.complex128 and plan.skew
     assert plan.B.function is lz._compiled.zeitlin_B
-    assert plan.project.function is _kernels.skew_hermitian_part
+    assert plan.project.function is _compiled_loops.skew_hermitian_part
 
 
 def test_single_precision_and_non_skew_complex_data_are_refused() -> None:

@@ -229,7 +229,7 @@ class MultiStepFlow(Flow, Protocol):
 
     def step_many(self, W: Array, start: int, h: float, steps: int, state: Any) -> Chunk:
         """Up to ``steps`` steps from ``W`` after step ``start``. Fewer (possibly none) when
-        a step was not accepted; the driver then takes that step with :meth:`step`."""
+        a step was not accepted; the stepping loop then takes that step with :meth:`step`."""
         ...
 
 
@@ -273,6 +273,7 @@ def advance(
     start: int = 0,
     state: Any = None,
     batch: int = 1,
+    align: int = 0,
     recording: Recording | None = None,
 ) -> Iterator[Chunk]:
     """Advance ``flow`` from ``W0`` (the state after step ``start``) up to step ``steps``.
@@ -298,6 +299,9 @@ def advance(
         call each, and the consumer's work per chunk is shared by them. A step that fails, or a
         ``KeyboardInterrupt`` while stepping, first yields the chunk of the steps done
         before it.
+    align : int
+        Such chunks also end at the multiples of ``align`` (``0``: anywhere): :func:`run`
+        passes ``save_every`` when its checkpoints fall at the saved states.
     recording : Recording, optional
         What the consumer needs of the steps (:func:`run` passes its own); a flow that
         holds only the states needed (:class:`MultiStepFlow`) ends its chunks at them.
@@ -325,7 +329,7 @@ def advance(
         needed = Recording(last=steps) if recording is None else recording
         size = CHUNK_STEPS
     if many is None and batch > 1 and steps - start > 1 and is_numpy(W0):
-        yield from _batched(flow, W0, h, steps, start, state, batch)
+        yield from _batched(flow, W0, h, steps, start, state, batch, align)
         return
     # as in _batched: after the first step, step_from_phase_space (not after a chunk of
     # step_many, whose states the flow's own projection did not make)
@@ -367,16 +371,17 @@ def advance(
 
 
 def _batched(
-    flow: Flow, W: Array, h: float, steps: int, k: int, state: Any, batch: int
+    flow: Flow, W: Array, h: float, steps: int, k: int, state: Any, batch: int, align: int
 ) -> Iterator[Chunk]:
-    """:func:`advance` of a flow in chunks of up to ``batch`` steps (numpy states)."""
+    """:func:`advance` of a flow in chunks of up to ``batch`` steps (numpy states), each
+    ending at a multiple of ``align`` if it reaches one."""
     shape, dtype = W.shape, W.dtype
     # after the first step, W is the flow's own last result, on its phase space: a flow
     # that can use that (SchemeFlow.step_from_phase_space: the same result, the final
     # projection skipped where it is the identity) is stepped by it from then on
     step, again = flow.step, getattr(flow, "step_from_phase_space", None)
     while k < steps:
-        m = min(batch, steps - k)
+        m = min(batch, steps - k, align - k % align) if align else min(batch, steps - k)
         Ws = np.empty((m, *shape), dtype)
         done: list[StepStats] = []
         j = 0
@@ -522,7 +527,7 @@ class Diagnostics:
         if chunk.held is not None:
             raise ValueError(
                 "the chunk holds some of its states only and no energies: its flow computes "
-                "diagnostics when driver.run is given them (Recording.diagnostics)"
+                "diagnostics when stepping.run is given them (Recording.diagnostics)"
             )
         return self._of(chunk, self.energy(chunk.W), self.casimirs(chunk.W))
 
@@ -576,13 +581,13 @@ Ending = Literal["complete", "interrupted", "failed"]
 
 @runtime_checkable
 class Sink(Protocol):
-    """Receives a run's steps from :func:`lieflow.driver.run`.
+    """Receives a run's steps from :func:`lieflow.stepping.run`.
 
-    The driver calls :meth:`record` for every chunk of steps, in order; :meth:`checkpoint`
+    The stepping loop calls :meth:`record` for every chunk of steps, in order; :meth:`checkpoint`
     at its checkpoint cadence and once at the end; :meth:`close` exactly once, however the
     run ends; :meth:`result` after that, for what the caller gets back.
 
-    The driver holds interrupts (:func:`lieflow._signals.deferred`) while it takes the last
+    The stepping loop holds interrupts (:func:`lieflow._signals.deferred`) while it takes the last
     checkpoint and closes the sinks, so that a second Ctrl-C cannot split the two. A sink
     that keeps nothing outside the process may say so with a class attribute
     ``durable = False`` (:class:`~lieflow.sinks.MemorySink`); a run whose sinks all do skips
@@ -736,16 +741,14 @@ def run(
             interrupts.arm()
         if monitor is not None:  # inside: Ctrl-C while a progress bar starts is an interrupt
             monitor.start(start, steps)
-        # Chunks of several steps of a numpy flow unless a monitor, a Ctrl-C handler (a
-        # file's resume points) or checkpoints after every chunk are to see every step;
+        # Chunks of several steps of a numpy flow (a monitor hears of each chunk, a Ctrl-C
+        # is acted on after it) unless a checkpoint after every chunk is to see every step;
         # they end where a checkpoint every ``every`` steps falls due.
-        if monitor is not None or interrupts is not None or seconds == 0:
-            batch = 1
-        else:
-            batch = min(batch_steps(W0), every or BATCH_STEPS)
+        batch = 1 if seconds == 0 else min(batch_steps(W0), every or BATCH_STEPS)
         extra = 0 if diagnostics is None or diagnostics.extra is None else diagnostics.extra_every
         recording = Recording(save_every, steps, extra, diagnostics is not None)
         for chunk in advance(flow, W0, h, steps, start=start, state=state, batch=batch,
+                             align=save_every if at_saves else 0,
                              recording=recording):  # fmt: skip
             if not is_numpy(chunk.W):  # another array library: to the host, once per chunk
                 chunk = attrs.evolve(chunk, W=to_numpy(chunk.W))

@@ -1,4 +1,4 @@
-"""numba loops behind :mod:`lieflow.compiled` (imported only when the compiled engine runs).
+"""numba loops behind :mod:`lieflow.engines.compiled` (imported only when the compiled engine runs).
 
 One compiled driver and per-formulation map kernels:
 
@@ -61,10 +61,10 @@ from typing import Any, NamedTuple, TypeVar, cast
 
 import numpy as np
 
-from . import warm_start
-from .schemes import base, conjugation
-from .schemes.conjugation import UPDATES
-from .solvers import fixed_point
+from .. import warm_start
+from ..schemes import base, conjugation
+from ..schemes.conjugation import UPDATES
+from ..solvers import fixed_point
 
 numba: Any
 numba_cache: Any
@@ -125,9 +125,9 @@ def _jit(func: F) -> F:
     """``numba.njit`` with an on-disk cache in the user's cache directory
     (:func:`lieflow.numba_cache.cached_njit`), or in memory where none can be written.
     Without numba the plain function is returned (so the module imports) and
-    :func:`lieflow.compiled.kernels` raises ``ImportError``.
+    :func:`lieflow.engines.compiled.kernels` raises ``ImportError``.
     """
-    if numba is None:  # pragma: no cover - lieflow.compiled.kernels() refuses this case
+    if numba is None:  # pragma: no cover - lieflow.engines.compiled.kernels() refuses this case
         return func
     return cast(F, numba_cache.cached_njit(func, error_model="numpy"))
 
@@ -167,7 +167,8 @@ def _helper(func: F) -> F:
 def compiled_map(func: F) -> F:
     """``func(W, params, out)`` as a system's compiled map (what
     :meth:`~lieflow.IsospectralSystem.compiled_B` may return): jitted with a disk cache,
-    compiled for :func:`map_signature` of the data's dtype when :func:`lieflow.compiled.plan`
+    compiled for :func:`map_signature` of the data's dtype when
+    :func:`lieflow.engines.compiled.plan`
     first asks for it (not at import, so that importing this module stays cheap)."""
     return _jit(func)
 
@@ -1286,7 +1287,7 @@ def entry(name: str, dtype: np.dtype = DTYPES[0], conjugation: bool = False) -> 
     """The entry point ``name`` (``"sydirk_advance"`` or ``"reduced_advance"``) for data of
     ``dtype`` (one of :data:`DTYPES`) and the update in conjugation form or not, compiled
     (or loaded from the disk cache) on first use, so that importing this module (as
-    :func:`lieflow.compiled.plan` does to check a system's maps) loads no loops, and a run
+    :func:`lieflow.engines.compiled.plan` does to check a system's maps) loads no loops, and a run
     compiles and loads only the loop of its own formulation, data type and update."""
     key = (name, np.dtype(dtype), bool(conjugation))
     if key not in _ENTRIES:

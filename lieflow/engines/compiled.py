@@ -54,21 +54,21 @@ from typing import TYPE_CHECKING, Any, NamedTuple, TypeVar
 import attrs
 import numpy as np
 
-from . import driver
-from .algebras import Array
-from .flows import SchemeFlow, StepStats
-from .schemes.base import Scheme
-from .schemes.block import reduced_coefficients
-from .schemes.sydirk import midpoint_coefficients
-from .solvers import anderson
-from .solvers.base import Solver
-from .solvers.fixed_point import FixedPoint, StoppingRule
-from .solvers.newton import Auto
-from .systems.base import IsospectralSystem
-from .warm_start import DEFAULT_DEPTH, WarmStart, extrapolation_matrix
+from .. import stepping
+from ..algebras import Array
+from ..flows import SchemeFlow, StepStats
+from ..schemes.base import Scheme
+from ..schemes.block import reduced_coefficients
+from ..schemes.sydirk import midpoint_coefficients
+from ..solvers import anderson
+from ..solvers.base import Solver
+from ..solvers.fixed_point import FixedPoint, StoppingRule
+from ..solvers.newton import Auto
+from ..systems.base import IsospectralSystem
+from ..warm_start import DEFAULT_DEPTH, WarmStart, extrapolation_matrix
 
 if TYPE_CHECKING:
-    from ._kernels import LoopArguments
+    from ._compiled_loops import LoopArguments
 
 #: ``engine="auto"`` picks the compiled engine for matrix sizes ``n <= AUTO_MAX_N`` (real
 #: data) or ``n <= AUTO_MAX_N_COMPLEX`` (complex data) ...
@@ -89,11 +89,11 @@ def available() -> bool:
 
 def kernels() -> ModuleType:
     """The compiled loops (imports numba; raises ``ImportError`` without it)."""
-    loaded = sys.modules.get(f"{__package__}._kernels")  # no import statement once loaded
+    loaded = sys.modules.get(f"{__package__}._compiled_loops")  # no import statement once loaded
     if loaded is None:
-        from . import _kernels
+        from . import _compiled_loops
 
-        loaded = _kernels
+        loaded = _compiled_loops
     if loaded.numba is None:
         raise ImportError("No module named 'numba'")
     return loaded
@@ -154,7 +154,7 @@ def __getattr__(name: str) -> Any:
 @attrs.frozen
 class CompiledSteps:
     """The steps one call of :meth:`CompiledPlan.advance` took in the compiled loops (the
-    flow turns them into a :class:`lieflow.driver.Chunk`).
+    flow turns them into a :class:`lieflow.stepping.Chunk`).
 
     Attributes
     ----------
@@ -195,7 +195,8 @@ def _read_only(values: Any) -> Array:
 class _Fixed(NamedTuple):
     """What :meth:`CompiledPlan.loop_call` passes the loops unchanged from call to call for
     one warm-start depth (made once per plan and depth): the loops' module and entry point,
-    their arguments of that kind (:class:`lieflow._kernels.LoopArguments`: writable copies
+    their arguments of that kind (:class:`lieflow.engines._compiled_loops.LoopArguments`: writable
+    copies
     of the plan's values, which nothing outside the plan sees), the warm offsets' core
     shape and size, and ``max_iter``."""
 
@@ -280,7 +281,8 @@ class CompiledPlan:
 
     def coefficients(self, h: float) -> tuple[Array, Array]:
         """The loops' stage ``coefficients`` and ``weights`` (``h b``) for step size ``h``
-        (:class:`~lieflow._kernels.LoopArguments`), by the derivations the numpy path uses:
+        (:class:`~lieflow.engines._compiled_loops.LoopArguments`), by the derivations the numpy
+        path uses:
         rows ``(q, q^2)`` of :func:`~lieflow.schemes.sydirk.midpoint_coefficients` of each
         sub-step, or ``(C_G; C_P)`` of :func:`~lieflow.schemes.block.reduced_coefficients`.
         Those of the last step size are kept."""
@@ -372,7 +374,8 @@ class CompiledPlan:
         (:class:`_Fixed`): the stopping rule's arrays, the extrapolation weights (a writable
         copy: the loops' type), and the addresses of ``B``, the projection (``B``'s when
         there is none: not called) and the product, each checked to be a resolved function
-        of the signature the loops call it with (:func:`lieflow._kernels.address`; the
+        of the signature the loops call it with (:func:`lieflow.engines._compiled_loops.address`;
+        the
         loops take bare integers)."""
         k = kernels()
         tolerances, settings = k.stopping_arrays(self.rule, self.retry_cold, depth > 0)
@@ -392,7 +395,7 @@ class CompiledPlan:
 @attrs.frozen(eq=False)
 class CompiledSchemeFlow(SchemeFlow):
     """A :class:`~lieflow.flows.SchemeFlow` whose steps the compiled loops take, a chunk per
-    call (:meth:`step_many`, used by :func:`lieflow.driver.advance`); :meth:`step` (the
+    call (:meth:`step_many`, used by :func:`lieflow.stepping.advance`); :meth:`step` (the
     numpy path) takes any step they do not accept. Build it with
     :func:`lieflow.engines.scheme_flow`.
 
@@ -424,7 +427,7 @@ class CompiledSchemeFlow(SchemeFlow):
 
     def step_many(
         self, W: Array, start: int, h: float, steps: int, state: WarmStart | None
-    ) -> driver.Chunk:
+    ) -> stepping.Chunk:
         """Up to ``steps`` steps after step ``start`` (fewer if one is not accepted)."""
         if state is None:
             c = self.plan.advance(W, h, steps, depth=0)
@@ -437,7 +440,7 @@ class CompiledSchemeFlow(SchemeFlow):
             states = self.system.project(states)
         residuals = np.empty(c.done)  # not recorded by the loops
         residuals.fill(np.nan)  # (np.full's wrapper: 0.4 µs more)
-        return driver.Chunk(
+        return stepping.Chunk(
             start,
             h,
             states,
@@ -483,7 +486,8 @@ def _checked_map(
     dtype: np.dtype,
 ) -> tuple[Any, Array] | str:
     """``(function, params)`` of a system's compiled map, compiled for
-    :func:`~lieflow._kernels.map_signature` of ``dtype`` and checked on each ``(W, want)``
+    :func:`~lieflow.engines._compiled_loops.map_signature` of ``dtype`` and checked on each ``(W,
+    want)``
     of ``checks`` against ``want`` (the numpy result) to roundoff; or the reason it cannot
     be used (which names the check: ``"on W0"``, then ``"off W0"``)."""
     k = kernels()
@@ -535,7 +539,8 @@ def _wave(shape: tuple[int, ...], complex_data: bool) -> Array:
 def _identity(got: Any, dtype: np.dtype) -> tuple[Any, Any, bytes | None]:
     """What the cache of checked maps compares of a hook's ``(function, params)``: the
     function, its compiled code for the data's dtype (a numba dispatcher's overload for
-    :func:`~lieflow._kernels.map_signature`: a recompiled function is checked and resolved
+    :func:`~lieflow.engines._compiled_loops.map_signature`: a recompiled function is checked and
+    resolved
     again) and the ``params`` as float64 bytes; ``(got, None, None)`` if malformed (never
     taken from the cache)."""
     if got is None:
@@ -632,7 +637,7 @@ def _system_maps(
     system: IsospectralSystem, W0: Array, dtype: np.dtype
 ) -> tuple[tuple[Any, Array], tuple[Any, Array] | None] | str:
     """The system's compiled ``B`` as the loops take it (its address, and its ``params``
-    led by :func:`~lieflow._kernels.inline_code`) and its compiled projection (or
+    led by :func:`~lieflow.engines._compiled_loops.inline_code`) and its compiled projection (or
     ``None``), checked against ``system.B(system.project_stage(V))`` and
     ``system.project(V)`` (:func:`_checked_map`) on ``V = W0`` and off it; or the reason
     they cannot be used.

@@ -1,4 +1,4 @@
-"""Flow states as trees of arrays: the few operations the driver and checkpoints need.
+"""Flow states as trees of arrays: the few operations the stepping loop and checkpoints need.
 
 A *state tree* is ``None``, an array, a Python scalar or string (a *leaf*), or a container
 of state trees: a ``tuple``, a ``list``, a ``dict`` with string keys, or an ``attrs``
