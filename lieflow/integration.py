@@ -222,7 +222,8 @@ def integrate(
         buffered states and diagnostics, flushed and fsync'd (a run killed outright loses at
         most this much work; Ctrl-C, a failed step or the end checkpoint everything). ``0``:
         after every chunk of steps; ``None``: after every chunk that holds a saved state
-        (``lieflow run``'s ``[run] checkpoint = "saves"``).
+        (``lieflow run``'s ``[run] checkpoint = "saves"``; a numpy flow's chunks end at the
+        saved states, so its checkpoints fall there).
     casimir_shift : float or "auto"
         Step the scheme on the Hamiltonian plus a Casimir, :math:`B(W) - cW`
         (:class:`~lieflow.systems.shifted.CasimirShifted`): the same flow, and an

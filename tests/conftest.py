@@ -3,6 +3,7 @@ every child process a test starts ends with it (``children``)."""
 
 from __future__ import annotations
 
+import signal
 from collections.abc import Iterator
 
 import pytest
@@ -47,3 +48,12 @@ def one_step_chunks(monkeypatch: pytest.MonkeyPatch) -> None:
     monitor or an interrupt between chunks falls at any step a test names, not at the end
     of a batch of steps."""
     monkeypatch.setattr(lf.stepping, "BATCH_STEPS", 1)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """The processes that tests interrupt must hear ``SIGINT``: a suite started in the
+    background by a non-interactive shell (``pytest &``, ``nohup``) inherits SIGINT
+    ignored, and so would every ``lieflow run`` it starts (which then rightly ignores it,
+    as a sweep's workers do). A Python handler here is reset to the default in children."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)

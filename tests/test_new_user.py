@@ -67,10 +67,10 @@ class Recorder:
 def test_checkpoint_seconds_none_checkpoints_at_every_save_and_saves_is_named() -> None:
     """``checkpoint_seconds=None`` is the configuration's ``"saves"`` (documented now);
     ``"saves"`` itself is refused with a message naming ``None``."""
-    # chunks of 64 steps: the save at step 100 lies in the second, the last step in the third
+    # a numpy flow's chunks (up to 64 steps) end at the saved states: at step 100, then 140
     taken = lf.integrate(RB, MID, W0, 0.1, steps=140, save_every=100, out=Recorder(),
                          checkpoint_seconds=None, engine="numpy")  # fmt: skip
-    assert taken == [128, 140, 140]  # and once more as the run ends
+    assert taken == [100, 140, 140]  # and once more as the run ends
     doc = lf.integrate.__doc__ or ""
     assert "``None``: after every chunk that holds a saved state" in doc
     with pytest.raises(lf.InputError, match="None to checkpoint at every saved state"):
