@@ -418,7 +418,8 @@ class EulerZeitlin(lieflow.IsospectralSystem):
 
         Uses ``tr(A^k) = Σ_ij (A^a)_ij (A^b)_ji`` with ``a = ⌊k/2⌋``, ``b = ⌈k/2⌉``, so
         ``k <= 4`` costs a single matrix product. The default powers 2, 3, 4 of
-        ``complex128`` NumPy states with numba installed: the product and one compiled pass
+        ``complex128`` NumPy states from ``N = 64`` on (:data:`~lieflow_zeitlin.traces.MIN_N`)
+        with numba installed: the product and one compiled pass
         (:func:`~lieflow_zeitlin.traces.casimirs_234`; the same sums, added in another
         order).
         """
@@ -426,7 +427,12 @@ class EulerZeitlin(lieflow.IsospectralSystem):
         if is_foreign_array(W):  # an array of another library (lieflow.backends), or traced
             return self._casimirs_arrays(W, powers)
         W = np.asarray(W)
-        if tuple(powers) == traces.POWERS and W.dtype == np.complex128 and _rec.have_numba():
+        if (
+            tuple(powers) == traces.POWERS
+            and W.dtype == np.complex128
+            and self.N >= traces.MIN_N
+            and _rec.have_numba()
+        ):
             return traces.casimirs_234(W)
         A = 1j * W
         if not powers:

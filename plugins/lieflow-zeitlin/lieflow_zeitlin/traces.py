@@ -82,6 +82,11 @@ _row_traces = _Kernel(_row_traces_loops, split=True)
 #: The powers :func:`casimirs_234` computes.
 POWERS = (2, 3, 4)
 
+#: From this N on (where it pays: N = 256, 8 -> 3.7 ms), the compiled pass; below it the
+#: NumPy products, so that a small run compiles nothing for its diagnostics (a first run's
+#: compile time, issue 37 item 11).
+MIN_N = 64
+
 
 def casimirs_234(W: Array) -> Array:
     """``tr((iW)^k)`` for ``k = 2, 3, 4`` (module docs), last axis indexes ``k``, for a
