@@ -28,9 +28,11 @@ rules' source (:data:`SHARED_KEY`), so editing a rule recompiles them.
 
 Compile time (a user's first run compiles its entry point: issue 37 item 11): each entry
 point holds one formulation, one data type, one update and one kind of product (plain loops
-or BLAS, below), so a run compiles only the code it runs; every function between an entry point and the map is inlined into it once (one call
-site each: a failed warm solve is retried by the same call to the iteration), since numba's
-inlining copies a function's code into every call site.
+or BLAS, below), so a run compiles only the code it runs; every function between an entry
+point and the map is inlined into it once (one call site each: a failed warm solve is
+retried by the same call to the iteration), since inlining copies a function's code into
+every call site; the largest (the maps, the stopping rule's bookkeeping) are inlined by
+LLVM rather than by numba (:func:`_inlined_by_llvm`).
 
 Conventions: ``float64`` or ``complex128`` data (one compilation of the loops for each; the
 complex one for skew-Hermitian algebras such as su(N), where every transpose of the real code
@@ -163,8 +165,31 @@ def _helper(func: F) -> F:
     return cast(F, numba.njit(**_HELPER_OPTIONS)(func))
 
 
-#: numba's options of :func:`_helper` (and of the overloads of the products).
-_HELPER_OPTIONS = {"error_model": "numpy", "no_cpython_wrapper": True, "no_cfunc_wrapper": True}
+#: numba's options of :func:`_helper` (and of the overloads of the products); explicitly
+#: not ``forceinline``, which a function compiled while another is compiling would
+#: otherwise take from it (numba's flags are inherited where not set).
+_HELPER_OPTIONS = {
+    "error_model": "numpy", "no_cpython_wrapper": True, "no_cfunc_wrapper": True,
+    "forceinline": False,
+}  # fmt: skip
+
+
+def _inlined_by_llvm(func: F) -> F:
+    """``numba.njit`` for the large functions the loops call in their innermost loop (the
+    maps, the stopping rule's bookkeeping): compiled on their own once, without a cache or
+    wrappers (as :func:`_helper`), and inlined by LLVM (``forceinline``: LLVM's
+    ``alwaysinline``) into the code that calls them, rather than by numba as :func:`_inner`.
+
+    Numba inlines a function by copying its code block by block together with the whole
+    scope of its variables, at every level of nesting (the map into the solve, the solve
+    into the step, the step into the entry point), so the cost grows with the square of
+    the inlined code; the maps and the stopping rule were most of it (a first so(3)
+    midpoint run: 2.7 s of numba's inlining before, 0.9 s after, issue 37 item 11). The
+    same code runs: LLVM inlines them where numba did, and the loops' states are the same
+    bits (``benchmarks/compile_time.py --save``)."""
+    if numba is None:  # pragma: no cover
+        return func
+    return cast(F, numba.njit(**{**_HELPER_OPTIONS, "forceinline": True})(func))
 
 
 def compiled_map(func: F) -> F:
@@ -219,7 +244,7 @@ def stopping_arrays(
     return tolerances, settings
 
 
-@_inner
+@_inlined_by_llvm
 def _judge(
     step2: float, size2: float, k: int, size0: float, res: Any, tolerances: Any, settings: Any
 ) -> tuple[int, float]:
@@ -570,7 +595,7 @@ def address(pointer: Any, signature: Any) -> int:
 # ------------------------------------------------------------------ formulations
 
 
-@_inner
+@_inlined_by_llvm
 def _midpoint_map(
     W0: Any, coef: Any, x: Any, Bm: Any, BM: Any, BMB: Any, MB: Any, B: Any, params: Any,
     skew: bool, gemm: Any,
@@ -645,7 +670,7 @@ def _commutator_add(
             W[i, j] = W[i, j] + hb * (BM[i, j] - MB[i, j])
 
 
-@_inner
+@_inlined_by_llvm
 def _reduced_map(
     W0: Any, coef: Any, x: Any, Wst: Any, Bs: Any, GB: Any, PB: Any, B: Any, params: Any,
     skew: bool, gemm: Any,
