@@ -73,6 +73,7 @@ times faster (a batch of four N = 64 matrices: 60 µs instead of 320 µs per sol
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterator
 from typing import Any
@@ -84,7 +85,7 @@ from numpy.typing import ArrayLike, NDArray
 import lieflow
 from lieflow.backends import device_of, is_foreign_array, is_numpy, namespace
 
-from ._recurrences import _Kernel, have_numba
+from ._recurrences import have_numba
 from .cyclic_reduction import CyclicReduction
 from .projection import remove_trace, skew_part_into, su_project
 
@@ -294,7 +295,26 @@ def _sweep_loops(Y: Array, L: Array, U: Array, F: Array, G: Array, dinv: Array) 
                     Y[k, j, r, c] = Y[k, j, r, c] + G[j, r, c] * Y[k, j + 1, 0, c]
 
 
-_sweep_compiled = _Kernel(_sweep_loops)
+@functools.cache
+def sweep_kernel(real: str) -> Any:
+    """:func:`_sweep_loops` compiled (numba installed; with the on-disk cache of
+    :func:`lieflow.numba_cache.cached_njit`) for data of the real type ``real`` (a dtype
+    character: ``"d"`` float64, ``"f"`` float32), made and compiled on first use.
+
+    Compiled once, for its one signature: ``Y`` writable, the factors typed read-only. The
+    numpy path passes the read-only arrays of :class:`_BlockedFactor`, the compiled ``B`` of
+    the engine (:func:`lieflow_zeitlin._compiled.zeitlin_B`) writable views of its
+    ``params``, which numba converts to the read-only type; compiled on first call, the two
+    would compile the loops twice (1.2 s of a first compiled Euler–Zeitlin run, issue 37
+    item 11). A function of its argument alone (cached)."""
+    import numba
+
+    from lieflow.numba_cache import cached_njit
+
+    t = numba.from_dtype(np.dtype(real))
+    factor = numba.types.Array(t, 3, "C", readonly=True)
+    signature = numba.types.void(t[:, :, :, ::1], *(factor,) * 5)
+    return cached_njit(_sweep_loops, signature=signature, nogil=True)
 
 
 def _remove_mean(rows: Array) -> None:
@@ -447,7 +467,7 @@ class HoppeYauLaplacian:
         buf[:, N * N :] = 0
         _remove_mean(diag)
         Y = buf.view(real).reshape(K, nb, b, 2 * C)
-        sweep = _sweep_compiled.dispatcher() if have_numba() else _sweep
+        sweep = sweep_kernel(np.dtype(real).char) if have_numba() else _sweep
         sweep(Y, factor.lower, factor.upper, factor.carry_fwd, factor.carry_bwd, factor.dinv)
         _remove_mean(diag)
         return buf[:, : N * N].reshape(*batch, N, N)
