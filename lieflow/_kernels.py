@@ -607,8 +607,9 @@ def _midpoint_map(
     for skew algebras ``M B = (B M)^†`` (two products per update, SPEC §4.1), and for
     small real ``n`` only half of the skew ``B M B`` is formed. The new iterate overwrites ``x``
     entry by entry once the products are formed; ``Bm``, ... ``MB`` are scratch matrices,
-    ``gemm`` the products above ``n = LOOP_PRODUCTS_MAX_N`` (:func:`gemm`). Returns the
-    squared norms of the update and of the new iterate.
+    ``gemm`` the products above ``n = LOOP_PRODUCTS_MAX_N`` (:func:`gemm`; ``None``: plain
+    loops, :func:`_matmul`). Returns the squared norms of the update and of the new
+    iterate.
     """
     n = W0.shape[0]
     q, qq = coef[0], coef[1]
