@@ -551,7 +551,8 @@ def test_a_run_compiles_only_the_loop_of_its_own_update(tmp_path: Path) -> None:
     both updates (the update was a flag read at run time), doubling its compile time. Now
     each update has its entry point: a commutator run, from an empty cache, never compiles
     the conjugation update's helpers (the Gauss–Jordan solve, Newton–Schulz), and a
-    conjugation run loads only its own entry point."""
+    conjugation run loads only its own entry point. Nor does a run of ``n <= 8`` (plain-loop
+    products) compile the BLAS product."""
     code = textwrap.dedent(
         """
         import lieflow as lf
@@ -562,12 +563,13 @@ def test_a_run_compiles_only_the_loop_of_its_own_update(tmp_path: Path) -> None:
                          0.1, steps=5, engine="compiled")
             print(update, len(_compiled_loops._gauss_jordan.signatures),
                   len(_compiled_loops._orthonormalize.signatures),
-                  sorted(k[2] for k in _compiled_loops._ENTRIES if k[0] == "sydirk_advance"))
+                  sorted(k[2] for k in _compiled_loops._ENTRIES if k[0] == "sydirk_advance"),
+                  len(_compiled_loops._gemm.signatures))
         """
     )
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}  # an empty cache: all compiled
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, timeout=900, env=env)  # fmt: skip
     lines = out.stdout.splitlines()
-    assert lines[-2] == "commutator 0 0 [False]"
-    assert lines[-1] == "conjugation 1 1 [False, True]"
+    assert lines[-2] == "commutator 0 0 [False] 0"
+    assert lines[-1] == "conjugation 1 1 [False, True] 0"

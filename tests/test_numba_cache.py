@@ -38,7 +38,7 @@ if importlib.util.find_spec("lieflow_zeitlin"):
     from lieflow_zeitlin import _recurrences, laplacian
     functions += [zeitlin.zeitlin_B, _recurrences._harmonic_compiled.dispatcher(),
                   _recurrences._legendre_sweep_compiled.dispatcher(),
-                  laplacian._sweep_compiled.dispatcher()]
+                  laplacian.sweep_kernel("d")]
 print(json.dumps({
     "directory": str(cache_directory()),
     "paths": [f.stats.cache_path for f in functions],

@@ -24,13 +24,15 @@ typing. ``B`` is the stage-value ``B`` of
 numba's cache tracks this file only, not the files of the functions it inlines; the entry
 points (:func:`entry`: ``"sydirk_advance"``, ``"reduced_advance"``, each for the commutator
 update and for the update in conjugation form) are therefore keyed by a hash of the stopping
-rule's source (:data:`RULE_KEY`), so editing the rule recompiles them.
+rules' source (:data:`SHARED_KEY`), so editing a rule recompiles them.
 
 Compile time (a user's first run compiles its entry point: issue 37 item 11): each entry
-point holds one formulation, one data type and one update, so a run compiles only the code
-it runs; every function between an entry point and the map is inlined into it once (one call
-site each: a failed warm solve is retried by the same call to the iteration), since numba's
-inlining copies a function's code into every call site.
+point holds one formulation, one data type, one update and one kind of product (plain loops
+or BLAS, below), so a run compiles only the code it runs; every function between an entry
+point and the map is inlined into it once (one call site each: a failed warm solve is
+retried by the same call to the iteration), since inlining copies a function's code into
+every call site; the largest (the maps, the stopping rule's bookkeeping) are inlined by
+LLVM rather than by numba (:func:`_inlined_by_llvm`).
 
 Conventions: ``float64`` or ``complex128`` data (one compilation of the loops for each; the
 complex one for skew-Hermitian algebras such as su(N), where every transpose of the real code
@@ -38,7 +40,7 @@ is a conjugate transpose); an ensemble is a ``(K, n, n)`` stack advanced traject
 trajectory inside each step; solves return the number of updates, negated
 when the stopping rule reports a failure (the caller then hands the step to numpy).
 Products of ``n×n`` matrices are plain loops up to ``n = 8`` and BLAS calls (``np.dot``
-from compiled code: no Python overhead) above.
+from compiled code: no Python overhead) above, in entry points of their own.
 
 The entry points are compiled without numba's reference counting (``_nrt=False``): every
 view the loops take of an array (a trajectory, a stage, a scratch matrix) otherwise costs an
@@ -160,8 +162,34 @@ def _helper(func: F) -> F:
     first run would otherwise compile for each helper (issue 37 item 11)."""
     if numba is None:  # pragma: no cover
         return func
-    options = {"no_cpython_wrapper": True, "no_cfunc_wrapper": True}
-    return cast(F, numba.njit(error_model="numpy", **options)(func))
+    return cast(F, numba.njit(**_HELPER_OPTIONS)(func))
+
+
+#: numba's options of :func:`_helper` (and of the overloads of the products); explicitly
+#: not ``forceinline``, which a function compiled while another is compiling would
+#: otherwise take from it (numba's flags are inherited where not set).
+_HELPER_OPTIONS = {
+    "error_model": "numpy", "no_cpython_wrapper": True, "no_cfunc_wrapper": True,
+    "forceinline": False,
+}  # fmt: skip
+
+
+def _inlined_by_llvm(func: F) -> F:
+    """``numba.njit`` for the large functions the loops call in their innermost loop (the
+    maps, the stopping rule's bookkeeping): compiled on their own once, without a cache or
+    wrappers (as :func:`_helper`), and inlined by LLVM (``forceinline``: LLVM's
+    ``alwaysinline``) into the code that calls them, rather than by numba as :func:`_inner`.
+
+    Numba inlines a function by copying its code block by block together with the whole
+    scope of its variables, at every level of nesting (the map into the solve, the solve
+    into the step, the step into the entry point), so the cost grows with the square of
+    the inlined code; the maps and the stopping rule were most of it (a first so(3)
+    midpoint run: 2.7 s of numba's inlining before, 0.9 s after, issue 37 item 11). The
+    same code runs: LLVM inlines them where numba did, and the loops' states are the same
+    bits (``benchmarks/compile_time.py --save``)."""
+    if numba is None:  # pragma: no cover
+        return func
+    return cast(F, numba.njit(**{**_HELPER_OPTIONS, "forceinline": True})(func))
 
 
 def compiled_map(func: F) -> F:
@@ -217,7 +245,7 @@ def stopping_arrays(
     return tolerances, settings
 
 
-@_inner
+@_inlined_by_llvm
 def _judge(
     step2: float, size2: float, k: int, size0: float, res: Any, tolerances: Any, settings: Any
 ) -> tuple[int, float]:
@@ -327,38 +355,83 @@ def _conj_into(A: Any, out: Any) -> None:
             out[i, j] = np.conj(A[i, j])
 
 
-@_helper
+# The products of the loops: by ``gemm`` (the BLAS product, :func:`gemm`) in the entry
+# points above ``n = LOOP_PRODUCTS_MAX_N``, by :func:`_loops` in those of the smaller ``n``,
+# which pass ``None`` for ``gemm``. Each is a stub with the formula in numpy and its
+# compiled form an overload: numba types and compiles only the form of the type of
+# ``gemm`` (it cannot prune a branch on a function argument that is not ``None``), so a
+# run compiles no BLAS call or no loops it does not run.
+
+
 def _matmul(A: Any, B: Any, out: Any, gemm: Any) -> None:
-    """``out = A @ B``: :func:`_loops` up to ``n = LOOP_PRODUCTS_MAX_N``, else ``gemm`` (BLAS)."""
-    if A.shape[0] > LOOP_PRODUCTS_MAX_N:
-        gemm(A, B, out, False, False)
-    else:
-        _loops(A, B, out)
+    """``out = A @ B`` (compiled: by ``gemm``, or :func:`_loops` where it is ``None``)."""
+    np.dot(A, B, out)
 
 
-@_helper
 def _matmul_hn(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> None:
     """``out = A^† @ B``: the product with the transpose of ``A``, or of its conjugate
-    (written into the scratch matrix ``tmp``) for complex data."""
-    if _is_complex(A):
-        _conj_into(A, tmp)
-        A = tmp
-    if A.shape[0] > LOOP_PRODUCTS_MAX_N:
-        gemm(A, B, out, True, False)
-    else:
-        _loops(A.T, B, out)
+    (compiled: written into the scratch matrix ``tmp``) for complex data."""
+    np.dot(A.conj().T, B, out)
 
 
-@_helper
 def _matmul_nh(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> None:
     """``out = A @ B^†`` (as :func:`_matmul_hn`)."""
-    if _is_complex(B):
-        _conj_into(B, tmp)
-        B = tmp
-    if A.shape[0] > LOOP_PRODUCTS_MAX_N:
-        gemm(A, B, out, False, True)
-    else:
-        _loops(A, B.T, out)
+    np.dot(A, B.conj().T, out)
+
+
+def _by_products(gemm: Any, loops: F, blas: F) -> F:
+    """The compiled form of a product for the type of ``gemm``: ``loops`` for ``None``,
+    else ``blas``."""
+    return loops if isinstance(gemm, numba.types.NoneType) else blas
+
+
+if numba is not None:
+
+    @numba.extending.overload(_matmul, jit_options=_HELPER_OPTIONS)
+    def _matmul_compiled(A: Any, B: Any, out: Any, gemm: Any) -> Any:
+        def loops(A: Any, B: Any, out: Any, gemm: Any) -> None:
+            _loops(A, B, out)
+
+        def blas(A: Any, B: Any, out: Any, gemm: Any) -> None:
+            gemm(A, B, out, False, False)
+
+        return _by_products(gemm, loops, blas)
+
+    @numba.extending.overload(_matmul_hn, jit_options=_HELPER_OPTIONS)
+    def _matmul_hn_compiled(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> Any:
+        conj = isinstance(A.dtype, numba.types.Complex)  # a constant: numba prunes on it
+
+        def loops(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> None:
+            if conj:
+                _conj_into(A, tmp)
+                A = tmp
+            _loops(A.T, B, out)
+
+        def blas(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> None:
+            if conj:
+                _conj_into(A, tmp)
+                A = tmp
+            gemm(A, B, out, True, False)
+
+        return _by_products(gemm, loops, blas)
+
+    @numba.extending.overload(_matmul_nh, jit_options=_HELPER_OPTIONS)
+    def _matmul_nh_compiled(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> Any:
+        conj = isinstance(B.dtype, numba.types.Complex)
+
+        def loops(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> None:
+            if conj:
+                _conj_into(B, tmp)
+                B = tmp
+            _loops(A, B.T, out)
+
+        def blas(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> None:
+            if conj:
+                _conj_into(B, tmp)
+                B = tmp
+            gemm(A, B, out, False, True)
+
+        return _by_products(gemm, loops, blas)
 
 
 @_helper
@@ -523,7 +596,7 @@ def address(pointer: Any, signature: Any) -> int:
 # ------------------------------------------------------------------ formulations
 
 
-@_inner
+@_inlined_by_llvm
 def _midpoint_map(
     W0: Any, coef: Any, x: Any, Bm: Any, BM: Any, BMB: Any, MB: Any, B: Any, params: Any,
     skew: bool, gemm: Any,
@@ -535,8 +608,9 @@ def _midpoint_map(
     for skew algebras ``M B = (B M)^†`` (two products per update, SPEC §4.1), and for
     small real ``n`` only half of the skew ``B M B`` is formed. The new iterate overwrites ``x``
     entry by entry once the products are formed; ``Bm``, ... ``MB`` are scratch matrices,
-    ``gemm`` the products above ``n = LOOP_PRODUCTS_MAX_N`` (:func:`gemm`). Returns the
-    squared norms of the update and of the new iterate.
+    ``gemm`` the products above ``n = LOOP_PRODUCTS_MAX_N`` (:func:`gemm`; ``None``: plain
+    loops, :func:`_matmul`). Returns the squared norms of the update and of the new
+    iterate.
     """
     n = W0.shape[0]
     q, qq = coef[0], coef[1]
@@ -598,7 +672,7 @@ def _commutator_add(
             W[i, j] = W[i, j] + hb * (BM[i, j] - MB[i, j])
 
 
-@_inner
+@_inlined_by_llvm
 def _reduced_map(
     W0: Any, coef: Any, x: Any, Wst: Any, Bs: Any, GB: Any, PB: Any, B: Any, params: Any,
     skew: bool, gemm: Any,
@@ -1054,7 +1128,8 @@ class LoopArguments(NamedTuple):
         Whether the algebra is skew-Hermitian (``M B = (B M)^†``).
     B, project, gemm : int
         Addresses of the system's compiled ``B``, of its compiled projection (``B``'s when
-        there is none: not called) and of the BLAS product (:func:`address`).
+        there is none: not called) and of the BLAS product (:func:`address`; ``0`` for
+        the entry points of plain-loop products, which do not read it).
     B_params, project_params : ndarray
         Their ``params``; ``B_params`` led by :func:`inline_code`.
     projecting : bool
@@ -1141,23 +1216,27 @@ _STEPS = {
 }
 
 
-def _entry_point(key: str, sydirk: bool, conjugation: bool) -> Any:
+def _entry_point(key: str, sydirk: bool, conjugation: bool, blas: bool) -> Any:
     """The entry point of one formulation (``sydirk``: a composition of midpoint steps, else
-    the reduced stage form) and update: the chunk loop over the steps of
+    the reduced stage form), update and kind of product (``blas``: the BLAS product
+    :func:`gemm`, for ``n > LOOP_PRODUCTS_MAX_N``; else plain loops, :func:`_loops`, and
+    the product's address is not read): the chunk loop over the steps of
     :data:`_STEPS` (:func:`_sydirk_step_of` or :func:`_reduced_step_of`, with views of the
     work arrays from :func:`_sydirk_views` or :func:`_reduced_views`). It takes the
     :class:`LoopArguments`, the system's maps and the product by address (``int64``, see
     :func:`_at`).
 
-    One source for the four: the step and the views are the globals ``_step`` and
-    ``_views`` of the function, which is made with a namespace of its own (this module's
-    globals and those two), so that numba compiles the loop as the entry point itself
-    rather than inlining it into one (numba's inlining deep-copies the inlined code block
-    by block, a cost that grows with the square of its size: about a fifth of the CPU time
-    of a first so(3) run, measured with ``benchmarks/compile_time.py``). Its closure holds
+    One source for the eight: the step, the views and the kind of product are the globals
+    ``_step``, ``_views`` and ``_blas`` of the function, which is made with a namespace of
+    its own (this module's globals and those three; numba prunes the branch on ``_blas`` it
+    does not take, so a run types and compiles only the products it calls), so that numba
+    compiles the loop as the entry point itself rather than inlining it into one (numba's
+    inlining deep-copies the inlined code block by block, a cost that grows with the square
+    of its size: about a fifth of the CPU time of a first so(3) run, measured with
+    ``benchmarks/compile_time.py``). Its closure holds
     ``key`` (:data:`SHARED_KEY`) alone, which numba's cache key hashes (with the bytecode),
     so that editing a shared rule recompiles it; the name (one cache file per entry point)
-    tells the four apart."""
+    tells the eight apart."""
 
     def advance(
         start: Any, coefficients: Any, weights: Any, skew: bool, B_address: Any,
@@ -1173,7 +1252,11 @@ def _entry_point(key: str, sydirk: bool, conjugation: bool) -> Any:
         key  # noqa: B018 - part of the cache key
         B = _map_at(B_address, start)
         project = _map_at(project_address, start)
-        gemm = _product_at(gemm_address, start)
+        # _blas: a global of the entry point's own namespace (see above), pruned
+        if _blas:  # type: ignore[name-defined] # noqa: F821
+            gemm = _product_at(gemm_address, start)
+        else:
+            gemm = None
         K, n, s = start.shape[0], start.shape[1], weights.shape[0]
         warm = settings[WARM_STARTS] != 0
         depth, m = history.shape[0], history.shape[2]
@@ -1218,7 +1301,8 @@ def _entry_point(key: str, sydirk: bool, conjugation: bool) -> Any:
 
     step, views = _STEPS[sydirk, conjugation]
     name = f"{'sydirk' if sydirk else 'reduced'}_advance{'_conjugation' if conjugation else ''}"
-    namespace = {**globals(), "_step": step, "_views": views}
+    name += "_blas" if blas else ""
+    namespace = {**globals(), "_step": step, "_views": views, "_blas": blas}
     made = types.FunctionType(advance.__code__, namespace, name, None, advance.__closure__)
     made.__qualname__ = name  # one cache file per entry point
     return made
@@ -1283,16 +1367,20 @@ def workspace(
     )
 
 
-def entry(name: str, dtype: np.dtype = DTYPES[0], conjugation: bool = False) -> Any:
+def entry(
+    name: str, dtype: np.dtype = DTYPES[0], conjugation: bool = False, blas: bool = False
+) -> Any:
     """The entry point ``name`` (``"sydirk_advance"`` or ``"reduced_advance"``) for data of
-    ``dtype`` (one of :data:`DTYPES`) and the update in conjugation form or not, compiled
-    (or loaded from the disk cache) on first use, so that importing this module (as
+    ``dtype`` (one of :data:`DTYPES`), the update in conjugation form or not and products by
+    BLAS (``blas``: for ``n > LOOP_PRODUCTS_MAX_N``, :func:`gemm`) or by plain loops,
+    compiled (or loaded from the disk cache) on first use, so that importing this module (as
     :func:`lieflow.engines.compiled.plan` does to check a system's maps) loads no loops, and a run
-    compiles and loads only the loop of its own formulation, data type and update."""
-    key = (name, np.dtype(dtype), bool(conjugation))
+    compiles and loads only the loop of its own formulation, data type, update and
+    products."""
+    key = (name, np.dtype(dtype), bool(conjugation), bool(blas))
     if key not in _ENTRIES:
         if name not in ("sydirk_advance", "reduced_advance"):
             raise ValueError(f"no entry point {name!r}")
-        source = _entry_point(SHARED_KEY, name == "sydirk_advance", key[2])
+        source = _entry_point(SHARED_KEY, name == "sydirk_advance", key[2], key[3])
         _ENTRIES[key] = _compile_entry(source, key[1])
     return _ENTRIES[key]

@@ -373,22 +373,25 @@ class CompiledPlan:
         """The loops' arguments that depend on the warm-start ``depth`` alone
         (:class:`_Fixed`): the stopping rule's arrays, the extrapolation weights (a writable
         copy: the loops' type), and the addresses of ``B``, the projection (``B``'s when
-        there is none: not called) and the product, each checked to be a resolved function
-        of the signature the loops call it with (:func:`lieflow.engines._compiled_loops.address`;
-        the
-        loops take bare integers)."""
+        there is none: not called) and the BLAS product (0 up to ``n =``
+        :data:`~lieflow.engines._compiled_loops.LOOP_PRODUCTS_MAX_N`, whose entry points
+        multiply in plain loops and never read it), each checked to be a resolved function
+        of the signature the loops call it with
+        (:func:`lieflow.engines._compiled_loops.address`; the loops take bare integers)."""
         k = kernels()
         tolerances, settings = k.stopping_arrays(self.rule, self.retry_cold, depth > 0)
-        run = k.entry(f"{self.kind}_advance", self.dtype, self.conjugation)
+        blas = self.n > k.LOOP_PRODUCTS_MAX_N  # else the loops' own products, no BLAS
+        run = k.entry(f"{self.kind}_advance", self.dtype, self.conjugation, blas)
         signature = k.map_signature(self.dtype)
         B = k.address(self.B, signature)
         P = B if self.project is None else k.address(self.project, signature)
-        gemm = k.gemm(self.dtype)
+        gemm = k.gemm(self.dtype) if blas else None
         core = self.warm_shape()
         return _Fixed(
             k, run, B, self.B_params.copy(), P, self.project_params.copy(), tolerances,
             settings, np.array(extrapolation_matrix(max(depth, 1))),
-            k.address(gemm, gemm.signature()), core, math.prod(core), self.rule.max_iter,
+            0 if gemm is None else k.address(gemm, gemm.signature()), core, math.prod(core),
+            self.rule.max_iter,
         )  # fmt: skip
 
 

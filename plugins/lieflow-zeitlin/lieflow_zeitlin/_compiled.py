@@ -27,8 +27,8 @@ from lieflow.numba_cache import cached_njit
 from . import laplacian
 
 #: The partitioned sweeps of :meth:`HoppeYauLaplacian.solve`, compiled (``zeitlin_B`` calls
-#: them).
-_sweep_compiled = laplacian._sweep_compiled.dispatcher()
+#: them; the numpy path's compilation, :func:`lieflow_zeitlin.laplacian.sweep_kernel`).
+_sweep_compiled = laplacian.sweep_kernel("d")
 
 #: ``params = [c, nb, b, 1, Im diag F_f (N entries), factors]`` (the ``(4, nb, b, 2(N+1))``
 #: stack of the sweeps' factors, flattened; :func:`params`); the ``1`` is the parameter

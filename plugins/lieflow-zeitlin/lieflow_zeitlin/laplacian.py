@@ -73,6 +73,7 @@ times faster (a batch of four N = 64 matrices: 60 µs instead of 320 µs per sol
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterator
 from typing import Any
@@ -325,7 +326,31 @@ def _sweep_loops(groups: int, Y: Array, factors: Array) -> None:
                         X[r, c] = X[r, c] + G[j, r, c] * Z[c]
 
 
-_sweep_compiled = _Kernel(_sweep_loops, split=True)
+#: The sweeps' parallel build, for more than one group of columns (numba's threads,
+#: :class:`lieflow.numba_cache.SplitKernel`); one group runs :func:`sweep_kernel`'s build.
+_sweep_split = _Kernel(_sweep_loops, split=True)
+
+
+@functools.cache
+def sweep_kernel(real: str) -> Any:
+    """:func:`_sweep_loops` compiled for one group (serial; numba installed; with the on-disk
+    cache of :func:`lieflow.numba_cache.cached_njit`) for data of the real type ``real`` (a
+    dtype character: ``"d"`` float64, ``"f"`` float32), made and compiled on first use.
+
+    Compiled once, for its one signature: ``groups``, ``Y`` writable, the factors' stack
+    typed read-only. The numpy path passes the read-only :attr:`_BlockedFactor.compact`,
+    the compiled ``B`` of the engine (:func:`lieflow_zeitlin._compiled.zeitlin_B`) a
+    writable view of its ``params``, which numba converts to the read-only type; compiled
+    on first call, the two would compile the loops twice (1.2 s of a first compiled
+    Euler–Zeitlin run, issue 37 item 11). A function of its argument alone (cached)."""
+    import numba
+
+    from lieflow.numba_cache import cached_njit
+
+    t = numba.from_dtype(np.dtype(real))
+    factors = numba.types.Array(t, 4, "C", readonly=True)
+    signature = numba.types.void(numba.int64, t[:, :, :, ::1], factors)
+    return cached_njit(_sweep_loops, signature=signature, nogil=True)
 
 
 def _remove_mean(rows: Array) -> None:
@@ -479,7 +504,9 @@ class HoppeYauLaplacian:
         _remove_mean(diag)
         Y = buf.view(real).reshape(K, nb, b, 2 * C)
         if have_numba():
-            _sweep_compiled(work_groups(Y.size), Y, factor.compact)
+            groups = work_groups(Y.size)
+            sweep = sweep_kernel(np.dtype(real).char) if groups == 1 else _sweep_split
+            sweep(groups, Y, factor.compact)
         else:
             _sweep(Y, factor.lower, factor.upper, factor.carry_fwd, factor.carry_bwd, factor.dinv)
         _remove_mean(diag)
