@@ -3,12 +3,13 @@ r"""Warm starts: initial guesses of an implicit step from the previous steps' so
 :class:`WarmStart` is the state a :class:`~lieflow.flows.SchemeFlow` carries between steps
 (SPEC §5): the last few solved offsets of the scheme's unknowns, and how many of them the
 next prediction extrapolates from. The compiled loops (:mod:`lieflow.engines._compiled_loops`)
-update the
-same state in place, with the same extrapolation weights (:func:`extrapolation_matrix`) and
-the same trust rule (:func:`trusted_points`: plain scalar Python, which they compile, as
-they compile the stopping rule). The extrapolation itself, a weighted sum of the kept
-solutions, is written twice: here as one BLAS product (or leaf by leaf for trees), there as
-a loop over the entries (the loops cannot call NumPy: see :mod:`lieflow.engines._compiled_loops`).
+update the same state in place, with the same extrapolation weights
+(:func:`extrapolation_matrix`), the same trust rule (:func:`trusted_points`: plain scalar
+Python, which they compile, as they compile the stopping rule) and the same passes over the
+numbers: the weighted sums of the prediction and the errors that choose its order are the
+compiled passes of :mod:`lieflow._warm_kernel`, which this module runs on large NumPy
+states. Small states, trees of arrays and arrays of other libraries form the same sums with
+array operations here (one BLAS product of a stacked history, or leaf by leaf).
 """
 
 from __future__ import annotations
@@ -398,7 +399,10 @@ def _advanced(state: WarmStart, solved: Any, history: list[Any], stack: Any) -> 
         sums = np.empty(len(history) + 1)
         views = flat[0]
         C = extrapolation_matrix(len(history))
-        _kernel().errors(_kernel().work_groups(views[0].size), views[0], views[1:], C, sums)
+        kernel = _kernel()
+        groups = kernel.work_groups(views[0].size)
+        work = kernel.error_work(views[0].size, len(history), groups)
+        kernel.errors(groups, views[0], views[1:], C, sums, *work)
         best = trusted_points(sums.tolist(), len(history), state.depth)
         return state.replaced([solved, *history], best)
     errors = [
