@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, cast
 
 import attrs
 import numpy as np
@@ -167,7 +167,7 @@ class SchemeFlow:
         W1 = res.W
         if exact and type(W1) is np.ndarray and W1.dtype.kind == self._exact:
             if self._exact == "c":  # su(N): skew-Hermitian bit for bit, the trace removed
-                W1 = self.system.algebra.project_skew_hermitian(W1)
+                W1 = cast(SU, self.system.algebra).project_skew_hermitian(W1)
             return W1, new, res.stats
         return self.system.project(W1), new, res.stats
 
