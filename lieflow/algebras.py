@@ -429,10 +429,17 @@ class SU(U):
             eye = xp.eye(n, dtype=Y.dtype, device=device_of(Y))
             trace = xp.sum(Y * eye, axis=(-2, -1))
             return Y - (trace / n)[..., None, None] * eye
-        Y = np.ascontiguousarray(Y)  # new: the reshape below is a view
-        diagonal = Y.reshape(*Y.shape[:-2], n * n)[..., :: n + 1]  # a view
-        diagonal -= diagonal.sum(axis=-1, keepdims=True) / n
-        return Y
+        return _remove_trace(np.ascontiguousarray(Y))  # (new: the reshape is a view)
+
+    def project_skew_hermitian(self, X: Array) -> Array:
+        """:meth:`project` of a NumPy ``X`` that is skew-Hermitian bit for bit
+        (``X_ij = -conj(X_ji)`` for every entry, as every state a lieflow scheme that keeps
+        skew symmetry returns: :attr:`lieflow.schemes.Scheme.keeps_skew`), the same bits
+        in one pass over the diagonal and a copy: its skew-Hermitian part
+        ``(X_ij - conj(X_ji)) / 2 = (X_ij + X_ij) / 2`` is ``X`` itself (a doubling and a
+        halving, both exact below ``2^1023``, where the projection overflows to ``inf``),
+        so only the trace is removed, by :meth:`project`'s operations. A new array."""
+        return _remove_trace(np.array(X, order="C"))
 
     @property
     def dimension(self) -> int:
@@ -440,6 +447,15 @@ class SU(U):
 
     def _membership_hint(self) -> str:
         return "Elements of su(N) satisfy W^† = -W and tr W = 0."
+
+
+def _remove_trace(Y: np.ndarray) -> np.ndarray:
+    """``Y - (tr Y / n) I`` over the last two axes of a C-contiguous NumPy ``Y``, in place
+    (the mean of each diagonal subtracted from it), returned."""
+    n = Y.shape[-1]
+    diagonal = Y.reshape(*Y.shape[:-2], n * n)[..., :: n + 1]  # a view
+    diagonal -= diagonal.sum(axis=-1, keepdims=True) / n
+    return Y
 
 
 @attrs.frozen

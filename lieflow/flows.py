@@ -26,12 +26,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, cast
 
 import attrs
 import numpy as np
 
-from .algebras import SO, Array
+from .algebras import SO, SU, Array
 from .errors import ConvergenceError, InputError
 from .schemes import contraction
 from .schemes.base import Scheme
@@ -75,21 +75,25 @@ class SchemeFlow:
     scheme: Scheme
     solver: Solver = attrs.field(factory=FixedPoint)
     warm_start: bool | int = True
-    #: Whether a step from a state exactly on the phase space lands exactly on it, so that
-    #: :meth:`step_from_phase_space` need not project (derived once): the system's
-    #: projection is so(n)'s ``(W - W^T)/2`` and the scheme keeps exact skew-symmetry
-    #: (:attr:`~lieflow.schemes.Scheme.keeps_skew`).
-    _exact: bool = attrs.field(init=False, repr=False)
+    #: Whether a step from a state exactly on the phase space lands exactly on it, or on
+    #: it up to its trace, so that :meth:`step_from_phase_space` need not project, or only
+    #: remove the trace (derived once): the scheme keeps exact skew-symmetry
+    #: (:attr:`~lieflow.schemes.Scheme.keeps_skew`) and the system's projection is its
+    #: algebra's, so(n)'s ``(W - W^T)/2`` (``"f"``: real states land on so(n)) or su(N)'s
+    #: (``"c"``: complex states land on the skew-Hermitian matrices, whose projection is
+    #: :meth:`lieflow.SU.project_skew_hermitian`; subclasses of :class:`~lieflow.SU`
+    #: keep its projection's bits, as lieflow-zeitlin's compiled one does); ``""``
+    #: otherwise.
+    _exact: str = attrs.field(init=False, repr=False)
 
     @_exact.default
-    def _keeps_phase_space(self) -> bool:
-        # (a scheme of one's own that is not a lieflow Scheme need not say: False)
+    def _keeps_phase_space(self) -> str:
+        # (a scheme of one's own that is not a lieflow Scheme need not say: "")
         keeps = getattr(self.scheme, "keeps_skew", False) is True
-        return (
-            type(self.system).project is IsospectralSystem.project
-            and type(self.system.algebra) is SO
-            and keeps
-        )
+        if not keeps or type(self.system).project is not IsospectralSystem.project:
+            return ""
+        algebra = type(self.system.algebra)
+        return "f" if algebra is SO else "c" if issubclass(algebra, SU) else ""
 
     def __attrs_post_init__(self) -> None:
         warm_depth(self.warm_start)
@@ -134,10 +138,13 @@ class SchemeFlow:
         state is not projected where that would return it unchanged, a real NumPy state
         of so(n) after a scheme that keeps exact skew-symmetry
         (:attr:`~lieflow.schemes.Scheme.keeps_skew`: the midpoint rule and its
-        compositions, commutator update). The stepping loop (:func:`lieflow.stepping.advance`)
-        calls it for every step after the first of a run. (The one exception: an entry
-        beyond ``2^1023``, which the projection would overflow to ``inf``.)"""
-        return self._step(W, h, state, self._exact)
+        compositions, commutator update), and a complex one of su(N) only has its trace
+        removed (:meth:`lieflow.SU.project_skew_hermitian`: the projection's bits, one
+        pass over ``N × N`` numbers less). The stepping loop
+        (:func:`lieflow.stepping.advance`) calls it for every step after the first of a
+        run. (The one exception: an entry beyond ``2^1023``, which the projection would
+        overflow to ``inf``.)"""
+        return self._step(W, h, state, bool(self._exact))
 
     def _step(
         self, W: Array, h: float, state: WarmStart | None, exact: bool
@@ -158,7 +165,9 @@ class SchemeFlow:
                 raise exc.with_hint(contraction.hint(self.system, self.scheme, W, h)) from None
             raise
         W1 = res.W
-        if exact and type(W1) is np.ndarray and W1.dtype.kind == "f":
+        if exact and type(W1) is np.ndarray and W1.dtype.kind == self._exact:
+            if self._exact == "c":  # su(N): skew-Hermitian bit for bit, the trace removed
+                W1 = cast(SU, self.system.algebra).project_skew_hermitian(W1)
             return W1, new, res.stats
         return self.system.project(W1), new, res.stats
 

@@ -419,7 +419,8 @@ class EulerZeitlin(lieflow.IsospectralSystem):
         Uses ``tr(A^k) = Σ_ij (A^a)_ij (A^b)_ji`` with ``a = ⌊k/2⌋``, ``b = ⌈k/2⌉``, so
         ``k <= 4`` costs a single matrix product. The default powers 2, 3, 4 of
         ``complex128`` NumPy states from ``N = 64`` on (:data:`~lieflow_zeitlin.traces.MIN_N`)
-        with numba installed: the product and one compiled pass
+        with numba installed: the product (half of one by ``zherk`` for a state, which is
+        skew-Hermitian bit for bit) and one compiled pass
         (:func:`~lieflow_zeitlin.traces.casimirs_234`; the same sums, added in another
         order).
         """

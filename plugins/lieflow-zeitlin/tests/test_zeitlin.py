@@ -229,6 +229,11 @@ def test_fused_casimirs_are_the_plain_traces(
         np.testing.assert_allclose(system.casimirs(Y), plain, **tol)  # NumPy's alone
         monkeypatch.undo()
     W = lf.SU(N).project(X)
+    if batch:  # states (the product by zherk) and a matrix that is not one, in one batch
+        Y = W.copy()
+        Y[1] = X[1]
+        np.testing.assert_array_equal(system.casimirs(Y)[1], system.casimirs(X[1]))
+        np.testing.assert_array_equal(system.casimirs(Y)[::2], system.casimirs(W[::2]))
     lam = np.linalg.eigvalsh(1j * W)
     expected = np.stack([np.sum(lam**k, axis=-1) for k in (2, 3, 4)], axis=-1)
     np.testing.assert_allclose(system.casimirs(W), expected, rtol=1e-12)
@@ -259,8 +264,11 @@ def test_split_passes_have_the_serial_bits() -> None:
     for groups in (1, 2, 3, 7, 1000):
         part = np.empty_like(R)
         projection._skew_part_compiled(groups, R, part)
-        rows = np.empty((2, N, 3))
-        traces._row_traces(groups, R, (X @ X).view(np.float64), rows)
+        rows = np.empty((2, 2, N, 4))
+        traces._row_traces(groups, R, (X @ X).view(np.float64), rows[0], False)
+        S = lf.SU(N).project(X)  # the product's lower triangle alone, read as Hermitian
+        P = np.tril(S @ S)
+        traces._row_traces(groups, S.view(np.float64), P.view(np.float64), rows[1], True)
         swept = Y.copy()
         sweep = laplacian.sweep_kernel("d") if groups == 1 else laplacian._sweep_split
         sweep(groups, swept, factor.compact)
