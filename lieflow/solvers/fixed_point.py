@@ -76,6 +76,16 @@ class StoppingRule:
         init=False, eq=False, repr=False
     )
 
+    @classmethod
+    def of(cls, solver: Any, divergence_factor: float, project: bool = True) -> StoppingRule:
+        """The rule of ``solver``: its ``rtol``, ``atol``, ``max_iter``, ``patience`` and
+        ``roundoff_floor`` (the fields every iterative solver has), with
+        ``divergence_factor`` and ``project`` as given."""
+        return cls(
+            solver.rtol, solver.atol, solver.max_iter, solver.patience, solver.roundoff_floor,
+            divergence_factor, project=project,
+        )  # fmt: skip
+
     def __attrs_post_init__(self) -> None:
         if self.rtol == 0 and self.atol == 0:
             raise InputError("rtol and atol cannot both be zero: the iteration could never stop")
@@ -418,14 +428,7 @@ class FixedPoint:
 
     @rule.default
     def _rule(self) -> StoppingRule:
-        return StoppingRule(
-            self.rtol,
-            self.atol,
-            self.max_iter,
-            self.patience,
-            self.roundoff_floor,
-            self.divergence_factor,
-        )
+        return StoppingRule.of(self, self.divergence_factor)
 
     def _map(self, problem: ImplicitProblem) -> Callable[[Array], Array]:
         return problem.map

@@ -191,15 +191,7 @@ class Newton:
 
     @rule.default
     def _rule(self) -> StoppingRule:
-        return StoppingRule(
-            self.rtol,
-            self.atol,
-            self.max_iter,
-            self.patience,
-            self.roundoff_floor,
-            1e6,
-            project=False,
-        )
+        return StoppingRule.of(self, 1e6, project=False)
 
     def __attrs_post_init__(self) -> None:
         if self.linear not in ("auto", "dense", "gmres"):
