@@ -113,9 +113,9 @@ def skew_matmul(X: Array, Y: Array, out: Array) -> Array:
     panels = min(n // _PANEL, 8)
     if panels < 3:
         return np.matmul(X, Y, out=out)
-    edges = [i * n // panels for i in range(panels + 1)]
     conj = out.dtype.kind == "c"
-    for a, b in zip(edges[:-1], edges[1:], strict=True):
+    for i in range(panels):
+        a, b = i * n // panels, (i + 1) * n // panels
         np.matmul(X[..., a:b, :], Y[..., :, a:], out=out[..., a:b, a:])
         if a:
             above = out[..., :a, a:b].swapaxes(-1, -2)
