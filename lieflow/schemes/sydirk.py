@@ -42,7 +42,9 @@ class MidpointProblem(StageProblem):
 
     .. math:: M \leftarrow W_0 + \tfrac h2 (BM - MB) + \tfrac{h^2}{4} BMB,\qquad B = B(M),
 
-    two matrix products per iteration for skew algebras (``MB = (BM)^†``), three otherwise.
+    two matrix products per iteration for skew algebras (``MB = (BM)^†``; the second,
+    ``BMB``, skew-Hermitian, from its upper block triangle for large NumPy matrices:
+    :func:`~lieflow.algebras.skew_matmul`), three otherwise.
     The step is :math:`W_1 = W_0 + h[B(M), M]`.
     """
 
