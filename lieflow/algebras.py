@@ -122,6 +122,7 @@ def skew_matmul(X: Array, Y: Array, out: Array) -> Array:
             np.negative(above.conj() if conj else above, out=out[..., a:b, :a])
     return out
 
+
 def skew_combination(X: Array, s: Any, A: Array, Y: Array | None = None, t: Any = None) -> Array:
     r"""``((X - X^†) s + A) + Y t`` over the last two axes (``+ Y t`` only where ``Y`` is
     given), a new array: the tail of the midpoint map, ``W_0 + q (BM - MB) + q^2 BMB``

@@ -221,6 +221,7 @@ def test_skew_matmul_is_the_product_of_skew_factors(shape: tuple[int, ...], kind
     mirrored = -np.conj(np.swapaxes(out, -1, -2))
     np.testing.assert_array_equal(out[..., off], mirrored[..., off])
 
+
 def test_split_combination_has_the_serial_bits() -> None:
     """The combination's compiled pass split into groups of bands (numba's threads, for
     large matrices: lieflow.numba_cache.SplitKernel) gives the serial pass's numbers and
@@ -274,6 +275,7 @@ def test_midpoint_map_of_a_large_skew_system_is_its_formula() -> None:
     expected = W0 + q * (B @ M - M @ B) + q * q * (B @ M @ B)
     got = problem.map(M)
     assert np.max(np.abs(got - expected)) < 1e-14 * np.max(np.abs(expected))
+
 
 def test_validate_returns_native_float64_for_any_byte_order() -> None:
     """validate's fast path for float64 data (issue 27 item 5) takes native data only: a
