@@ -17,8 +17,8 @@ N = 256, so the ``2 GEMM`` of an update is more than the map computes.) The prod
 the state with itself is reported beside it ("state GEMM"): a state of a wide dynamic
 range (entries down to ``1e-280`` at N = 1024) makes subnormal partial sums, which Intel
 cores compute at a fraction of the rate (issue 38; the underflow guard,
-``lieflow.underflow``, is what keeps the steps' own products off that path), so timing the floor on the state understated it. The fluids plugin's
-extra diagnostics (spectra, vorticity levels) are off (``diagnostics_every=0``): they are
+``lieflow.underflow``, is what keeps the steps' own products off that path), so
+timing the floor on the state understated it. The fluids plugin's
 not part of a step. ``--cpu-time`` reads process CPU time instead of the wall clock: on a
 shared machine the wall clock of a 40 ms step includes other processes' time slices, which
 best-of-k timings of a 3 ms product mostly avoid (one BLAS thread only).
