@@ -19,6 +19,7 @@ range (entries down to ``1e-280`` at N = 1024) makes subnormal partial sums, whi
 cores compute at a fraction of the rate (issue 38; the underflow guard,
 ``lieflow.underflow``, is what keeps the steps' own products off that path), so
 timing the floor on the state understated it. The fluids plugin's
+extra diagnostics (spectra, vorticity levels) are off (``diagnostics_every=0``): they are
 not part of a step. ``--cpu-time`` reads process CPU time instead of the wall clock: on a
 shared machine the wall clock of a 40 ms step includes other processes' time slices, which
 best-of-k timings of a 3 ms product mostly avoid (one BLAS thread only).
