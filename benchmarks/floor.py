@@ -11,11 +11,14 @@ Floor of a step with ``u`` fixed-point updates (``lf.integrate`` with diagnostic
 ``u (2 GEMM + B)`` for the midpoint maps, ``GEMM + B`` for the update, ``GEMM`` for the
 Casimirs ``tr W^k``, ``k <= 4`` and ``B`` for the energy — each term the best time of that
 operation alone: ``GEMM`` a complex ``N × N`` product of random matrices (the hardware's
-rate), ``B`` on the state. The product of the state with itself is reported beside it
-("state GEMM"): a state of a wide dynamic range (entries down to ``1e-280`` at N = 1024)
-makes subnormal partial sums, which Intel cores compute at a fraction of the rate (issue
-38; the underflow guard, ``lieflow.underflow``, is what keeps the steps' own products
-off that path), so timing the floor on the state understated it. The fluids plugin's
+rate), ``B`` on the state. (A map's second product, ``BMB``, is skew-Hermitian and formed
+from its upper block triangle, ``lieflow.algebras.skew_matmul``: about 0.7 GEMM at
+N = 256, so the ``2 GEMM`` of an update is more than the map computes.) The product of
+the state with itself is reported beside it ("state GEMM"): a state of a wide dynamic
+range (entries down to ``1e-280`` at N = 1024) makes subnormal partial sums, which Intel
+cores compute at a fraction of the rate (issue 38; the underflow guard,
+``lieflow.underflow``, is what keeps the steps' own products off that path), so
+timing the floor on the state understated it. The fluids plugin's
 extra diagnostics (spectra, vorticity levels) are off (``diagnostics_every=0``): they are
 not part of a step. ``--cpu-time`` reads process CPU time instead of the wall clock: on a
 shared machine the wall clock of a 40 ms step includes other processes' time slices, which

@@ -187,6 +187,41 @@ def test_skew_combination_norms_are_the_numpy_norms(n: int, kind: str) -> None:
     assert skew_combination_norms(X, s, A, Y, t, old)[1] == norms
 
 
+@pytest.mark.parametrize("shape", [(130, 130), (2, 192, 192), (257, 257), (520, 520)])
+@pytest.mark.parametrize("kind", ["real", "complex"])
+def test_skew_matmul_is_the_product_of_skew_factors(shape: tuple[int, ...], kind: str) -> None:
+    """skew_matmul((B M), B) for skew-Hermitian B, M (the midpoint map's BMB): the product to
+    roundoff, skew-Hermitian outside its diagonal panels bit for bit (those entries are
+    mirrored: -conj of the computed ones); below n = 192 the BLAS product itself."""
+    from lieflow.algebras import skew_matmul
+
+    rng = np.random.default_rng(shape[-1])
+
+    def skew() -> np.ndarray:
+        Z = rng.standard_normal(shape)
+        if kind == "complex":
+            Z = Z + 1j * rng.standard_normal(shape)
+        return Z - np.conj(np.swapaxes(Z, -1, -2))
+
+    B, M = skew(), skew()
+    BM = B @ M
+    out = np.empty_like(BM)
+    assert skew_matmul(BM, B, out) is out
+    expected = BM @ B
+    n = shape[-1]
+    if n < 192:
+        np.testing.assert_array_equal(out, expected)
+        return
+    scale = np.max(np.abs(BM)) * np.max(np.abs(B)) * n
+    assert np.max(np.abs(out - expected)) < 1e-15 * scale
+    panels = min(n // 64, 8)
+    edges = [i * n // panels for i in range(panels + 1)]
+    block = np.repeat(np.arange(panels), np.diff(edges))
+    off = block[:, None] != block[None, :]  # entries outside the diagonal panels
+    mirrored = -np.conj(np.swapaxes(out, -1, -2))
+    np.testing.assert_array_equal(out[..., off], mirrored[..., off])
+
+
 def test_split_combination_has_the_serial_bits() -> None:
     """The combination's compiled pass split into groups of bands (numba's threads, for
     large matrices: lieflow.numba_cache.SplitKernel) gives the serial pass's numbers and
@@ -222,6 +257,24 @@ def test_midpoint_map_with_norms_is_the_map() -> None:
     if norms is not None:
         assert norms[0] == pytest.approx(float(np.sum(np.abs(g) ** 2)), rel=1e-13)
         assert norms[1] == pytest.approx(float(np.sum(np.abs(g - M) ** 2)), rel=1e-13)
+
+
+def test_midpoint_map_of_a_large_skew_system_is_its_formula() -> None:
+    """The midpoint map M -> W0 + q (BM - MB) + q² BMB, q = h/2, of a skew algebra from
+    n = 192 on (BMB from its upper triangle: skew_matmul) against the formula's plain
+    products, to roundoff (so(200), generalized rigid body)."""
+    from lieflow.schemes.sydirk import MidpointProblem
+
+    n, h = 200, 0.05
+    system = lf.systems.get("generalized_rigid_body", J=tuple(1.0 + 0.01 * np.arange(n)))
+    W0 = system.random_state(0)
+    problem = MidpointProblem(system, W0, h)
+    M = problem.x0 + 0.1 * system.random_state(1)
+    B = system.B(M)
+    q = h / 2
+    expected = W0 + q * (B @ M - M @ B) + q * q * (B @ M @ B)
+    got = problem.map(M)
+    assert np.max(np.abs(got - expected)) < 1e-14 * np.max(np.abs(expected))
 
 
 def test_validate_returns_native_float64_for_any_byte_order() -> None:
