@@ -425,12 +425,13 @@ def test_a_restart_on_a_chunk_boundary_keeps_exactly_the_rows_before_the_damage(
 ) -> None:
     """Issue 37 item 10: a salvage that kept one row too many passed the whole suite: no
     test restarted next to a chunk boundary. Every step is saved, both checkpoints are
-    damaged, and so is the last chunk of energies: the restart point must be the last row of
+    damaged, and so is the last chunk of energies (300 steps: three chunks of at most 128
+    rows, a checkpoint at every step): the restart point must be the last row of
     the chunk before it (the state there and its energy read back), not one row later (its
     energy is lost: the resume would refuse the file) nor one earlier."""
     config = tmp_path / "run.toml"
     config.write_text(
-        rigid_body_config(h=0.1, steps=STEPS, save_every=1, checkpoint="saves",
+        rigid_body_config(h=0.1, steps=300, save_every=1, checkpoint="saves",
                           output="run.h5", engine="numpy"),
         encoding="utf-8",
     )  # fmt: skip

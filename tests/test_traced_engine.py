@@ -55,7 +55,7 @@ def _histories(draw: Any) -> tuple[StoppingRule, list[float], bool, float]:
     return rule, res, draw(st.booleans()), growth
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=150, deadline=None)
 @given(_histories())
 def test_the_traced_stopping_rule_is_the_scalar_rule(case: Any) -> None:
     rule, res, met, growth = case
