@@ -362,7 +362,7 @@ class CompiledPlan:
         coefficients, weights = self.coefficients(h)
         # (positional: a NamedTuple's keywords cost 2 µs a call)
         args = k.LoopArguments(
-            Wk, coefficients, weights, self.skew, fixed.B, fixed.B_params, fixed.project,
+            Wk, coefficients, weights, fixed.B, fixed.B_params, fixed.project,
             fixed.project_params, self.project is not None, fixed.tolerances, fixed.settings,
             kept, fixed.extrapolation, warm_counts, states, iterations, fixed.gemm, work,
             real_work,
@@ -381,7 +381,7 @@ class CompiledPlan:
         k = kernels()
         tolerances, settings = k.stopping_arrays(self.rule, self.retry_cold, depth > 0)
         blas = self.n > k.LOOP_PRODUCTS_MAX_N  # else the loops' own products, no BLAS
-        run = k.entry(f"{self.kind}_advance", self.dtype, self.conjugation, blas)
+        run = k.entry(f"{self.kind}_advance", self.dtype, self.conjugation, blas, self.skew)
         signature = k.map_signature(self.dtype)
         B = k.address(self.B, signature)
         P = B if self.project is None else k.address(self.project, signature)
