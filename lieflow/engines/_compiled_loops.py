@@ -1251,6 +1251,49 @@ def _at(signature_of: Callable[[np.dtype], Any]) -> Any:
     return numba.extending.intrinsic(at)
 
 
+def linked_function(symbol: str, function: Any, signature: Any) -> Any:
+    """``function`` (a numba dispatcher, compiled for ``signature`` with its C wrapper: not
+    :func:`_helper`'s options) under the linker's name ``symbol``, for compiled code to call
+    through :func:`linked_at`: an intrinsic ``f(like)`` that gives that function as a value of
+    numba's first-class function type of ``signature`` (``like``: any value, unused but for
+    typing).
+
+    A compiled function that calls another by name has numba link the callee's code into
+    its own and optimize and generate it again (a second compilation of the callee's code,
+    in every caller: issue 37 item 11). Called through its symbol, the callee's code is
+    compiled once; the caller's code (also as loaded from numba's disk cache) holds only the
+    symbol, which the linker resolves in each process to the address registered here (as
+    numba's own runtime functions are), so no process-local address is stored anywhere.
+    Register before any function that calls it is compiled or loaded."""
+    from llvmlite import binding
+    from numba.experimental.function_type import _get_wrapper_address
+
+    if signature.args not in function.overloads:
+        function.compile(signature)
+    binding.add_symbol(symbol, _get_wrapper_address(function, signature))
+
+    def at(typingctx: Any, like: Any) -> Any:
+        from llvmlite import ir
+        from numba.core import cgutils
+
+        ftype = numba.types.FunctionType(signature)
+
+        def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
+            declared = cgutils.get_or_insert_function(
+                builder.module, ir.FunctionType(ir.VoidType(), []), symbol
+            )
+            value = cgutils.create_struct_proxy(ftype)(context, builder)
+            pointer = context.get_value_type(numba.types.voidptr)
+            value.c_addr = builder.bitcast(declared, pointer)
+            value.py_addr = cgutils.get_null_value(pointer)
+            value.jit_addr = cgutils.get_null_value(pointer)
+            return value._getvalue()
+
+        return ftype(like), codegen
+
+    return numba.extending.intrinsic(at)
+
+
 if numba is not None:
     _map_at = _at(map_signature)
     _product_at = _at(lambda dtype: _PRODUCT_SIGNATURES[np.dtype(dtype)])

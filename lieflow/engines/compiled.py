@@ -144,6 +144,18 @@ def map_signature(dtype: Any) -> Any:
     return kernels().map_signature(np.dtype(dtype))
 
 
+def linked_function(symbol: str, function: Any, signature: Any) -> Any:
+    """For a compiled map (:func:`compiled_map`) that calls another compiled function
+    (``function``, a numba dispatcher, compiled here for ``signature``): an intrinsic
+    ``f(like)`` giving that function as numba's first-class function, called through the
+    linker's name ``symbol`` (unique to the function) rather than linked into the caller,
+    which numba would optimize and generate a second time (a first run's compile time,
+    issue 37 item 11). Call at import of the caller's module, before it compiles:
+    ``sweeps = linked_function("pkg_sweeps_f8", sweeps_dispatcher, sig)``, then
+    ``sweeps(x)(args...)`` in compiled code."""
+    return kernels().linked_function(symbol, function, signature)
+
+
 def __getattr__(name: str) -> Any:
     """lieflow's own compiled maps (:data:`MAPS`), loaded with the loops on first use."""
     if name in MAPS:
