@@ -27,8 +27,10 @@ update and for the update in conjugation form) are therefore keyed by a hash of 
 rules' source (:data:`SHARED_KEY`), so editing a rule recompiles them.
 
 Compile time (a user's first run compiles its entry point: issue 37 item 11): each entry
-point holds one formulation, one data type, one update and one kind of product (plain loops
-or BLAS, below), so a run compiles only the code it runs; every function between an entry
+point holds one formulation, one data type, one update, one kind of product (plain loops
+or BLAS, below) and one kind of algebra (skew-Hermitian or general: the functions that
+branch on it are made for each, :func:`_midpoint_map_of`), so a run compiles only the code
+it runs; every function between an entry
 point and the map is inlined into it once (one call site each: a failed warm solve is
 retried by the same call to the iteration), since inlining copies a function's code into
 every call site; the largest (the maps, the stopping rule's bookkeeping) are inlined by
