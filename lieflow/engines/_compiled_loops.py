@@ -27,14 +27,13 @@ update and for the update in conjugation form) are therefore keyed by a hash of 
 rules' source (:data:`SHARED_KEY`), so editing a rule recompiles them.
 
 Compile time (a user's first run compiles its entry point: issue 37 item 11): each entry
-point holds one formulation, one data type, one update, one kind of product (plain loops
-or BLAS, below) and one kind of algebra (skew-Hermitian or general: the functions that
-branch on it are made for each, :func:`_midpoint_map_of`), so a run compiles only the code
-it runs; every function between an entry
-point and the map is inlined into it once (one call site each: a failed warm solve is
-retried by the same call to the iteration), since inlining copies a function's code into
-every call site; the largest (the maps, the stopping rule's bookkeeping) are inlined by
-LLVM rather than by numba (:func:`_inlined_by_llvm`).
+point holds one formulation, one data type, one update, one kind of product (plain loops or
+BLAS, below) and one kind of algebra (skew-Hermitian or general: the functions that branch
+on it are made for each, :func:`_midpoint_map_of`), so a run compiles only the code it runs;
+every function between an entry point and the map is inlined into it once (one call site
+each: a failed warm solve is retried by the same call to the iteration), since inlining
+copies a function's code into every call site; the largest (the maps, the stopping rule's
+bookkeeping) are inlined by LLVM rather than by numba (:func:`_inlined_by_llvm`).
 
 Conventions: ``float64`` or ``complex128`` data (one compilation of the loops for each; the
 complex one for skew-Hermitian algebras such as su(N), where every transpose of the real code
@@ -138,6 +137,14 @@ def _jit(func: F) -> F:
     return cast(F, numba_cache.cached_njit(func, error_model="numpy"))
 
 
+def _renamed(func: F, name: str) -> F:
+    """``func`` under the name ``name`` (qualified name too): numba's symbol and cache names
+    are the qualified name and the argument types, so each function a factory makes (below)
+    needs a name of its own."""
+    func.__name__ = func.__qualname__ = name
+    return func
+
+
 def _inner(func: F, name: str | None = None) -> F:
     """``numba.njit`` without a cache, for the functions between an entry point and the
     shared rules: they are compiled into the entry points (whose cache is keyed by
@@ -149,7 +156,7 @@ def _inner(func: F, name: str | None = None) -> F:
     name, the argument types and a per-process counter, so two closures of one factory with
     the same argument types could meet under one symbol in code loaded from the cache."""
     if name is not None:
-        func.__name__ = func.__qualname__ = name
+        func = _renamed(func, name)
     if numba is None:  # pragma: no cover
         return func
     return cast(F, numba.njit(error_model="numpy", inline="always")(func))
@@ -605,14 +612,6 @@ def address(pointer: Any, signature: Any) -> int:
 
 
 # ------------------------------------------------------------------ formulations
-
-
-def _renamed(func: F, name: str) -> F:
-    """``func`` under the name ``name`` (qualified name too): numba's symbol and cache names
-    are the qualified name and the argument types, so each function a factory makes (below)
-    needs a name of its own."""
-    func.__name__ = func.__qualname__ = name
-    return func
 
 
 #: The name of each kind of algebra in the names of the functions made for one
