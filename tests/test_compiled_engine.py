@@ -78,9 +78,13 @@ def test_a_plugin_system_runs_compiled(scheme: str) -> None:
 
     # the loops take the maps and the product by address: integers, which numba types
     # without Python (a function object argument cost ~4 µs per argument and call)
-    run = compiled.kernels().entry(f"{plan.kind}_advance", plan.dtype)
+    k = compiled.kernels()
+    run = k.entry(f"{plan.kind}_advance", plan.dtype, skew=plan.skew)
     (args,) = run.signatures
-    assert [args[i] for i in (4, 6, 16)] == [numba.types.int64] * 3
+    fields = k.LoopArguments._fields
+    assert [args[fields.index(name)] for name in ("B", "project", "gemm")] == [
+        numba.types.int64
+    ] * 3
     # a plugin's map is resolved once per system, kept with its check while its dispatcher
     # holds the same compiled code; lieflow's own maps once per process
     again = compiled.plan(system, lf.schemes.get(scheme), lf.solvers.FixedPoint(), W0)

@@ -27,12 +27,13 @@ update and for the update in conjugation form) are therefore keyed by a hash of 
 rules' source (:data:`SHARED_KEY`), so editing a rule recompiles them.
 
 Compile time (a user's first run compiles its entry point: issue 37 item 11): each entry
-point holds one formulation, one data type, one update and one kind of product (plain loops
-or BLAS, below), so a run compiles only the code it runs; every function between an entry
-point and the map is inlined into it once (one call site each: a failed warm solve is
-retried by the same call to the iteration), since inlining copies a function's code into
-every call site; the largest (the maps, the stopping rule's bookkeeping) are inlined by
-LLVM rather than by numba (:func:`_inlined_by_llvm`).
+point holds one formulation, one data type, one update, one kind of product (plain loops or
+BLAS, below) and one kind of algebra (skew-Hermitian or general: the functions that branch
+on it are made for each, :func:`_midpoint_map_of`), so a run compiles only the code it runs;
+every function between an entry point and the map is inlined into it once (one call site
+each: a failed warm solve is retried by the same call to the iteration), since inlining
+copies a function's code into every call site; the largest (the maps, the stopping rule's
+bookkeeping) are inlined by LLVM rather than by numba (:func:`_inlined_by_llvm`).
 
 Conventions: ``float64`` or ``complex128`` data (one compilation of the loops for each; the
 complex one for skew-Hermitian algebras such as su(N), where every transpose of the real code
@@ -136,6 +137,14 @@ def _jit(func: F) -> F:
     return cast(F, numba_cache.cached_njit(func, error_model="numpy"))
 
 
+def _renamed(func: F, name: str) -> F:
+    """``func`` under the name ``name`` (qualified name too): numba's symbol and cache names
+    are the qualified name and the argument types, so each function a factory makes (below)
+    needs a name of its own."""
+    func.__name__ = func.__qualname__ = name
+    return func
+
+
 def _inner(func: F, name: str | None = None) -> F:
     """``numba.njit`` without a cache, for the functions between an entry point and the
     shared rules: they are compiled into the entry points (whose cache is keyed by
@@ -147,7 +156,7 @@ def _inner(func: F, name: str | None = None) -> F:
     name, the argument types and a per-process counter, so two closures of one factory with
     the same argument types could meet under one symbol in code loaded from the cache."""
     if name is not None:
-        func.__name__ = func.__qualname__ = name
+        func = _renamed(func, name)
     if numba is None:  # pragma: no cover
         return func
     return cast(F, numba.njit(error_model="numpy", inline="always")(func))
@@ -605,59 +614,74 @@ def address(pointer: Any, signature: Any) -> int:
 # ------------------------------------------------------------------ formulations
 
 
-@_inlined_by_llvm
-def _midpoint_map(
-    W0: Any, coef: Any, x: Any, Bm: Any, BM: Any, BMB: Any, MB: Any, B: Any, params: Any,
-    skew: bool, gemm: Any,
-) -> tuple[float, float]:  # fmt: skip
-    """One update of the midpoint map (SPEC §4.1), in place:
+#: The name of each kind of algebra in the names of the functions made for one
+#: (``skew``: skew-Hermitian, so(n), u(n), su(N); else general, gl(n), symmetric).
+_ALGEBRAS = {False: "general", True: "skew"}
 
-    ``M <- W0 + q (B M - M B) + q^2 B M B``, ``B = B(M)``, ``coef = (q, q^2)``
-    (:func:`~lieflow.schemes.sydirk.midpoint_coefficients`, ``q = h/2``);
-    for skew algebras ``M B = (B M)^†`` (two products per update, SPEC §4.1), and for
-    small real ``n`` only half of the skew ``B M B`` is formed. The new iterate overwrites ``x``
-    entry by entry once the products are formed; ``Bm``, ... ``MB`` are scratch matrices,
-    ``gemm`` the products above ``n = LOOP_PRODUCTS_MAX_N`` (:func:`gemm`; ``None``: plain
-    loops, :func:`_matmul`). Returns the squared norms of the update and of the new
-    iterate.
-    """
-    n = W0.shape[0]
-    q, qq = coef[0], coef[1]
-    _apply_B(B, params, x, Bm)
-    _matmul(Bm, x, BM, gemm)
-    step2 = 0.0
-    size2 = 0.0
-    if skew and n <= LOOP_PRODUCTS_MAX_N and not _is_complex(x):
-        # B M B is skew for skew B, M: form its strict upper triangle only (its diagonal
-        # is zero in exact arithmetic) and mirror it, half a product instead of one.
-        for i in range(n):
-            g = W0[i, i]
-            step2 += _abs2(g - x[i, i])
-            size2 += _abs2(g)
-            x[i, i] = g
-            for j in range(i + 1, n):
-                bmb = 0.0
-                for c in range(n):
-                    bmb += BM[i, c] * Bm[c, j]
-                c1 = BM[i, j] - BM[j, i]
-                g = W0[i, j] + q * c1 + qq * bmb
-                gt = W0[j, i] - q * c1 - qq * bmb
-                step2 += _abs2(g - x[i, j]) + _abs2(gt - x[j, i])
-                size2 += _abs2(g) + _abs2(gt)
-                x[i, j] = g
-                x[j, i] = gt
-    else:
-        _matmul(BM, Bm, BMB, gemm)
-        if not skew:
-            _matmul(x, Bm, MB, gemm)
-        for i in range(n):
-            for j in range(n):
-                mb = np.conj(BM[j, i]) if skew else MB[i, j]
-                g = W0[i, j] + q * (BM[i, j] - mb) + qq * BMB[i, j]
-                step2 += _abs2(g - x[i, j])
+
+def _midpoint_map_of(skew: bool) -> Any:
+    """:func:`_midpoint_map` for skew-Hermitian algebras (``skew``) or general ones: a
+    constant of the compiled code, so that the branches of the other kind are neither typed
+    nor compiled (numba prunes a branch on a closure constant; issue 37 item 11)."""
+
+    def _midpoint_map(
+        W0: Any, coef: Any, x: Any, Bm: Any, BM: Any, BMB: Any, MB: Any, B: Any, params: Any,
+        gemm: Any,
+    ) -> tuple[float, float]:  # fmt: skip
+        """One update of the midpoint map (SPEC §4.1), in place:
+
+        ``M <- W0 + q (B M - M B) + q^2 B M B``, ``B = B(M)``, ``coef = (q, q^2)``
+        (:func:`~lieflow.schemes.sydirk.midpoint_coefficients`, ``q = h/2``);
+        for skew algebras ``M B = (B M)^†`` (two products per update, SPEC §4.1), and for
+        small real ``n`` only half of the skew ``B M B`` is formed. The new iterate overwrites ``x``
+        entry by entry once the products are formed; ``Bm``, ... ``MB`` are scratch matrices,
+        ``gemm`` the products above ``n = LOOP_PRODUCTS_MAX_N`` (:func:`gemm`; ``None``: plain
+        loops, :func:`_matmul`). Returns the squared norms of the update and of the new
+        iterate.
+        """
+        n = W0.shape[0]
+        q, qq = coef[0], coef[1]
+        _apply_B(B, params, x, Bm)
+        _matmul(Bm, x, BM, gemm)
+        step2 = 0.0
+        size2 = 0.0
+        if skew and n <= LOOP_PRODUCTS_MAX_N and not _is_complex(x):
+            # B M B is skew for skew B, M: form its strict upper triangle only (its diagonal
+            # is zero in exact arithmetic) and mirror it, half a product instead of one.
+            for i in range(n):
+                g = W0[i, i]
+                step2 += _abs2(g - x[i, i])
                 size2 += _abs2(g)
-                x[i, j] = g
-    return step2, size2
+                x[i, i] = g
+                for j in range(i + 1, n):
+                    bmb = 0.0
+                    for c in range(n):
+                        bmb += BM[i, c] * Bm[c, j]
+                    c1 = BM[i, j] - BM[j, i]
+                    g = W0[i, j] + q * c1 + qq * bmb
+                    gt = W0[j, i] - q * c1 - qq * bmb
+                    step2 += _abs2(g - x[i, j]) + _abs2(gt - x[j, i])
+                    size2 += _abs2(g) + _abs2(gt)
+                    x[i, j] = g
+                    x[j, i] = gt
+        else:
+            _matmul(BM, Bm, BMB, gemm)
+            if not skew:
+                _matmul(x, Bm, MB, gemm)
+            for i in range(n):
+                for j in range(n):
+                    mb = np.conj(BM[j, i]) if skew else MB[i, j]
+                    g = W0[i, j] + q * (BM[i, j] - mb) + qq * BMB[i, j]
+                    step2 += _abs2(g - x[i, j])
+                    size2 += _abs2(g)
+                    x[i, j] = g
+        return step2, size2
+
+    name = f"_midpoint_map_{_ALGEBRAS[skew]}"
+    return _inlined_by_llvm(_renamed(_midpoint_map, name))
+
+
+_midpoint_map_general, _midpoint_map_skew = (_midpoint_map_of(skew) for skew in _ALGEBRAS)
 
 
 @_inner
@@ -681,58 +705,67 @@ def _commutator_add(
             W[i, j] = W[i, j] + hb * (BM[i, j] - MB[i, j])
 
 
-@_inlined_by_llvm
-def _reduced_map(
-    W0: Any, coef: Any, x: Any, Wst: Any, Bs: Any, GB: Any, PB: Any, B: Any, params: Any,
-    skew: bool, gemm: Any,
-) -> tuple[float, float]:  # fmt: skip
-    """One update of the reduced stage form (SPEC §4.5), in place (``x[0] = G``,
-    ``x[1] = P``, each ``(s, n, n)``):
+def _reduced_map_of(skew: bool) -> Any:
+    """:func:`_reduced_map` for skew-Hermitian algebras or general ones (as
+    :func:`_midpoint_map_of`)."""
 
-    ``G_i <- I + sum_j (C_G)_ij G_j B_j^†``, ``P_i <- W0 + sum_j (C_P)_ij P_j B_j``,
-    ``B_j = B(G_j^† P_j)``; ``coef = (C_G; C_P)`` stacked, ``(2s, s)``
-    (:func:`~lieflow.schemes.block.reduced_coefficients`: ``C_P = -hA``, ``C_G = hA``,
-    or ``-hA`` for skew algebras, where ``G_j B_j`` is formed for ``G_j B_j^† = -G_j B_j``).
-    ``3 s`` products per update; ``Wst``, ... ``PB`` are scratch stacks ``(s, n, n)``
-    (``GB[j]`` and ``Wst[j]`` also hold the conjugates that complex data need, before they
-    are overwritten; ``Wst`` and ``Bs`` then the stage sums, each entry summed in the order
-    ``j = 1..s``). Returns the squared norms of the update and of the new iterate.
-    """
-    s, n = coef.shape[1], W0.shape[0]
-    nn = n * n
-    for j in range(s):
-        _matmul_hn(x[0, j], x[1, j], Wst[j], GB[j], gemm)
-        _apply_B(B, params, Wst[j], Bs[j])
-        if skew:  # G_j B_j, whose sign goes into the coefficients below (B^† = -B)
-            _matmul(x[0, j], Bs[j], GB[j], gemm)
-        else:
-            _matmul_nh(x[0, j], Bs[j], GB[j], Wst[j], gemm)
-        _matmul(x[1, j], Bs[j], PB[j], gemm)
-    # the stage sums, into Wst and Bs (free by now), over the n² entries of each matrix as
-    # one flat loop (vectorised whatever n)
-    GBf, PBf = GB.reshape((s, nn)), PB.reshape((s, nn))
-    accG, accP = Wst.reshape((s, nn)), Bs.reshape((s, nn))
-    for i in range(s):
-        for e in range(nn):
-            accG[i, e] = 0.0
-            accP[i, e] = 0.0
+    def _reduced_map(
+        W0: Any, coef: Any, x: Any, Wst: Any, Bs: Any, GB: Any, PB: Any, B: Any, params: Any,
+        gemm: Any,
+    ) -> tuple[float, float]:  # fmt: skip
+        """One update of the reduced stage form (SPEC §4.5), in place (``x[0] = G``,
+        ``x[1] = P``, each ``(s, n, n)``):
+
+        ``G_i <- I + sum_j (C_G)_ij G_j B_j^†``, ``P_i <- W0 + sum_j (C_P)_ij P_j B_j``,
+        ``B_j = B(G_j^† P_j)``; ``coef = (C_G; C_P)`` stacked, ``(2s, s)``
+        (:func:`~lieflow.schemes.block.reduced_coefficients`: ``C_P = -hA``, ``C_G = hA``,
+        or ``-hA`` for skew algebras, where ``G_j B_j`` is formed for ``G_j B_j^† = -G_j B_j``).
+        ``3 s`` products per update; ``Wst``, ... ``PB`` are scratch stacks ``(s, n, n)``
+        (``GB[j]`` and ``Wst[j]`` also hold the conjugates that complex data need, before they
+        are overwritten; ``Wst`` and ``Bs`` then the stage sums, each entry summed in the order
+        ``j = 1..s``). Returns the squared norms of the update and of the new iterate.
+        """
+        s, n = coef.shape[1], W0.shape[0]
+        nn = n * n
         for j in range(s):
-            wG, wP = coef[i, j], coef[s + i, j]
+            _matmul_hn(x[0, j], x[1, j], Wst[j], GB[j], gemm)
+            _apply_B(B, params, Wst[j], Bs[j])
+            if skew:  # G_j B_j, whose sign goes into the coefficients below (B^† = -B)
+                _matmul(x[0, j], Bs[j], GB[j], gemm)
+            else:
+                _matmul_nh(x[0, j], Bs[j], GB[j], Wst[j], gemm)
+            _matmul(x[1, j], Bs[j], PB[j], gemm)
+        # the stage sums, into Wst and Bs (free by now), over the n² entries of each matrix as
+        # one flat loop (vectorised whatever n)
+        GBf, PBf = GB.reshape((s, nn)), PB.reshape((s, nn))
+        accG, accP = Wst.reshape((s, nn)), Bs.reshape((s, nn))
+        for i in range(s):
             for e in range(nn):
-                accG[i, e] += wG * GBf[j, e]
-                accP[i, e] += wP * PBf[j, e]
-    step2 = 0.0
-    size2 = 0.0
-    for i in range(s):
-        for a in range(n):
-            for c in range(n):
-                gG = Wst[i, a, c] + (1.0 if a == c else 0.0)
-                gP = Bs[i, a, c] + W0[a, c]
-                step2 += _abs2(gG - x[0, i, a, c]) + _abs2(gP - x[1, i, a, c])
-                size2 += _abs2(gG) + _abs2(gP)
-                x[0, i, a, c] = gG
-                x[1, i, a, c] = gP
-    return step2, size2
+                accG[i, e] = 0.0
+                accP[i, e] = 0.0
+            for j in range(s):
+                wG, wP = coef[i, j], coef[s + i, j]
+                for e in range(nn):
+                    accG[i, e] += wG * GBf[j, e]
+                    accP[i, e] += wP * PBf[j, e]
+        step2 = 0.0
+        size2 = 0.0
+        for i in range(s):
+            for a in range(n):
+                for c in range(n):
+                    gG = Wst[i, a, c] + (1.0 if a == c else 0.0)
+                    gP = Bs[i, a, c] + W0[a, c]
+                    step2 += _abs2(gG - x[0, i, a, c]) + _abs2(gP - x[1, i, a, c])
+                    size2 += _abs2(gG) + _abs2(gP)
+                    x[0, i, a, c] = gG
+                    x[1, i, a, c] = gP
+        return step2, size2
+
+    name = f"_reduced_map_{_ALGEBRAS[skew]}"
+    return _inlined_by_llvm(_renamed(_reduced_map, name))
+
+
+_reduced_map_general, _reduced_map_skew = (_reduced_map_of(skew) for skew in _ALGEBRAS)
 
 
 # ------------------------------------------------------------------ conjugation updates
@@ -829,51 +862,60 @@ def _orthonormalize(K: Any, E: Any, KE: Any, tmp: Any, gemm: Any) -> bool:
     return True
 
 
-@_helper
-def _conjugate_into(
-    W: Any, K: Any, unitary: bool, skew: bool, s1: Any, s2: Any, s3: Any, gemm: Any
-) -> bool:
-    """``W <- U W U^{-1}``, ``U = I + K``, in place, as ``W`` plus an increment
-    (:func:`~lieflow.schemes.conjugation.conjugate`): with ``unitary``, ``K`` made unitary
-    and ``W += K W + W K^† + K W K^†`` (its skew-Hermitian part with ``skew``), else
-    ``W += (K W - W K) U^{-1}`` by a solve with ``U^T``. ``s1``, ``s2``, ``s3``: scratch;
-    false if ``U`` is too far from unitary."""
-    n = W.shape[0]
-    if unitary:
-        if not _orthonormalize(K, s1, s2, s3, gemm):
-            return False
-        _matmul(K, W, s1, gemm)
-        if skew:
-            _matmul_nh(s1, K, s2, s3, gemm)
-            for i in range(n):
-                for j in range(i, n):
-                    dij = s1[i, j] - np.conj(s1[j, i]) + s2[i, j]
-                    dji = s1[j, i] - np.conj(s1[i, j]) + s2[j, i]
-                    d = 0.5 * (dij - np.conj(dji))
-                    W[i, j] = W[i, j] + d
-                    if j != i:
-                        W[j, i] = W[j, i] - np.conj(d)
+def _conjugate_into_of(skew: bool) -> Any:
+    """:func:`_conjugate_into` for skew-Hermitian algebras, where ``U`` is always made
+    unitary (``unitary`` is not read: the Gauss–Jordan solve of the general case is not
+    compiled), or general ones (as :func:`_midpoint_map_of`)."""
+
+    def _conjugate_into(
+        W: Any, K: Any, unitary: bool, s1: Any, s2: Any, s3: Any, gemm: Any
+    ) -> bool:
+        """``W <- U W U^{-1}``, ``U = I + K``, in place, as ``W`` plus an increment
+        (:func:`~lieflow.schemes.conjugation.conjugate`): with ``unitary``, ``K`` made unitary
+        and ``W += K W + W K^† + K W K^†`` (its skew-Hermitian part with ``skew``), else
+        ``W += (K W - W K) U^{-1}`` by a solve with ``U^T``. ``s1``, ``s2``, ``s3``: scratch;
+        false if ``U`` is too far from unitary."""
+        n = W.shape[0]
+        if skew or unitary:
+            if not _orthonormalize(K, s1, s2, s3, gemm):
+                return False
+            _matmul(K, W, s1, gemm)
+            if skew:
+                _matmul_nh(s1, K, s2, s3, gemm)
+                for i in range(n):
+                    for j in range(i, n):
+                        dij = s1[i, j] - np.conj(s1[j, i]) + s2[i, j]
+                        dji = s1[j, i] - np.conj(s1[i, j]) + s2[j, i]
+                        d = 0.5 * (dij - np.conj(dji))
+                        W[i, j] = W[i, j] + d
+                        if j != i:
+                            W[j, i] = W[j, i] - np.conj(d)
+            else:
+                _matmul_nh(W, K, s3, s2, gemm)  # W K^† (real data: s2 is not touched)
+                for i in range(n):
+                    for j in range(n):
+                        s3[i, j] += s1[i, j]
+                _matmul_nh(s1, K, s2, s1, gemm)  # K W K^† (real data: s1 is not touched)
+                for i in range(n):
+                    for j in range(n):
+                        W[i, j] = W[i, j] + (s3[i, j] + s2[i, j])
         else:
-            _matmul_nh(W, K, s3, s2, gemm)  # W K^† (real data: s2 is not touched)
+            _matmul(K, W, s1, gemm)
+            _matmul(W, K, s2, gemm)
             for i in range(n):
                 for j in range(n):
-                    s3[i, j] += s1[i, j]
-            _matmul_nh(s1, K, s2, s1, gemm)  # K W K^† (real data: s1 is not touched)
+                    s3[i, j] = s1[j, i] - s2[j, i]  # D^T
+                    s2[i, j] = K[j, i] + (1.0 if i == j else 0.0)  # U^T
+            _gauss_jordan(s2, s3)  # (D U^{-1})^T = U^{-T} D^T
             for i in range(n):
                 for j in range(n):
-                    W[i, j] = W[i, j] + (s3[i, j] + s2[i, j])
-    else:
-        _matmul(K, W, s1, gemm)
-        _matmul(W, K, s2, gemm)
-        for i in range(n):
-            for j in range(n):
-                s3[i, j] = s1[j, i] - s2[j, i]  # D^T
-                s2[i, j] = K[j, i] + (1.0 if i == j else 0.0)  # U^T
-        _gauss_jordan(s2, s3)  # (D U^{-1})^T = U^{-T} D^T
-        for i in range(n):
-            for j in range(n):
-                W[i, j] = W[i, j] + s3[j, i]
-    return True
+                    W[i, j] = W[i, j] + s3[j, i]
+        return True
+
+    return _helper(_renamed(_conjugate_into, f"_conjugate_into_{_ALGEBRAS[skew]}"))
+
+
+_conjugate_into_general, _conjugate_into_skew = (_conjugate_into_of(skew) for skew in _ALGEBRAS)
 
 
 @_inner
@@ -887,13 +929,15 @@ def _cayley_into(
     scratch (``M`` is read only)."""
     n = W.shape[0]
     _apply_B(B, params, M, Bm)
-    unitary = skew or _skew_to_roundoff(Bm)
+    unitary = skew or _skew_to_roundoff(Bm)  # (skew: a constant, see _sydirk_step_of)
     for i in range(n):
         for j in range(n):
             L[i, j] = (1.0 if i == j else 0.0) - a * Bm[i, j]
             C[i, j] = (2 * a) * Bm[i, j]
     _gauss_jordan(L, C)
-    return _conjugate_into(W, C, unitary, skew, L, Bm, s3, gemm)
+    if skew:
+        return _conjugate_into_skew(W, C, unitary, L, Bm, s3, gemm)
+    return _conjugate_into_general(W, C, unitary, L, Bm, s3, gemm)
 
 
 @_inner
@@ -909,17 +953,19 @@ def _lifted_into(
     for a in range(n):
         for c in range(n):
             U[a, c] = 0.0
-    unitary = skew
-    general = True
+    unitary = True
     for i in range(hb.shape[0]):
         _matmul_hn(x[0, i], x[1, i], Wi, P, gemm)
         _apply_B(B, params, Wi, Bi)
-        general = general and _skew_to_roundoff(Bi)
+        if not skew:  # (a constant, see _reduced_step_of)
+            unitary = unitary and _skew_to_roundoff(Bi)
         _matmul_nh(Bi, x[0, i], P, Wi, gemm)
         for a in range(n):
             for c in range(n):
                 U[a, c] += hb[i] * P[a, c]
-    return _conjugate_into(W, U, unitary or general, skew, Wi, Bi, P, gemm)
+    if skew:
+        return _conjugate_into_skew(W, U, unitary, Wi, Bi, P, gemm)
+    return _conjugate_into_general(W, U, unitary, Wi, Bi, P, gemm)
 
 
 # ------------------------------------------------------------------ the one driver
@@ -927,13 +973,14 @@ def _lifted_into(
 
 def _solver(fmap: Any) -> Any:
     """The fixed-point solve of the map ``fmap`` (:func:`_midpoint_map` or
-    :func:`_reduced_map`): one source for every formulation, compiled once per map (the map
-    is a closure variable, i.e. a direct call, not a value passed at run time)."""
+    :func:`_reduced_map`, of one kind of algebra): one source for every formulation,
+    compiled once per map (the map is a closure variable, i.e. a direct call, not a value
+    passed at run time)."""
 
     def solve(
         W0: Any, coef: Any, x: Any, xf: Any, x0f: Any, pred: Any, solved: Any, off: int,
-        guessing: bool, m0: Any, m1: Any, m2: Any, m3: Any, B: Any, params: Any, skew: bool,
-        gemm: Any, res: Any, tolerances: Any, settings: Any,
+        guessing: bool, m0: Any, m1: Any, m2: Any, m3: Any, B: Any, params: Any, gemm: Any,
+        res: Any, tolerances: Any, settings: Any,
     ) -> int:  # fmt: skip
         """Fixed-point iteration ``x <- fmap(x)`` until the stopping rule stops it, from the
         warm guess ``x0 + pred[off:]`` (when ``guessing``), and once more from the cold
@@ -951,7 +998,7 @@ def _solver(fmap: Any) -> Any:
             k = 0
             code = _GO
             while code == _GO:
-                step2, size2 = fmap(W0, coef, x, m0, m1, m2, m3, B, params, skew, gemm)
+                step2, size2 = fmap(W0, coef, x, m0, m1, m2, m3, B, params, gemm)
                 k += 1
                 code, size0 = _judge(step2, size2, k, size0, res, tolerances, settings)
             total += k
@@ -968,8 +1015,9 @@ def _solver(fmap: Any) -> Any:
     return _inner(solve, f"_solve_{fmap.__name__}")
 
 
-_solve_midpoint = _solver(_midpoint_map)
-_solve_reduced = _solver(_reduced_map)
+#: The solves of each formulation, by kind of algebra (``skew``).
+_solve_midpoint = {False: _solver(_midpoint_map_general), True: _solver(_midpoint_map_skew)}
+_solve_reduced = {False: _solver(_reduced_map_general), True: _solver(_reduced_map_skew)}
 
 
 @_inner
@@ -981,15 +1029,17 @@ def _sydirk_views(work: Any, scratch: Any) -> Any:
     return x, x0, x.reshape(x.size), x0.reshape(x0.size), m0, m1, m2, m3
 
 
-def _sydirk_step_of(conjugation: bool) -> Any:
-    """:func:`_sydirk_step` for one update (SPEC §4.7): ``conjugation`` is a constant of the
-    compiled code, so the other update is neither typed nor compiled (numba prunes the
-    branch on a closure constant)."""
+def _sydirk_step_of(conjugation: bool, skew: bool) -> Any:
+    """:func:`_sydirk_step` for one update (SPEC §4.7) on one kind of algebra (``skew``:
+    skew-Hermitian): both are constants of the compiled code, so the other update and the
+    other kind's branches are neither typed nor compiled (numba prunes a branch on a closure
+    constant, in the functions it inlines too)."""
+    solve = _solve_midpoint[skew]
 
     def _sydirk_step(
         cur: Any, out: Any, pred: Any, solved: Any, guessing: bool, coefficients: Any,
         weights: Any, x: Any, x0: Any, xf: Any, x0f: Any, m0: Any, m1: Any, m2: Any, m3: Any,
-        B: Any, params: Any, skew: bool, gemm: Any, res: Any, tolerances: Any, settings: Any,
+        B: Any, params: Any, gemm: Any, res: Any, tolerances: Any, settings: Any,
     ) -> int:  # fmt: skip
         """One step of a composition of midpoint steps (SPEC §4.2) of sizes ``weights``
         (``h b_i``; ``coefficients[i]``: their
@@ -1005,9 +1055,9 @@ def _sydirk_step_of(conjugation: bool) -> Any:
             for a in range(n):
                 for c in range(n):
                     x0[a, c] = out[a, c]
-            its = _solve_midpoint(
+            its = solve(
                 x0, coefficients[i], x, xf, x0f, pred, solved, i * nn, guessing, m0, m1, m2,
-                m3, B, params, skew, gemm, res, tolerances, settings,
+                m3, B, params, gemm, res, tolerances, settings,
             )  # fmt: skip
             if its < 0:
                 return -1
@@ -1020,7 +1070,7 @@ def _sydirk_step_of(conjugation: bool) -> Any:
                 _commutator_add(out, weights[i], skew, x, B, params, m0, m1, m3, gemm)
         return total
 
-    return _inner(_sydirk_step, f"_sydirk_step_{UPDATES[conjugation]}")
+    return _inner(_sydirk_step, f"_sydirk_step_{UPDATES[conjugation]}_{_ALGEBRAS[skew]}")
 
 
 @_inner
@@ -1033,13 +1083,15 @@ def _reduced_views(work: Any, scratch: Any) -> Any:
     return x, x0, xf, x0f, scratch[0], scratch[1], scratch[2], scratch[3]
 
 
-def _reduced_step_of(conjugation: bool) -> Any:
-    """:func:`_reduced_step` for one update (as :func:`_sydirk_step_of`)."""
+def _reduced_step_of(conjugation: bool, skew: bool) -> Any:
+    """:func:`_reduced_step` for one update on one kind of algebra (as
+    :func:`_sydirk_step_of`)."""
+    solve = _solve_reduced[skew]
 
     def _reduced_step(
         cur: Any, out: Any, pred: Any, solved: Any, guessing: bool, coefficients: Any,
         weights: Any, x: Any, x0: Any, xf: Any, x0f: Any, m0: Any, m1: Any, m2: Any, m3: Any,
-        B: Any, params: Any, skew: bool, gemm: Any, res: Any, tolerances: Any, settings: Any,
+        B: Any, params: Any, gemm: Any, res: Any, tolerances: Any, settings: Any,
     ) -> int:  # fmt: skip
         """One step of the reduced stage form of a symplectic tableau (SPEC §4.5) from
         ``cur`` into ``out``: unknowns ``(G, P)``, cold guess ``(I, cur)``; ``coefficients``:
@@ -1052,9 +1104,8 @@ def _reduced_step_of(conjugation: bool) -> Any:
                 for c in range(n):
                     x0[0, i, a, c] = 1.0 if a == c else 0.0
                     x0[1, i, a, c] = cur[a, c]
-        its = _solve_reduced(cur, coefficients, x, xf, x0f, pred, solved, 0, guessing, m0,
-                             m1, m2, m3, B, params, skew, gemm, res, tolerances,
-                             settings)  # fmt: skip
+        its = solve(cur, coefficients, x, xf, x0f, pred, solved, 0, guessing, m0, m1, m2, m3,
+                    B, params, gemm, res, tolerances, settings)  # fmt: skip
         if its < 0:
             return -1
         Wi, Bi, BW, WB = m0[0], m1[0], m2[0], m3[0]
@@ -1069,7 +1120,7 @@ def _reduced_step_of(conjugation: bool) -> Any:
             _commutator_add(out, weights[i], skew, Wi, B, params, Bi, BW, WB, gemm)
         return its
 
-    return _inner(_reduced_step, f"_reduced_step_{UPDATES[conjugation]}")
+    return _inner(_reduced_step, f"_reduced_step_{UPDATES[conjugation]}_{_ALGEBRAS[skew]}")
 
 
 @_helper
@@ -1127,8 +1178,6 @@ class LoopArguments(NamedTuple):
         ``(C_G; C_P)`` of the reduced form (:func:`~lieflow.schemes.block.reduced_coefficients`).
     weights : ndarray
         ``h b``: the sub-steps' sizes, or the stage weights of the update.
-    skew : bool
-        Whether the algebra is skew-Hermitian (``M B = (B M)^†``).
     B, project, gemm : int
         Addresses of the system's compiled ``B``, of its compiled projection (``B``'s when
         there is none: not called) and of the BLAS product (:func:`address`; ``0`` for
@@ -1156,7 +1205,6 @@ class LoopArguments(NamedTuple):
     start: np.ndarray
     coefficients: np.ndarray
     weights: np.ndarray
-    skew: bool
     B: int
     B_params: np.ndarray
     project: int
@@ -1204,32 +1252,80 @@ def _at(signature_of: Callable[[np.dtype], Any]) -> Any:
     return numba.extending.intrinsic(at)
 
 
+def linked_function(symbol: str, function: Any, signature: Any) -> Any:
+    """``function`` (a numba dispatcher, compiled for ``signature`` with its C wrapper: not
+    :func:`_helper`'s options) under the linker's name ``symbol``, for compiled code to call
+    through :func:`linked_at`: an intrinsic ``f(like)`` that gives that function as a value of
+    numba's first-class function type of ``signature`` (``like``: any value, unused but for
+    typing).
+
+    A compiled function that calls another by name has numba link the callee's code into
+    its own and optimize and generate it again (a second compilation of the callee's code,
+    in every caller: issue 37 item 11). Called through its symbol, the callee's code is
+    compiled once; the caller's code (also as loaded from numba's disk cache) holds only the
+    symbol, which the linker resolves in each process to the address registered here (as
+    numba's own runtime functions are), so no process-local address is stored anywhere.
+    Register before any function that calls it is compiled or loaded."""
+    from llvmlite import binding
+    from numba.experimental.function_type import _get_wrapper_address
+
+    if signature.args not in function.overloads:
+        function.compile(signature)
+    binding.add_symbol(symbol, _get_wrapper_address(function, signature))
+
+    def at(typingctx: Any, like: Any) -> Any:
+        from llvmlite import ir
+        from numba.core import cgutils
+
+        ftype = numba.types.FunctionType(signature)
+
+        def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
+            declared = cgutils.get_or_insert_function(
+                builder.module, ir.FunctionType(ir.VoidType(), []), symbol
+            )
+            value = cgutils.create_struct_proxy(ftype)(context, builder)
+            pointer = context.get_value_type(numba.types.voidptr)
+            value.c_addr = builder.bitcast(declared, pointer)
+            value.py_addr = cgutils.get_null_value(pointer)
+            value.jit_addr = cgutils.get_null_value(pointer)
+            return value._getvalue()
+
+        return ftype(like), codegen
+
+    return numba.extending.intrinsic(at)
+
+
 if numba is not None:
     _map_at = _at(map_signature)
     _product_at = _at(lambda dtype: _PRODUCT_SIGNATURES[np.dtype(dtype)])
 
 
-#: The steps of each formulation and update, and the views of the work arrays they take:
-#: ``(sydirk, conjugation) -> (step, views)`` (:func:`_entry_point`).
+#: The steps of each formulation, update and kind of algebra, and the views of the work
+#: arrays they take: ``(sydirk, conjugation, skew) -> (step, views)`` (:func:`_entry_point`).
 _STEPS = {
-    (True, False): (_sydirk_step_of(False), _sydirk_views),
-    (True, True): (_sydirk_step_of(True), _sydirk_views),
-    (False, False): (_reduced_step_of(False), _reduced_views),
-    (False, True): (_reduced_step_of(True), _reduced_views),
+    (sydirk, conjugation, skew): (
+        (_sydirk_step_of if sydirk else _reduced_step_of)(conjugation, skew),
+        _sydirk_views if sydirk else _reduced_views,
+    )
+    for sydirk in (True, False)
+    for conjugation in (False, True)
+    for skew in _ALGEBRAS
 }
 
 
-def _entry_point(key: str, sydirk: bool, conjugation: bool, blas: bool) -> Any:
+def _entry_point(key: str, sydirk: bool, conjugation: bool, blas: bool, skew: bool) -> Any:
     """The entry point of one formulation (``sydirk``: a composition of midpoint steps, else
-    the reduced stage form), update and kind of product (``blas``: the BLAS product
+    the reduced stage form), update, kind of product (``blas``: the BLAS product
     :func:`gemm`, for ``n > LOOP_PRODUCTS_MAX_N``; else plain loops, :func:`_loops`, and
-    the product's address is not read): the chunk loop over the steps of
+    the product's address is not read) and kind of algebra (``skew``: skew-Hermitian,
+    ``M B = (B M)^†``; a run of the other kind compiles none of its branches, e.g. a
+    conjugation update on su(N) no Gauss–Jordan solve): the chunk loop over the steps of
     :data:`_STEPS` (:func:`_sydirk_step_of` or :func:`_reduced_step_of`, with views of the
     work arrays from :func:`_sydirk_views` or :func:`_reduced_views`). It takes the
     :class:`LoopArguments`, the system's maps and the product by address (``int64``, see
     :func:`_at`).
 
-    One source for the eight: the step, the views and the kind of product are the globals
+    One source for all: the step, the views and the kind of product are the globals
     ``_step``, ``_views`` and ``_blas`` of the function, which is made with a namespace of
     its own (this module's globals and those three; numba prunes the branch on ``_blas`` it
     does not take, so a run types and compiles only the products it calls), so that numba
@@ -1239,13 +1335,13 @@ def _entry_point(key: str, sydirk: bool, conjugation: bool, blas: bool) -> Any:
     ``benchmarks/compile_time.py``). Its closure holds
     ``key`` (:data:`SHARED_KEY`) alone, which numba's cache key hashes (with the bytecode),
     so that editing a shared rule recompiles it; the name (one cache file per entry point)
-    tells the eight apart."""
+    tells them apart."""
 
     def advance(
-        start: Any, coefficients: Any, weights: Any, skew: bool, B_address: Any,
-        B_params: Any, project_address: Any, project_params: Any, projecting: bool,
-        tolerances: Any, settings: Any, history: Any, extrapolation: Any, warm_counts: Any,
-        states: Any, iterations: Any, gemm_address: Any, workspace: Any, real_workspace: Any,
+        start: Any, coefficients: Any, weights: Any, B_address: Any, B_params: Any,
+        project_address: Any, project_params: Any, projecting: bool, tolerances: Any,
+        settings: Any, history: Any, extrapolation: Any, warm_counts: Any, states: Any,
+        iterations: Any, gemm_address: Any, workspace: Any, real_workspace: Any,
     ) -> int:  # fmt: skip
         """Advance the stack ``start`` (``(K, n, n)``) by up to ``states.shape[0]`` steps of
         ``_step``. Writes each step's states and its iteration count (max over the stack)
@@ -1288,7 +1384,7 @@ def _entry_point(key: str, sydirk: bool, conjugation: bool, blas: bool) -> Any:
                 out = states[step, kk]
                 total = _step(  # type: ignore[name-defined] # noqa: F821
                     cur, out, pred, solved[kk], guessing, coefficients, weights, x, x0, xf,
-                    x0f, m0, m1, m2, m3, B, B_params, skew, gemm, res, tolerances, settings,
+                    x0f, m0, m1, m2, m3, B, B_params, gemm, res, tolerances, settings,
                 )  # fmt: skip
                 if total < 0:
                     return step
@@ -1304,9 +1400,9 @@ def _entry_point(key: str, sydirk: bool, conjugation: bool, blas: bool) -> Any:
             iterations[step] = most
         return states.shape[0]
 
-    step, views = _STEPS[sydirk, conjugation]
+    step, views = _STEPS[sydirk, conjugation, skew]
     name = f"{'sydirk' if sydirk else 'reduced'}_advance{'_conjugation' if conjugation else ''}"
-    name += "_blas" if blas else ""
+    name += ("_blas" if blas else "") + ("_skew" if skew else "")
     namespace = {**globals(), "_step": step, "_views": views, "_blas": blas}
     made = types.FunctionType(advance.__code__, namespace, name, None, advance.__closure__)
     made.__qualname__ = name  # one cache file per entry point
@@ -1319,12 +1415,12 @@ def _entry_signature(dtype: np.dtype) -> Any:
     t = numba.types
     f8, i8, d = t.float64, t.int64, numba.from_dtype(dtype)
     types = {
-        "start": d[:, :, ::1], "coefficients": f8[:, ::1], "weights": f8[::1],
-        "skew": t.boolean, "B": i8, "B_params": f8[::1], "project": i8,
-        "project_params": f8[::1], "projecting": t.boolean, "tolerances": f8[::1],
-        "settings": i8[::1], "history": d[:, :, ::1], "extrapolation": f8[:, ::1],
-        "warm_counts": i8[::1], "states": d[:, :, :, ::1], "iterations": i8[::1], "gemm": i8,
-        "workspace": d[::1], "real_workspace": f8[::1],
+        "start": d[:, :, ::1], "coefficients": f8[:, ::1], "weights": f8[::1], "B": i8,
+        "B_params": f8[::1], "project": i8, "project_params": f8[::1],
+        "projecting": t.boolean, "tolerances": f8[::1], "settings": i8[::1],
+        "history": d[:, :, ::1], "extrapolation": f8[:, ::1], "warm_counts": i8[::1],
+        "states": d[:, :, :, ::1], "iterations": i8[::1], "gemm": i8, "workspace": d[::1],
+        "real_workspace": f8[::1],
     }  # fmt: skip
     return t.int64(*(types[name] for name in LoopArguments._fields))
 
@@ -1376,19 +1472,23 @@ def workspace(
 
 
 def entry(
-    name: str, dtype: np.dtype = DTYPES[0], conjugation: bool = False, blas: bool = False
+    name: str,
+    dtype: np.dtype = DTYPES[0],
+    conjugation: bool = False,
+    blas: bool = False,
+    skew: bool = False,
 ) -> Any:
     """The entry point ``name`` (``"sydirk_advance"`` or ``"reduced_advance"``) for data of
-    ``dtype`` (one of :data:`DTYPES`), the update in conjugation form or not and products by
-    BLAS (``blas``: for ``n > LOOP_PRODUCTS_MAX_N``, :func:`gemm`) or by plain loops,
-    compiled (or loaded from the disk cache) on first use, so that importing this module (as
-    :func:`lieflow.engines.compiled.plan` does to check a system's maps) loads no loops, and a run
-    compiles and loads only the loop of its own formulation, data type, update and
-    products."""
-    key = (name, np.dtype(dtype), bool(conjugation), bool(blas))
+    ``dtype`` (one of :data:`DTYPES`), the update in conjugation form or not, products by
+    BLAS (``blas``: for ``n > LOOP_PRODUCTS_MAX_N``, :func:`gemm`) or by plain loops and a
+    skew-Hermitian algebra (``skew``) or not, compiled (or loaded from the disk cache) on
+    first use, so that importing this module (as :func:`lieflow.engines.compiled.plan` does
+    to check a system's maps) loads no loops, and a run compiles and loads only the loop of
+    its own formulation, data type, update, products and kind of algebra."""
+    key = (name, np.dtype(dtype), bool(conjugation), bool(blas), bool(skew))
     if key not in _ENTRIES:
         if name not in ("sydirk_advance", "reduced_advance"):
             raise ValueError(f"no entry point {name!r}")
-        source = _entry_point(SHARED_KEY, name == "sydirk_advance", key[2], key[3])
+        source = _entry_point(SHARED_KEY, name == "sydirk_advance", *key[2:])
         _ENTRIES[key] = _compile_entry(source, key[1])
     return _ENTRIES[key]

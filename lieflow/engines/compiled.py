@@ -144,6 +144,18 @@ def map_signature(dtype: Any) -> Any:
     return kernels().map_signature(np.dtype(dtype))
 
 
+def linked_function(symbol: str, function: Any, signature: Any) -> Any:
+    """For a compiled map (:func:`compiled_map`) that calls another compiled function
+    (``function``, a numba dispatcher, compiled here for ``signature``): an intrinsic
+    ``f(like)`` giving that function as numba's first-class function, called through the
+    linker's name ``symbol`` (unique to the function) rather than linked into the caller,
+    which numba would optimize and generate a second time (a first run's compile time,
+    issue 37 item 11). Call at import of the caller's module, before it compiles:
+    ``sweeps = linked_function("pkg_sweeps_f8", sweeps_dispatcher, sig)``, then
+    ``sweeps(x)(args...)`` in compiled code."""
+    return kernels().linked_function(symbol, function, signature)
+
+
 def __getattr__(name: str) -> Any:
     """lieflow's own compiled maps (:data:`MAPS`), loaded with the loops on first use."""
     if name in MAPS:
@@ -362,7 +374,7 @@ class CompiledPlan:
         coefficients, weights = self.coefficients(h)
         # (positional: a NamedTuple's keywords cost 2 µs a call)
         args = k.LoopArguments(
-            Wk, coefficients, weights, self.skew, fixed.B, fixed.B_params, fixed.project,
+            Wk, coefficients, weights, fixed.B, fixed.B_params, fixed.project,
             fixed.project_params, self.project is not None, fixed.tolerances, fixed.settings,
             kept, fixed.extrapolation, warm_counts, states, iterations, fixed.gemm, work,
             real_work,
@@ -381,7 +393,7 @@ class CompiledPlan:
         k = kernels()
         tolerances, settings = k.stopping_arrays(self.rule, self.retry_cold, depth > 0)
         blas = self.n > k.LOOP_PRODUCTS_MAX_N  # else the loops' own products, no BLAS
-        run = k.entry(f"{self.kind}_advance", self.dtype, self.conjugation, blas)
+        run = k.entry(f"{self.kind}_advance", self.dtype, self.conjugation, blas, self.skew)
         signature = k.map_signature(self.dtype)
         B = k.address(self.B, signature)
         P = B if self.project is None else k.address(self.project, signature)

@@ -21,14 +21,19 @@ from typing import Any
 
 import numpy as np
 
-from lieflow.engines.compiled import skew_hermitian_part
+from lieflow.engines.compiled import linked_function, skew_hermitian_part
 from lieflow.numba_cache import cached_njit
 
 from . import laplacian
 
-#: The partitioned sweeps of :meth:`HoppeYauLaplacian.solve`, compiled (``zeitlin_B`` calls
-#: them; the numpy path's compilation, :func:`lieflow_zeitlin.laplacian.sweep_kernel`).
+#: The partitioned sweeps of :meth:`HoppeYauLaplacian.solve`, compiled (the numpy path's
+#: compilation, :func:`lieflow_zeitlin.laplacian.sweep_kernel`), which ``zeitlin_B`` calls
+#: by their symbol (:func:`lieflow.engines.compiled.linked_function`): linked into it by
+#: name, their code would be optimized and generated a second time (issue 37 item 11).
 _sweep_compiled = laplacian.sweep_kernel("d")
+_sweeps = linked_function(
+    "lieflow_zeitlin_sweeps_f8", _sweep_compiled, _sweep_compiled.nopython_signatures[0]
+)
 
 #: ``params = [c, nb, b, 1, Im diag F_f (N entries), factors]`` (the ``(4, nb, b, 2(N+1))``
 #: stack of the sweeps' factors, flattened; :func:`params`); the ``1`` is the parameter
@@ -54,11 +59,15 @@ def zeitlin_B(W: Any, params: Any, out: Any) -> None:
     shift = params[0]
     nb, b = int(params[1]), int(params[2])
     skew_hermitian_part(W, params[3:4], out)  # V, the su(N) projection, into out
-    # the right-hand side V - F_f in the packed layout, trace removed (solve)
-    buf = np.zeros(nb * b * C, dtype=np.complex128)
+    # the right-hand side V - F_f in the packed layout (zero past its N² entries), trace
+    # removed (solve); np.empty and a loop, not np.zeros: one compiled numpy function less
+    # (a first run's compile time, issue 37 item 11)
+    buf = np.empty(nb * b * C, dtype=np.complex128)
     for i in range(N):
         for j in range(N):
             buf[i * N + j] = out[i, j]
+    for k in range(N * N, buf.size):
+        buf[k] = 0.0
     mean = 0.0j
     for i in range(N):
         buf[i * C] -= 1j * params[HEADER + i]
@@ -69,7 +78,8 @@ def zeitlin_B(W: Any, params: Any, out: Any) -> None:
     # the sweeps' factors (4, nb, b, 2(N+1)) of params
     size = nb * b * 2 * C
     factors = params[HEADER + N : HEADER + N + 4 * size].reshape(4, nb, b, 2 * C)
-    _sweep_compiled(1, buf.view(np.float64).reshape(1, nb, b, 2 * C), factors)
+    rows = buf.view(np.float64).reshape(1, nb, b, 2 * C)
+    _sweeps(rows)(1, rows, factors)
     mean = 0.0j
     for i in range(N):
         mean += buf[i * C]

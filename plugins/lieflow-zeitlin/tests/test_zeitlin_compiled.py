@@ -7,6 +7,10 @@ iterations, states to roundoff) and to the invariants (Casimirs, su(N) membershi
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import textwrap
 from typing import Any
 
 import attrs
@@ -89,6 +93,40 @@ def test_the_plan_uses_the_plugins_map_and_the_su_projection() -> None:
     assert plan.dtype == np.complex128 and plan.skew
     assert plan.B.function is lz._compiled.zeitlin_B
     assert plan.project.function is _compiled_loops.skew_hermitian_part
+
+
+def test_the_compiled_B_calls_the_sweeps_by_their_symbol(tmp_path: Any) -> None:
+    """Issue 37 item 11: ``zeitlin_B`` called the compiled Laplacian sweeps by name, so numba
+    linked their code into it and optimized and generated it a second time (a first run's
+    compile time). Now it holds only their symbol, which the linker resolves in each process,
+    also in code loaded from numba's disk cache (a second process on the first one's cache
+    reproduces the numpy B)."""
+    code = textwrap.dedent(
+        """
+        import sys
+        import numpy as np
+        import lieflow as lf
+        import lieflow_zeitlin as lz
+        system = lz.EulerZeitlin(12)
+        W = lz.random_vorticity(12, 5, seed=3)
+        fn, params = system.compiled_B()
+        out = np.zeros_like(W)
+        fn(W, np.array(params), out)
+        want = system.B(lf.SU(12).project(W))
+        print(float(np.abs(out - want).max() / np.abs(want).max()))
+        if sys.argv[1] == "compiled":  # (numba cannot show code loaded from its cache)
+            ir = fn.inspect_llvm(lf.engines.compiled.map_signature(np.complex128).args)
+            print("declare void @lieflow_zeitlin_sweeps_f8()" in ir, "_sweep_loops" in ir)
+        """
+    )
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}  # empty: compiled, then loaded
+    for how in ("compiled", "loaded"):
+        out = subprocess.run([sys.executable, "-c", code, how], capture_output=True,
+                             text=True, check=True, timeout=600, env=env)  # fmt: skip
+        lines = out.stdout.splitlines()
+        assert float(lines[-2 if how == "compiled" else -1]) < 1e-13
+        if how == "compiled":
+            assert lines[-1] == "True False"  # the sweeps' symbol, not their code
 
 
 def test_single_precision_and_non_skew_complex_data_are_refused() -> None:
