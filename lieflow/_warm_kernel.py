@@ -1,7 +1,6 @@
-"""The warm start's extrapolations and prediction errors, compiled with numba: the passes
-:mod:`lieflow.warm_start` runs over large NumPy histories, and the compiled engine's loops
-(:mod:`lieflow.engines._compiled_loops`) over theirs — one source for both engines. Imports
-numba: import it only where numba is installed.
+"""The warm start's extrapolations and prediction errors over large NumPy histories
+(:mod:`lieflow.warm_start`), compiled with numba. Imports numba: import it only where numba
+is installed.
 
 The arrays come as flat real views (complex numbers as interleaved real and imaginary
 parts, ``parts = 2``). An extrapolation ``Σ_j w_j x_j`` is formed entry by entry as NumPy
@@ -19,7 +18,7 @@ import numpy as np
 
 from .numba_cache import SplitKernel, cached_njit, work_groups
 
-__all__ = ["CHUNK", "error_work", "errors", "extrapolate", "weighted_sum", "work_groups"]
+__all__ = ["CHUNK", "errors", "extrapolate", "work_groups"]
 
 #: ``range`` here; ``numba.prange`` in a split kernel's parallel build
 #: (:class:`lieflow.numba_cache.SplitKernel`).
@@ -41,10 +40,10 @@ def _extrapolate(
         for i in range(g * chunks // groups, (g + 1) * chunks // groups):
             start = i * CHUNK
             stop = min(start + CHUNK, n)
-            weighted_sum(w, xs, m, parts, start, stop, out[start:stop])
+            _weighted_sum(w, xs, m, parts, start, stop, out[start:stop])
 
 
-def weighted_sum(
+def _weighted_sum(
     w: Any, xs: Any, m: int, parts: int, start: int, stop: int, acc: Any
 ) -> None:  # pragma: no cover - compiled
     """``acc = Σ_{j < m} w[j] xs[j][start:stop]``, NumPy's roundings (``m >= 1``). (Each
@@ -77,44 +76,33 @@ def weighted_sum(
                 acc[i] = acc[i] + c * x[i]
 
 
-def _errors(
-    groups: int, solved: Any, xs: Any, C: Any, out: Any, sums: Any, p: Any
-) -> None:  # pragma: no cover - compiled
+def _errors(groups: int, solved: Any, xs: Any, C: Any, out: Any) -> None:  # pragma: no cover
     """``out[0] = ||solved||²`` and ``out[m] = ||solved - p_m||²`` for ``m = 1 .. M``
-    (``M = len(xs)``, possibly 0), ``p_m = Σ_{j < m} C[m - 1, j] xs[j]`` (``p_1 = xs[0]``)
-    with the values :func:`_extrapolate` gives (formed as real sums: a complex product's
-    ``0 b`` term changes at most the sign of a zero, which its square does not see). Each
-    chunk's sums are kept (in ``sums``, at least ``(chunks, M + 1)``) and the chunks added in
-    order, so the chunks may be split into ``groups`` runs (one per thread, each with its
-    own row of ``p``, ``(groups, CHUNK)``) with the same result. Allocates nothing: the
-    compiled engine's loops, which cannot allocate, call it too (:func:`error_work` sizes
-    the work arrays)."""
+    (``M = len(xs)``), ``p_m = Σ_{j < m} C[m - 1, j] xs[j]`` (``p_1 = xs[0]``) with the
+    values :func:`_extrapolate` gives (formed as real sums: a complex product's ``0 b``
+    term changes at most the sign of a zero, which its square does not see). Each chunk's
+    sums are kept and the chunks added in order, so the chunks may be split into
+    ``groups`` runs (one per thread) with the same result."""
     M = len(xs)
     n = solved.size
     chunks = (n + CHUNK - 1) // CHUNK
+    sums = np.zeros((chunks, M + 1))
     for g in prange(groups):
-        q = p[g]
+        p = np.empty(CHUNK)
         for i in range(g * chunks // groups, (g + 1) * chunks // groups):
             start = i * CHUNK
             stop = min(start + CHUNK, n)
             s = solved[start:stop]
             sums[i, 0] = _squares(s, s, False)
-            if M > 0:
-                sums[i, 1] = _squares(s, xs[0][start:stop], True)
+            sums[i, 1] = _squares(s, xs[0][start:stop], True)
             for m in range(2, M + 1):
-                weighted_sum(C[m - 1], xs, m, 1, start, stop, q)
-                sums[i, m] = _squares(s, q[: stop - start], True)
+                _weighted_sum(C[m - 1], xs, m, 1, start, stop, p)
+                sums[i, m] = _squares(s, p[: stop - start], True)
     for m in range(M + 1):
         total = 0.0
         for i in range(chunks):
             total += sums[i, m]
         out[m] = total
-
-
-def error_work(size: int, points: int, groups: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """The work arrays ``sums`` and ``p`` of :func:`_errors` over ``size`` real numbers
-    and up to ``points`` kept solutions, split into ``groups``."""
-    return np.empty(((size + CHUNK - 1) // CHUNK, points + 1)), np.empty((groups, CHUNK))
 
 
 def _squares(s: Any, p: Any, difference: bool) -> float:  # pragma: no cover - compiled
@@ -131,7 +119,7 @@ def _squares(s: Any, p: Any, difference: bool) -> float:  # pragma: no cover - c
     return acc
 
 
-weighted_sum = cached_njit(weighted_sum)
+_weighted_sum = cached_njit(_weighted_sum)
 _squares = cached_njit(_squares, fastmath={"reassoc"})
 extrapolate = SplitKernel(_extrapolate)
 errors = SplitKernel(_errors)

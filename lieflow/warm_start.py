@@ -4,12 +4,15 @@ r"""Warm starts: initial guesses of an implicit step from the previous steps' so
 (SPEC §5): the last few solved offsets of the scheme's unknowns, and how many of them the
 next prediction extrapolates from. The compiled loops (:mod:`lieflow.engines._compiled_loops`)
 update the same state in place, with the same extrapolation weights
-(:func:`extrapolation_matrix`), the same trust rule (:func:`trusted_points`: plain scalar
-Python, which they compile, as they compile the stopping rule) and the same passes over the
-numbers: the weighted sums of the prediction and the errors that choose its order are the
-compiled passes of :mod:`lieflow._warm_kernel`, which this module runs on large NumPy
-states. Small states, trees of arrays and arrays of other libraries form the same sums with
-array operations here (one BLAS product of a stacked history, or leaf by leaf).
+(:func:`extrapolation_matrix`) and the same trust rule (:func:`trusted_points`: plain scalar
+Python, which they compile, as they compile the stopping rule). The extrapolation itself, a
+weighted sum of the kept solutions, and the prediction errors are written twice: here as
+array operations (one BLAS product of a stacked history, leaf by leaf for trees, the
+compiled passes of :mod:`lieflow._warm_kernel` for large NumPy states), there as loops over
+the entries. The loops calling :mod:`lieflow._warm_kernel`'s passes instead was built and
+measured: the same states bit for bit, but a first compiled run compiles those passes for
+the loops' array types too, 6 s more for Euler–Zeitlin N = 16 Gauss-2 on an idle 2-core
+machine (17 → 23 s; issue 37 asks ≤ 20 s).
 """
 
 from __future__ import annotations
@@ -399,10 +402,7 @@ def _advanced(state: WarmStart, solved: Any, history: list[Any], stack: Any) -> 
         sums = np.empty(len(history) + 1)
         views = flat[0]
         C = extrapolation_matrix(len(history))
-        kernel = _kernel()
-        groups = kernel.work_groups(views[0].size)
-        work = kernel.error_work(views[0].size, len(history), groups)
-        kernel.errors(groups, views[0], views[1:], C, sums, *work)
+        _kernel().errors(_kernel().work_groups(views[0].size), views[0], views[1:], C, sums)
         best = trusted_points(sums.tolist(), len(history), state.depth)
         return state.replaced([solved, *history], best)
     errors = [

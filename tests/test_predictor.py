@@ -226,9 +226,7 @@ def test_compiled_extrapolation_has_numpys_bits(dtype: str, points: int) -> None
     errors = [float(np.vdot(d, d).real) for d in [solved] + [solved - p for p in predictions]]
     sums = np.empty(points + 1)
     views = [x.reshape(-1).view(np.float64) for x in [solved, *history]]
-    kernel = warm_start._kernel()
-    work = kernel.error_work(views[0].size, points)
-    kernel.errors(1, views[0], tuple(views[1:]), extrapolation_matrix(points), sums, *work)
+    warm_start._kernel().errors(1, views[0], tuple(views[1:]), extrapolation_matrix(points), sums)
     np.testing.assert_allclose(sums, errors, rtol=1e-12)
     assert advanced.trusted == lf.warm_start.trusted_points(errors, points, points + 1)
     assert advanced.last is solved and len(advanced.history()) == points + 1
@@ -248,14 +246,7 @@ def test_split_warm_passes_have_the_serial_bits() -> None:
         out = np.empty_like(views[0])
         sums = np.empty(6)
         kernel.extrapolate(groups, w, tuple(views[1:]), 5, 2, out)
-        kernel.errors(
-            groups,
-            views[0],
-            tuple(views[1:]),
-            C,
-            sums,
-            *kernel.error_work(views[0].size, 5, groups),
-        )
+        kernel.errors(groups, views[0], tuple(views[1:]), C, sums)
         results.append((out, sums))
     for out, sums in results[1:]:
         assert np.array_equal(out, results[0][0]) and np.array_equal(sums, results[0][1])

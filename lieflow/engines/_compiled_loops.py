@@ -71,13 +71,11 @@ from ..solvers import fixed_point
 
 numba: Any
 numba_cache: Any
-_warm_kernel: Any
 try:
     numba = importlib.import_module("numba")
     numba_cache = importlib.import_module("lieflow.numba_cache")
-    _warm_kernel = importlib.import_module("lieflow._warm_kernel")
 except ImportError:  # pragma: no cover - importable without numba (doctest collection, docs)
-    numba = numba_cache = _warm_kernel = None
+    numba = numba_cache = None
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -88,9 +86,9 @@ _GO, _CONVERGED, _ROUNDOFF = fixed_point.GO, fixed_point.CONVERGED, fixed_point.
 #: Python overhead) is faster: 2.5x at n = 16 and 50 for ``A @ B``, up to 8x for ``A @ B^T``.
 LOOP_PRODUCTS_MAX_N = 8
 
-#: The modules whose functions and constants the entry points compile (the rules and the
-#: warm start's passes shared with the numpy path).
-SHARED_MODULES = (fixed_point, warm_start, conjugation, base, *filter(None, [_warm_kernel]))
+#: The modules whose functions and constants the entry points compile (the rules shared
+#: with the numpy path, :data:`SHARED`).
+SHARED_MODULES = (fixed_point, warm_start, conjugation, base)
 
 #: Hash of the source of :data:`SHARED_MODULES`: part of the cache key of the entry points
 #: (numba's cache tracks this file only), so that editing a shared rule recompiles them.
@@ -225,13 +223,6 @@ _trusted_points = _inner(warm_start.trusted_points)
 _retries_cold = _inner(base.retries_cold)
 _schulz_step = _inner(conjugation.newton_schulz_step)
 _skew_to_roundoff_rule = _inner(conjugation.skew_to_roundoff)
-if _warm_kernel is not None:
-    #: The warm start's passes of the numpy path (:mod:`lieflow._warm_kernel`, compiled
-    #: and cached there): the prediction's weighted sum and, serial, the errors of the
-    #: predictions that choose the next one's order.
-    _weighted_sum = _warm_kernel.weighted_sum
-    _errors = _warm_kernel.errors.dispatcher(parallel=False)
-    _CHUNK = _warm_kernel.CHUNK
 
 #: Entries of the loops' ``tolerances`` (float64): the stopping rule's
 #: (:class:`~lieflow.solvers.StoppingRule`) ...
@@ -1127,31 +1118,37 @@ def _reduced_step_of(conjugation: bool, skew: bool) -> Any:
 def _predict(history: Any, kk: int, points: int, extrapolation: Any, out: Any) -> None:
     """The warm-start prediction from the last ``points`` solutions of trajectory ``kk``
     (:meth:`WarmStart.prediction <lieflow.warm_start.WarmStart.prediction>`):
-    ``out = sum_j extrapolation[points - 1, j] history[j, kk]``, 1-D — the numpy path's
-    pass (:func:`lieflow._warm_kernel.weighted_sum`) on real views of the arrays."""
-    o = out.view(np.float64)
-    _weighted_sum(
-        extrapolation[points - 1], history.view(np.float64)[:, kk], points,
-        o.size // out.size, 0, o.size, o,
-    )  # fmt: skip
+    ``out = sum_j extrapolation[points - 1, j] history[j, kk]``, 1-D."""
+    m = out.size
+    w0 = extrapolation[points - 1, 0]
+    for e in range(m):
+        out[e] = w0 * history[0, kk, e]
+    for j in range(1, points):
+        w = extrapolation[points - 1, j]
+        for e in range(m):
+            out[e] += w * history[j, kk, e]
 
 
 @_helper
 def _commit(
-    solved: Any, history: Any, warm_counts: Any, extrapolation: Any, err2: Any, sums: Any,
-    p: Any,
-) -> None:  # fmt: skip
+    solved: Any, history: Any, warm_counts: Any, extrapolation: Any, acc: Any, err2: Any
+) -> None:
     """:meth:`WarmStart.advance <lieflow.warm_start.WarmStart.advance>` for the whole stack:
-    the squared errors of the predictions of ``solved`` from ``0 .. filled`` points, summed
-    over the stack (:func:`lieflow._warm_kernel._errors`, the pass the numpy path runs;
-    ``sums``, ``p``: its work arrays), the number of points trusted next by
+    the squared errors of the predictions of ``solved`` from ``0 .. filled`` points (summed
+    over the stack), the number of points trusted next by
     :func:`~lieflow.warm_start.trusted_points`, and ``solved`` into the history
     (``(depth, K, m)``, most recent first)."""
     depth, K, m = history.shape
     filled = warm_counts[FILLED]
-    flat = history.reshape((depth, K * m)).view(np.float64)
-    _errors(1, solved.reshape(K * m).view(np.float64), flat[:filled], extrapolation, err2,
-            sums, p)  # fmt: skip
+    for u in range(filled + 1):
+        err2[u] = 0.0
+    for kk in range(K):
+        for e in range(m):
+            err2[0] += _abs2(solved[kk, e])
+        for u in range(1, filled + 1):
+            _predict(history, kk, u, extrapolation, acc)
+            for e in range(m):
+                err2[u] += _abs2(solved[kk, e] - acc[e])
     warm_counts[TRUSTED] = _trusted_points(err2, filled, depth)
     for j in range(depth - 1, 0, -1):
         for kk in range(K):
@@ -1362,14 +1359,12 @@ def _entry_point(key: str, sydirk: bool, conjugation: bool, blas: bool, skew: bo
         # the work arrays, carved out as workspace() sizes them
         solved = workspace[: K * m].reshape((K, m))
         pred = workspace[K * m : K * m + m]
-        o = K * m + m
+        acc = workspace[K * m + m : K * m + 2 * m]
+        o = K * m + 2 * m
         work = workspace[o : o + 4 * s * n * n].reshape((2, 2, s, n, n))
         scratch = workspace[o + 4 * s * n * n : o + 9 * s * n * n].reshape((5, s, n, n))
         err2 = real_workspace[: depth + 1]
         res = real_workspace[depth + 1 : depth + 1 + settings[MAX_ITER]]
-        r = depth + 1 + settings[MAX_ITER]
-        p = real_workspace[r : r + _CHUNK].reshape((1, _CHUNK))
-        sums = real_workspace[r + _CHUNK :].reshape((-1, depth + 1))
         # _views and _step: globals of the entry point's own namespace (see above)
         parts = _views(work, scratch)  # type: ignore[name-defined] # noqa: F821
         x, x0, xf, x0f, m0, m1, m2, m3 = parts
@@ -1396,7 +1391,7 @@ def _entry_point(key: str, sydirk: bool, conjugation: bool, blas: bool, skew: bo
                             return step
                 most = max(most, total)
             if warm:
-                _commit(solved, history, warm_counts, extrapolation, err2, sums, p)
+                _commit(solved, history, warm_counts, extrapolation, acc, err2)
             iterations[step] = most
         return states.shape[0]
 
@@ -1459,15 +1454,12 @@ def workspace(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The work arrays of the loops (``workspace``, ``real_workspace`` of
     :class:`LoopArguments`), which allocate nothing themselves: ``solved (K, m)``,
-    ``pred (m)``, ``work (2, 2, s, n, n)`` and ``scratch (5, s, n, n)`` end to end in
-    ``dtype``, then ``err2 (depth + 1)``, the residual history ``res (max_iter)`` and the
-    work arrays ``p`` and ``sums`` of the warm start's errors
-    (:func:`lieflow._warm_kernel.error_work`) in float64; ``m``: one trajectory's warm
-    offsets, ``depth``: the history's length."""
-    sums, p = _warm_kernel.error_work(K * m * np.dtype(dtype).itemsize // 8, depth)
+    ``pred (m)``, ``acc (m)``, ``work (2, 2, s, n, n)`` and ``scratch (5, s, n, n)`` end to
+    end in ``dtype``, then ``err2 (depth + 1)`` and the residual history ``res (max_iter)``
+    in float64; ``m``: one trajectory's warm offsets, ``depth``: the history's length."""
     return (
-        np.zeros(K * m + m + 9 * s * n * n, dtype=dtype),
-        np.zeros(depth + 1 + max_iter + p.size + sums.size),
+        np.zeros(K * m + 2 * m + 9 * s * n * n, dtype=dtype),
+        np.zeros(depth + 1 + max_iter),
     )
 
 
