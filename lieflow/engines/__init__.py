@@ -76,12 +76,13 @@ def scheme_flow(
         )
     from . import compiled
 
-    if engine == "auto" and not compiled.available():
-        return SchemeFlow(system, scheme, solver, warm_start)
     n = W0.shape[-1]
     K = W0.size // max(n * n, 1)
-    # judged before plan(), which loads the system's compiled B
-    if engine == "auto" and not compiled.wins(n, steps, K, np.iscomplexobj(W0)):
+    # judged before plan(), which loads the system's compiled B, and before looking for
+    # numba (a search of the import path: ~60 µs of a one-step call)
+    if engine == "auto" and not (
+        compiled.wins(n, steps, K, np.iscomplexobj(W0)) and compiled.available()
+    ):
         return SchemeFlow(system, scheme, solver, warm_start)
     plan = compiled.plan(system, scheme, solver, W0)  # names a missing numba too
     if isinstance(plan, str):
