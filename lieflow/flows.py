@@ -81,9 +81,9 @@ class SchemeFlow:
     #: (:attr:`~lieflow.schemes.Scheme.keeps_skew`) and the system's projection is its
     #: algebra's, so(n)'s ``(W - W^T)/2`` (``"f"``: real states land on so(n)) or su(N)'s
     #: (``"c"``: complex states land on the skew-Hermitian matrices, whose projection is
-    #: :meth:`lieflow.SU.project_skew_hermitian`; subclasses of :class:`~lieflow.SU`
-    #: keep its projection's bits, as lieflow-zeitlin's compiled one does); ``""``
-    #: otherwise.
+    #: :meth:`lieflow.SU.project_skew_hermitian`; a subclass of :class:`~lieflow.SU` only
+    #: where its own class body sets ``projects_as_su = True``, a promise that its
+    #: projection has SU's bits, as lieflow-zeitlin's compiled one has); ``""`` otherwise.
     _exact: str = attrs.field(init=False, repr=False)
 
     @_exact.default
@@ -93,7 +93,10 @@ class SchemeFlow:
         if not keeps or type(self.system).project is not IsospectralSystem.project:
             return ""
         algebra = type(self.system.algebra)
-        return "f" if algebra is SO else "c" if issubclass(algebra, SU) else ""
+        # su(N) itself, or a subclass that says in its own body that its projection has
+        # SU's bits (a subclass inherits no such promise: it may project otherwise)
+        su = algebra is SU or vars(algebra).get("projects_as_su") is True
+        return "f" if algebra is SO else "c" if su else ""
 
     def __attrs_post_init__(self) -> None:
         warm_depth(self.warm_start)

@@ -58,7 +58,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import attrs
 import numpy as np
@@ -105,6 +105,10 @@ class VorticityAlgebra(lieflow.SU):
     ``[initial] random = true`` therefore starts a smooth flow. ``precision`` is the dtype of
     random elements (complex128 or complex64).
     """
+
+    #: Its projection has :class:`lieflow.SU`'s bits (tested), so a step that keeps skew
+    #: symmetry only has its trace removed (:class:`lieflow.SchemeFlow`).
+    projects_as_su: ClassVar[bool] = True
 
     degree: int = attrs.field(default=8, converter=_degree, kw_only=True)
     precision: np.dtype = attrs.field(

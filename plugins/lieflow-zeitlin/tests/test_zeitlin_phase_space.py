@@ -72,3 +72,42 @@ def test_a_run_on_su_n_has_the_states_of_projected_steps(name: str, update: str)
         assert W.tobytes() == sol.W[k + 1].tobytes(), k
     one_by_one = np.concatenate([c.W for c in advance(flow, W0, h, steps, batch=1)])
     assert one_by_one.tobytes() == sol.W[1:].tobytes()
+
+
+def test_only_a_promised_su_n_projection_is_reduced_to_the_trace_removal() -> None:
+    """The shortcut needs the projection's bits: su(N) itself and lieflow-zeitlin's
+    algebra (``projects_as_su = True`` in its class body) take it; a subclass of SU that
+    projects otherwise does not inherit the promise, and its projection runs after every
+    step (here one that also zeroes the diagonal: its states keep a zero diagonal)."""
+
+    class OffDiagonal(lf.SU):
+        def project(self, X: np.ndarray) -> np.ndarray:
+            Y = np.array(super().project(X))
+            Y[..., np.arange(self.n), np.arange(self.n)] = 0
+            return Y
+
+    class Flat(lf.IsospectralSystem):
+        def __init__(self, algebra: lf.LieAlgebra) -> None:
+            self._algebra = algebra
+
+        @property
+        def algebra(self) -> lf.LieAlgebra:
+            return self._algebra
+
+        def B(self, W: np.ndarray) -> np.ndarray:  # a rigid body's: -W * C, C symmetric
+            return -W * (1.0 + np.add.outer(np.arange(4), np.arange(4)))
+
+        def hamiltonian(self, W: np.ndarray) -> float:
+            return float(
+                0.5 * np.sum(np.abs(W) ** 2 * (1.0 + np.add.outer(np.arange(4), np.arange(4))))
+            )
+
+    scheme = lf.schemes.get("midpoint")
+    assert scheme.keeps_skew
+    assert lf.SchemeFlow(lz.EulerZeitlin(8), scheme)._exact == "c"
+    assert lf.SchemeFlow(Flat(lf.SU(4)), scheme)._exact == "c"
+    other = Flat(OffDiagonal(4))
+    assert lf.SchemeFlow(other, scheme)._exact == ""
+    W0 = other.algebra.project(lf.SU(4).random(seed=1))
+    sol = lf.integrate(other, scheme, W0, 0.1, steps=5, engine="numpy", diagnostics=False)
+    assert not np.diagonal(sol.W[1:], axis1=-2, axis2=-1).any()
