@@ -54,6 +54,7 @@ own (:func:`_gemm`) passed to the loops like a system's map (:func:`gemm`).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import importlib
 import inspect
@@ -584,10 +585,13 @@ def function_pointer(function: Any, dtype: np.dtype) -> Any:
     name = getattr(getattr(function, "py_func", None), "__name__", "")
     if globals().get(name) is not function:
         return _FunctionPointer(function, dtype)
-    key = (f"map {name}", np.dtype(dtype))
-    if key not in _ENTRIES or _ENTRIES[key].function is not function:
-        _ENTRIES[key] = _FunctionPointer(function, key[1])
-    return _ENTRIES[key]
+    return _module_map_pointer(function, np.dtype(dtype))
+
+
+@functools.cache
+def _module_map_pointer(function: Any, dtype: np.dtype) -> Any:
+    """:func:`function_pointer` of one of this module's maps, made once per process."""
+    return _FunctionPointer(function, dtype)
 
 
 def address(pointer: Any, signature: Any) -> int:
@@ -1435,18 +1439,17 @@ def _compile_entry(func: F, dtype: np.dtype) -> F:
     return cast(F, numba_cache.cached_njit(func, signature=_entry_signature(dtype), **options))
 
 
-_ENTRIES: dict[Any, Any] = {}
-
-
 def gemm(dtype: np.dtype) -> Any:
     """:func:`_gemm` for data of ``dtype``, compiled (or loaded from the disk cache) on first
     use, as the loops take it (an address, like a system's map)."""
-    key = ("gemm", np.dtype(dtype))
-    if key not in _ENTRIES:
-        signature = _PRODUCT_SIGNATURES[key[1]]
-        cast(Any, _gemm).compile(signature)  # a numba dispatcher (_jit)
-        _ENTRIES[key] = _FunctionPointer(_gemm, key[1], signature)
-    return _ENTRIES[key]
+    return _gemm_pointer(np.dtype(dtype))
+
+
+@functools.cache
+def _gemm_pointer(dtype: np.dtype) -> Any:
+    signature = _PRODUCT_SIGNATURES[dtype]
+    cast(Any, _gemm).compile(signature)  # a numba dispatcher (_jit)
+    return _FunctionPointer(_gemm, dtype, signature)
 
 
 def workspace(
@@ -1477,10 +1480,13 @@ def entry(
     first use, so that importing this module (as :func:`lieflow.engines.compiled.plan` does
     to check a system's maps) loads no loops, and a run compiles and loads only the loop of
     its own formulation, data type, update, products and kind of algebra."""
-    key = (name, np.dtype(dtype), bool(conjugation), bool(blas), bool(skew))
-    if key not in _ENTRIES:
-        if name not in ("sydirk_advance", "reduced_advance"):
-            raise ValueError(f"no entry point {name!r}")
-        source = _entry_point(SHARED_KEY, name == "sydirk_advance", *key[2:])
-        _ENTRIES[key] = _compile_entry(source, key[1])
-    return _ENTRIES[key]
+    if name not in ("sydirk_advance", "reduced_advance"):
+        raise ValueError(f"no entry point {name!r}")
+    return _entry(name, np.dtype(dtype), bool(conjugation), bool(blas), bool(skew))
+
+
+@functools.cache
+def _entry(name: str, dtype: np.dtype, conjugation: bool, blas: bool, skew: bool) -> Any:
+    """:func:`entry`, compiled once per process and key."""
+    source = _entry_point(SHARED_KEY, name == "sydirk_advance", conjugation, blas, skew)
+    return _compile_entry(source, dtype)
