@@ -1256,7 +1256,7 @@ def _at(signature_of: Callable[[np.dtype], Any]) -> Any:
 def linked_function(symbol: str, function: Any, signature: Any) -> Any:
     """``function`` (a numba dispatcher, compiled for ``signature`` with its C wrapper: not
     :func:`_helper`'s options) under the linker's name ``symbol``, for compiled code to call
-    through :func:`linked_at`: an intrinsic ``f(like)`` that gives that function as a value of
+    through the intrinsic returned, ``f(like)``, which gives that function as a value of
     numba's first-class function type of ``signature`` (``like``: any value, unused but for
     typing).
 

@@ -132,7 +132,9 @@ def casimirs_234(W: Array) -> Array:
     # (beta = 0: the memory is not read; the upper triangle is written by the pass)
     P = np.empty(flat.shape, dtype=flat.dtype)
     for X, Y in zip(flat, P, strict=True):
-        zherk(-1.0, X.T, beta=0.0, c=Y.T, trans=0, lower=0, overwrite_c=1)
+        C = zherk(-1.0, X.T, beta=0.0, c=Y.T, trans=0, lower=0, overwrite_c=1)
+        if not np.shares_memory(C, Y):  # (f2py wrote into a copy of c: take it)
+            Y.T[...] = C
     rows = np.empty((K, N, 4))
     W2 = flat.view(np.float64)
     groups = work_groups(W2.size)
