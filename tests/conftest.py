@@ -3,13 +3,28 @@ every child process a test starts ends with it (``children``)."""
 
 from __future__ import annotations
 
+import os
 import signal
 from collections.abc import Iterator
 
 import pytest
+import threadpoolctl
+from helpers import BLAS_THREAD_VARIABLES
 from processes import Children
 
 import lieflow as lf
+
+if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
+    # One BLAS thread per test process when pytest-xdist runs the suite in several (README
+    # command 2 runs one per core): each with a BLAS thread per core oversubscribes the
+    # cores, and OpenBLAS's threads spin while they wait for one another. With two busy
+    # loops beside it on 2 cores, the BLAS-heavy files took 70 s with the default threads
+    # and 56 s with one (issue 37). threadpoolctl limits the libraries already loaded (a
+    # pytest plugin imports numpy before this file); the variables reach the processes the
+    # tests start. A user's own setting of a variable is kept.
+    for _name in BLAS_THREAD_VARIABLES:
+        os.environ.setdefault(_name, "1")
+    threadpoolctl.threadpool_limits(int(os.environ["OPENBLAS_NUM_THREADS"]), user_api="blas")
 
 REGISTRY = lf.default_registry()
 SYSTEMS = sorted(REGISTRY.systems)

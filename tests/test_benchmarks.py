@@ -141,6 +141,7 @@ def test_plain_midpoint_loop_is_the_numpy_engines_algorithm(name: str, n: int, h
     assert np.max(np.abs(W - sol.W[-1])) <= 1e-13 * np.max(np.abs(W0))
 
 
+@pytest.mark.slow  # nine benchmark suites, a study of minutes under load (issue 37)
 def test_quick_run_writes_every_table(tmp_path: Path) -> None:
     """``python -m benchmarks --quick`` writes the page with every section and cell (the
     sweeps suite, which starts process pools and a Dask cluster, has its own test below)."""
@@ -181,6 +182,7 @@ def test_unknown_benchmark_name_is_refused(tmp_path: Path) -> None:
     assert cli.main(["--quick", "--only", "nope", "--out", str(tmp_path / "x.md")]) == 2
 
 
+@pytest.mark.slow  # process pools and a Dask cluster timed (issue 37)
 def test_sweeps_suite_quick_reports_every_field() -> None:
     """The sweeps benchmark in quick mode: every row and target present (not the timings)."""
     import importlib.util
@@ -285,6 +287,7 @@ def test_quflow_suite_quick(
         assert "quflow isomp (tol auto)" not in page
 
 
+@pytest.mark.slow  # fresh interpreters timed (issue 37)
 def test_startup_suite_quick_reports_what_each_case_imported() -> None:
     from benchmarks.suites import startup
 

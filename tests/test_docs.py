@@ -151,6 +151,8 @@ def test_examples_run(page: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatc
     run_blocks(blocks, page.relative_to(ROOT).as_posix())
 
 
+# .ci/run builds the site with warnings as errors on every submission; here -m slow
+@pytest.mark.slow
 @pytest.mark.skipif(
     importlib.util.find_spec("mkdocs") is None
     or importlib.util.find_spec("mkdocstrings_handlers") is None,

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from helpers import damage_last_chunk
+from helpers import BLAS_THREAD_VARIABLES, damage_last_chunk
 from processes import Children
 
 import lieflow as lf
@@ -334,9 +334,14 @@ def test_one_sweep_per_directory(tmp_path: Path) -> None:
         lock.release()
 
 
-def test_default_local_pool_one_blas_thread(tmp_path: Path) -> None:
-    """The default executor: spawned worker processes with one BLAS thread each."""
+def test_default_local_pool_one_blas_thread(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The default executor: spawned worker processes with one BLAS thread each (the
+    suite's own one-thread setting removed first, so that the pool must set it)."""
     grid = write_grid(tmp_path, '"initial.seed" = [0, 1, 2]')
+    for name in BLAS_THREAD_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
     before = {v: os.environ.get(v) for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
     res = lf.sweep(grid, workers=2)
     assert res.ok
