@@ -158,15 +158,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     cfg = presets.quick() if args.quick else presets.full()
     out = Path(args.out)
     img_dir = out.parent / "img"
+    wanted = {name.strip() for name in args.only.split(",") if name.strip()}
+    unknown = wanted - {name for name, _ in SUITES}
+    if unknown:  # before the engines are probed (which compiles the compiled engine's loops)
+        print(f"unknown benchmark(s): {', '.join(sorted(unknown))}", file=sys.stderr)
+        return 2
     engines = available_engines()
     base = "numpy" if "numpy" in engines else None
     others = tuple(e for e in engines if e != base)
     ctx = BenchContext(cfg, others, base, str(img_dir), "img", args.seed)
-    wanted = {name.strip() for name in args.only.split(",") if name.strip()}
-    unknown = wanted - {name for name, _ in SUITES}
-    if unknown:
-        print(f"unknown benchmark(s): {', '.join(sorted(unknown))}", file=sys.stderr)
-        return 2
     start = time.perf_counter()
     sections = []
     for name, suite in SUITES:

@@ -178,8 +178,19 @@ def test_quick_run_writes_every_table(tmp_path: Path) -> None:
     assert len(verdicts) >= 2 * 7  # the summary and the sections
 
 
-def test_unknown_benchmark_name_is_refused(tmp_path: Path) -> None:
-    assert cli.main(["--quick", "--only", "nope", "--out", str(tmp_path / "x.md")]) == 2
+def test_unknown_benchmark_name_is_refused_before_any_engine_runs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A misspelt ``--only`` is refused at once: no engine is probed (the probe compiles
+    the compiled engine's loops, seconds to minutes on a first run)."""
+
+    def probed() -> tuple[str, ...]:
+        raise AssertionError("an engine was probed before the names were checked")
+
+    monkeypatch.setattr(cli, "available_engines", probed)
+    assert cli.main(["--quick", "--only", "so3,nope", "--out", str(tmp_path / "x.md")]) == 2
+    assert "unknown benchmark(s): nope" in capsys.readouterr().err
+    assert not (tmp_path / "x.md").exists()
 
 
 @pytest.mark.slow  # process pools and a Dask cluster timed (issue 37)
