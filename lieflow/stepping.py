@@ -384,30 +384,36 @@ def _batched(
         m = min(batch, steps - k, align - k % align) if align else min(batch, steps - k)
         Ws = np.empty((m, *shape), dtype)
         done: list[StepStats] = []
-        j = 0
+        # (steps done in this chunk, the last state, the flow's state after it), replaced by
+        # one store once a step's results are in Ws and done: a Ctrl-C raised between two
+        # statements (at any call) then never pairs one step's W with the next step's flow
+        # state, which a checkpoint would keep (the resumed run's warm start one step ahead)
+        progress = (0, W, state)
         try:
-            while j < m:
+            while progress[0] < m:
+                j, W, state = progress
                 t = (k + j) * h
                 try:
-                    W, state, stats = step(W, t, h, state)
+                    W_next, state_next, stats = step(W, t, h, state)
                 except ConvergenceError as exc:
                     raise exc.at(k + j + 1, t) from exc
                 if again is not None:
                     step = again
-                if not all_finite(W):
-                    _check_finite(W, stats.iterations, stats.solver, stats.residual, k + j, h)
-                Ws[j] = W
+                if not all_finite(W_next):
+                    _check_finite(W_next, stats.iterations, stats.solver, stats.residual, k + j, h)
+                Ws[j] = W_next
                 done.append(stats)
-                j += 1
+                progress = (j + 1, W_next, state_next)
         finally:  # the steps done reach the consumer, however the chunk ends
+            j, W, state = progress
             if j:
                 yield Chunk(
                     k,
                     h,
                     Ws[:j],
-                    np.array([s.iterations for s in done], dtype=np.int64),
-                    np.array([s.residual for s in done], dtype=np.float64),
-                    tuple(s.solver for s in done),
+                    np.array([s.iterations for s in done[:j]], dtype=np.int64),
+                    np.array([s.residual for s in done[:j]], dtype=np.float64),
+                    tuple(s.solver for s in done[:j]),
                     state,
                 )
         k += j

@@ -95,3 +95,51 @@ def test_sigint_at_random_points_on_a_terminal(tmp_path: Path, children: Childre
         assert np.array_equal(resumed.energy_error, reference.energy_error)
         assert np.array_equal(resumed.iterations, reference.iterations)
     assert interrupted >= 3  # the test did exercise interrupts
+
+
+@pytest.mark.parametrize("at_call", [2, 5, 37])
+def test_a_ctrl_c_between_a_step_and_its_record_keeps_state_and_flow_state_together(
+    monkeypatch: pytest.MonkeyPatch, at_call: int
+) -> None:
+    """Ctrl-C after a step returns but before the chunk holds it (here: in the finiteness
+    check that follows every step) must not yield the chunk's last state with the next
+    step's flow state: a checkpoint would keep them, and the resumed run's warm start would
+    be one step ahead (its updates per step differ from the uninterrupted run's; seen by
+    ``test_sigint_at_random_points_on_a_terminal`` once in CI)."""
+    import lieflow as lf
+    from lieflow import stepping
+    from lieflow.engines import scheme_flow
+
+    system = lf.systems.GeneralizedRigidBody((1.0, 1.3, 1.7, 2.2, 2.8, 3.1))
+    W0, h, steps = system.algebra.random(seed=1), 0.05, 120
+
+    def flow() -> lf.SchemeFlow:
+        scheme, solver = lf.schemes.get("gauss2"), lf.solvers.FixedPoint()
+        return scheme_flow(system, scheme, solver, W0, steps, engine="numpy")
+
+    whole = list(stepping.advance(flow(), W0, h, steps, batch=16))
+    calls = 0
+    finite = stepping.all_finite
+
+    def interrupted(W: np.ndarray) -> bool:
+        nonlocal calls
+        calls += 1
+        if calls == at_call:
+            raise KeyboardInterrupt
+        return finite(W)
+
+    monkeypatch.setattr(stepping, "all_finite", interrupted)
+    first: list[stepping.Chunk] = []
+    with pytest.raises(KeyboardInterrupt):
+        first.extend(stepping.advance(flow(), W0, h, steps, batch=16))
+    monkeypatch.undo()
+    last = first[-1]
+    assert last.stop == at_call - 1  # the interrupted step is not in the chunk
+    rest = stepping.advance(flow(), last.W[-1], h, steps, start=last.stop, state=last.state,
+                            batch=16)  # fmt: skip
+    resumed = [*first, *rest]
+    for what in ("W", "iterations"):
+        np.testing.assert_array_equal(
+            np.concatenate([getattr(c, what) for c in resumed]),
+            np.concatenate([getattr(c, what) for c in whole]),
+        )
