@@ -8,7 +8,6 @@ import signal
 from collections.abc import Iterator
 
 import pytest
-import threadpoolctl
 from helpers import BLAS_THREAD_VARIABLES
 from processes import Children
 
@@ -21,7 +20,10 @@ if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
     # loops beside it on 2 cores, the BLAS-heavy files took 70 s with the default threads
     # and 56 s with one (issue 37). threadpoolctl limits the libraries already loaded (a
     # pytest plugin imports numpy before this file); the variables reach the processes the
-    # tests start. A user's own setting of a variable is kept.
+    # tests start. A user's own setting of a variable is kept. (threadpoolctl: the `test`
+    # extra, like pytest-xdist.)
+    import threadpoolctl
+
     for _name in BLAS_THREAD_VARIABLES:
         os.environ.setdefault(_name, "1")
     threadpoolctl.threadpool_limits(int(os.environ["OPENBLAS_NUM_THREADS"]), user_api="blas")
