@@ -8,7 +8,6 @@ import signal
 from collections.abc import Iterator
 
 import pytest
-from helpers import BLAS_THREAD_VARIABLES
 from processes import Children
 
 import lieflow as lf
@@ -20,11 +19,13 @@ if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
     # loops beside it on 2 cores, the BLAS-heavy files took 70 s with the default threads
     # and 56 s with one (issue 37). threadpoolctl limits the libraries already loaded (a
     # pytest plugin imports numpy before this file); the variables reach the processes the
-    # tests start. A user's own setting of a variable is kept. (threadpoolctl: the `test`
-    # extra, like pytest-xdist.)
+    # tests start (the variables a sweep's local pool sets for its workers). A user's own
+    # setting of a variable is kept. (threadpoolctl: the `test` extra, like pytest-xdist.)
     import threadpoolctl
 
-    for _name in BLAS_THREAD_VARIABLES:
+    from lieflow.app.sweeps._worker import _THREAD_VARS
+
+    for _name in _THREAD_VARS:
         os.environ.setdefault(_name, "1")
     threadpoolctl.threadpool_limits(int(os.environ["OPENBLAS_NUM_THREADS"]), user_api="blas")
 

@@ -13,10 +13,6 @@ import pytest
 
 import lieflow as lf
 
-#: The BLAS variables that the suite sets to one thread in each of several test processes
-#: (``conftest.py``).
-BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
-
 
 def _missing(module: str) -> str:
     distribution = module.replace("_", "-")

@@ -47,7 +47,7 @@ def test_fails(children):
 
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc")
 def test_a_failing_test_leaves_no_child_or_grandchild_running(tmp_path: Path) -> None:
-    for helper in ("conftest.py", "helpers.py", "processes.py"):
+    for helper in ("conftest.py", "processes.py"):
         shutil.copy(HERE / helper, tmp_path)
     pids = tmp_path / "pids"
     (tmp_path / "test_leak.py").write_text(

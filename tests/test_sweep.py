@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from helpers import BLAS_THREAD_VARIABLES, damage_last_chunk
+from helpers import damage_last_chunk
 from processes import Children
 
 import lieflow as lf
@@ -23,7 +23,7 @@ from lieflow.app import io
 from lieflow.app.cli import main
 from lieflow.app.config import ConfigError, build
 from lieflow.app.io import _lock
-from lieflow.app.sweeps import SweepMonitor, load_sweep, parse_sweep, run_id, sweep
+from lieflow.app.sweeps import SweepMonitor, _worker, load_sweep, parse_sweep, run_id, sweep
 
 BASE = """
 [system]
@@ -340,7 +340,7 @@ def test_default_local_pool_one_blas_thread(
     """The default executor: spawned worker processes with one BLAS thread each (the
     suite's own one-thread setting removed first, so that the pool must set it)."""
     grid = write_grid(tmp_path, '"initial.seed" = [0, 1, 2]')
-    for name in BLAS_THREAD_VARIABLES:
+    for name in _worker._THREAD_VARS:
         monkeypatch.delenv(name, raising=False)
     before = {v: os.environ.get(v) for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
     res = lf.sweep(grid, workers=2)
