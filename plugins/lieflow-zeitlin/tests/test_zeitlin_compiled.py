@@ -47,6 +47,29 @@ def test_compiled_and_numpy_take_the_same_steps(scheme: str, options: dict[str, 
     assert np.max(np.abs(fast.iterations - ref.iterations)) <= 1
 
 
+@pytest.mark.parametrize("scheme", ["midpoint", "gauss2"])
+def test_the_conjugation_update_runs_compiled_on_su_n(scheme: str) -> None:
+    """The loops' conjugation updates in complex arithmetic (every transpose of the real
+    code a conjugate transpose): the Cayley update of a composition of midpoint steps and
+    the lifted update of Gauss-2, on su(16), take the numpy path's steps to roundoff and keep
+    the Casimirs tr((iW)^k), k = 2, 3, 4 (an isospectral update's promise) at roundoff at a
+    loose solve (rtol 1e-6): measured 2.7e-15 at most, against 3e-9 to 5e-8 with the
+    commutator update."""
+    system = lz.EulerZeitlin(16)
+    W0 = lz.random_vorticity(16, 6, seed=2)
+    h = 0.05 / system.fluid_time_unit
+    solver = lf.solvers.FixedPoint(rtol=1e-6)
+    updated = lf.schemes.get(scheme, update="conjugation")
+    plan = compiled.plan(system, updated, solver, W0)
+    assert isinstance(plan, compiled.CompiledPlan) and plan.conjugation
+    ref, fast = _both(system, updated, W0, h, steps=30, solver=solver)
+    assert fast.W.dtype == np.complex128
+    np.testing.assert_allclose(fast.W, ref.W, rtol=0, atol=1e-13 * np.abs(ref.W).max())
+    assert not np.array_equal(fast.W, ref.W)  # the loops ran, not the numpy path
+    C = system.casimirs(fast.W)
+    assert np.max(np.abs(C - C[0]) / np.abs(C[0])) < 2e-14
+
+
 def test_the_casimir_shift_is_folded_into_the_compiled_B() -> None:
     system = lz.EulerZeitlin(12)
     W0 = lz.random_vorticity(12, 5, seed=3)
