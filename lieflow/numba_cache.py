@@ -15,10 +15,13 @@ imports numba: import this module only where numba is installed.
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import logging
 import os
+import time
 import types
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -27,7 +30,19 @@ import numba
 import numpy as np
 from numba.core import caching, config
 
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not POSIX: no lock, each process compiles
+    fcntl = None  # type: ignore[assignment]
+
 F = TypeVar("F", bound=Callable[..., Any])
+
+logger = logging.getLogger(__name__)
+
+#: Seconds a process waits for another one compiling the same function (then it compiles
+#: the function itself): a bound on the wait, not a time the compilation is expected to take
+#: (an entry point of the compiled engine takes 5–15 s on an idle core).
+COMPILE_WAIT = 600.0
 
 
 def cache_directory() -> Path:
@@ -78,21 +93,71 @@ def cached_njit(func: F, *, signature: Any = None, **options: Any) -> F:
     :func:`cache_directory`.
 
     Without ``signature`` the function compiles at its first call for the types it is
-    called with, as ``numba.njit`` does; with one it compiles now for that signature only.
-    Where no cache directory can be created or written, the function is compiled in memory
-    in every process (numba's own fallback is to raise ``RuntimeError``).
+    called with, as ``numba.njit`` does; with one it compiles now for that signature only,
+    holding a lock beside its cache files meanwhile (:func:`_compiling`), so that of several
+    processes asking for it at once on an empty cache one compiles and the others load its
+    result. Where no cache directory can be created or written, the function is compiled in
+    memory in every process (numba's own fallback is to raise ``RuntimeError``).
     """
     dispatcher = numba.njit(**options)(func)
+    cache: _UserFunctionCache | None
     try:
         cache = _UserFunctionCache(func)
     except RuntimeError:  # no writable cache location: compile in memory
-        pass
+        cache = None
     else:
         dispatcher._cache = cache  # what numba's enable_caching() does, with our locator
     if signature is not None:
-        dispatcher.compile(signature)
+        with _compiling(cache, func.__qualname__):
+            dispatcher.compile(signature)  # loaded from the disk cache if there
         dispatcher.disable_compile()
     return dispatcher
+
+
+@contextlib.contextmanager
+def _compiling(cache: _UserFunctionCache | None, name: str) -> Iterator[None]:
+    """Hold the lock of ``cache``'s function (``flock`` on ``<function>-<line>.pyXY.lock``
+    beside its cache files) while this process compiles it or loads it from the cache, so that
+    processes starting at once on an empty cache (a sweep's workers, a test suite's)
+    compile it once: the others wait, then load what the first one saved. Waits at most
+    :data:`COMPILE_WAIT` seconds; where no lock can be taken (no cache directory, a file
+    system without ``flock``, not POSIX) each process compiles for itself, as without one."""
+    fd = -1
+    if cache is not None and fcntl is not None:
+        try:
+            cache._impl.locator.ensure_cache_path()
+            lock = Path(cache.cache_path) / f"{cache._impl.filename_base}.lock"
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        except (OSError, AttributeError):
+            fd = -1
+    try:
+        if fd >= 0:
+            _lock(fd, name)
+        yield
+    finally:
+        if fd >= 0:
+            os.close(fd)  # releases the lock
+
+
+def _lock(fd: int, name: str) -> None:
+    """Take the ``flock`` of ``fd``, waiting (polled: a wait that cannot hang) while another
+    process holds it, at most :data:`COMPILE_WAIT` seconds."""
+    deadline = time.monotonic() + COMPILE_WAIT
+    waiting = False
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except BlockingIOError:
+            if time.monotonic() > deadline:
+                logger.info("%s: still locked after %.0f s, compiling it here", name, COMPILE_WAIT)
+                return
+            if not waiting:
+                logger.info("%s: another process is compiling it; waiting for its cache", name)
+                waiting = True
+            time.sleep(0.05)
+        except OSError:  # no flock on this file system
+            return
 
 
 #: Passes over at least this many numbers (a ``1024 × 1024`` complex matrix, where a pass

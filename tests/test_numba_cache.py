@@ -115,3 +115,77 @@ def test_home_cache_by_default_and_in_memory_where_unwritable(tmp_path: Path) ->
     assert not (tmp_path / "src" / "__pycache__").exists() or not list(
         (tmp_path / "src" / "__pycache__").glob("*.nb*")
     )
+
+
+#: Compiles ``locked_module.twice`` for one signature through ``cached_njit`` and prints its
+#: cache statistics; with ``gate`` it first takes the compile lock, says ``locked`` and waits
+#: for a line on stdin before compiling (the other process must find the lock held).
+LOCKED = """
+import contextlib, json, logging, sys
+from lieflow import numba_cache
+
+sys.path.insert(0, sys.argv[1])
+import locked_module
+
+if sys.argv[2] == "gate":
+    held = numba_cache._compiling
+
+    @contextlib.contextmanager
+    def gated(cache, name):
+        with held(cache, name):
+            print("locked", flush=True)
+            sys.stdin.readline()
+            yield
+
+    numba_cache._compiling = gated
+else:
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr)
+    numba_cache.COMPILE_WAIT = 120.0  # a broken lock fails the test, it does not hang it
+f = numba_cache.cached_njit(locked_module.twice, signature="float64(float64)")
+stats = f.stats
+print(json.dumps({"value": f(21.0), "hits": sum(stats.cache_hits.values()),
+                  "misses": sum(stats.cache_misses.values())}), flush=True)
+"""
+
+
+def test_processes_compiling_one_function_at_once_compile_it_once(tmp_path: Path) -> None:
+    """Two processes ask for the same function on an empty cache: the first holds the lock
+    (and waits, so the second certainly asks while it is held); the second waits for the
+    lock instead of compiling, then loads the first one's result from the disk cache."""
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "locked_module.py").write_text("def twice(x):\n    return 2.0 * x\n")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    command = [sys.executable, "-c", LOCKED, str(src)]
+    first = subprocess.Popen(
+        [*command, "gate"], env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    second = None
+    try:
+        assert first.stdout is not None and first.stdin is not None
+        assert first.stdout.readline().strip() == "locked"
+        second = subprocess.Popen(
+            [*command, "plain"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            text=True,
+        )  # fmt: skip
+        assert second.stderr is not None
+        logged = []
+        for line in second.stderr:  # until it says it waits (or exits: end of the stream)
+            logged.append(line)
+            if "waiting for its cache" in line:
+                break
+        assert "waiting for its cache" in "".join(logged), "".join(logged)
+        first.stdin.write("go\n")
+        first.stdin.flush()
+        out_first, _ = first.communicate(timeout=600)
+        out_second, err = second.communicate(timeout=600)
+        assert first.returncode == 0 and second.returncode == 0, err
+        compiled = json.loads(out_first.strip().splitlines()[-1])
+        loaded = json.loads(out_second.strip().splitlines()[-1])
+        assert compiled == {"value": 42.0, "hits": 0, "misses": 1}
+        assert loaded == {"value": 42.0, "hits": 1, "misses": 0}
+    finally:
+        for proc in (first, second):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.wait()
