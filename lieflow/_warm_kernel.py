@@ -8,7 +8,12 @@ forms ``acc = w_0 * x_0; acc += w_1 * x_1; ...`` with Python-int weights: for co
 arrays each ``w * x`` is the complex product ``(w + 0i)(a + bi) = (w a - 0 b) + (w b + 0 a) i``
 (numba contracts no multiply–add without ``fastmath``): the same bits. The prediction
 errors' sums of squares add in the compiler's order (vectorized): they only rank the
-predictions against each other."""
+predictions against each other.
+
+The history comes as a tuple of arrays (numba's ``UniTuple``, whose length is part of the
+type), padded to a fixed length (:func:`_padded`: 8, else the next power of two) with the
+count passed beside it, so that one compilation serves every history a run builds up (1, 2,
+... points as it starts) instead of one per length."""
 
 from __future__ import annotations
 
@@ -76,14 +81,15 @@ def _weighted_sum(
                 acc[i] = acc[i] + c * x[i]
 
 
-def _errors(groups: int, solved: Any, xs: Any, C: Any, out: Any) -> None:  # pragma: no cover
+def _errors(
+    groups: int, solved: Any, xs: Any, M: int, C: Any, out: Any
+) -> None:  # pragma: no cover
     """``out[0] = ||solved||²`` and ``out[m] = ||solved - p_m||²`` for ``m = 1 .. M``
-    (``M = len(xs)``), ``p_m = Σ_{j < m} C[m - 1, j] xs[j]`` (``p_1 = xs[0]``) with the
-    values :func:`_extrapolate` gives (formed as real sums: a complex product's ``0 b``
-    term changes at most the sign of a zero, which its square does not see). Each chunk's
-    sums are kept and the chunks added in order, so the chunks may be split into
-    ``groups`` runs (one per thread) with the same result."""
-    M = len(xs)
+    (the first ``M`` arrays of ``xs``), ``p_m = Σ_{j < m} C[m - 1, j] xs[j]``
+    (``p_1 = xs[0]``) with the values :func:`_extrapolate` gives (formed as real sums: a
+    complex product's ``0 b`` term changes at most the sign of a zero, which its square
+    does not see). Each chunk's sums are kept and the chunks added in order, so the chunks
+    may be split into ``groups`` runs (one per thread) with the same result."""
     n = solved.size
     chunks = (n + CHUNK - 1) // CHUNK
     sums = np.zeros((chunks, M + 1))
@@ -121,5 +127,25 @@ def _squares(s: Any, p: Any, difference: bool) -> float:  # pragma: no cover - c
 
 _weighted_sum = cached_njit(_weighted_sum)
 _squares = cached_njit(_squares, fastmath={"reassoc"})
-extrapolate = SplitKernel(_extrapolate)
-errors = SplitKernel(_errors)
+_extrapolate_pass = SplitKernel(_extrapolate)
+_errors_pass = SplitKernel(_errors)
+
+
+def _padded(xs: tuple[Any, ...]) -> tuple[Any, ...]:
+    """``xs`` padded with its first array (not read) to 8 arrays, or to the next power of
+    two above 8: a fixed length, so one compilation of a pass serves every shorter history."""
+    size = 8
+    while size < len(xs):
+        size *= 2
+    return (*xs, *(xs[0],) * (size - len(xs)))
+
+
+def extrapolate(groups: int, w: Any, xs: tuple[Any, ...], m: int, parts: int, out: Any) -> None:
+    """``out = Σ_{j < m} w[j] xs[j]`` (:func:`_extrapolate`) in ``groups`` runs of chunks."""
+    _extrapolate_pass(groups, w, _padded(xs), m, parts, out)
+
+
+def errors(groups: int, solved: Any, xs: tuple[Any, ...], C: Any, out: Any) -> None:
+    """The squared norms of ``solved`` and of its differences from the ``len(xs)``
+    predictions (:func:`_errors`) in ``groups`` runs of chunks."""
+    _errors_pass(groups, solved, _padded(xs), len(xs), C, out)

@@ -204,7 +204,7 @@ def _large_history(dtype: str, points: int) -> list[np.ndarray]:
 
 
 @pytest.mark.parametrize("dtype", ["real", "complex"])
-@pytest.mark.parametrize("points", [2, 3, 5, 7])
+@pytest.mark.parametrize("points", [2, 3, 5, 7, 9])
 def test_compiled_extrapolation_has_numpys_bits(dtype: str, points: int) -> None:
     """Large histories take one compiled pass (lieflow._warm_kernel): the guess is the
     plain NumPy sum's, bit for bit (signs of zeros too), and the prediction errors are its
@@ -230,6 +230,26 @@ def test_compiled_extrapolation_has_numpys_bits(dtype: str, points: int) -> None
     np.testing.assert_allclose(sums, errors, rtol=1e-12)
     assert advanced.trusted == lf.warm_start.trusted_points(errors, points, points + 1)
     assert advanced.last is solved and len(advanced.history()) == points + 1
+
+
+def test_one_compilation_of_each_warm_pass_serves_every_history_length() -> None:
+    """A run's history grows 1, 2, ... points as it starts: the passes take it padded to a
+    fixed length (lieflow._warm_kernel._padded), so each compiles once, not once per
+    length (numba types a tuple's length); 9 points pad to 16."""
+    numba = pytest.importorskip("numba")
+    from lieflow import _warm_kernel as kernel
+
+    views = [x.reshape(-1).view(np.float64) for x in _large_history("real", 10)]
+    histories = [tuple(views[1 : points + 1]) for points in range(1, 10)]
+    types = [numba.typeof(kernel._padded(xs)) for xs in histories]
+    assert len(set(types[:8])) == 1 and types[8] != types[0]
+    passes = (kernel._errors_pass.dispatcher(), kernel._extrapolate_pass.dispatcher())
+    before = [set(d.signatures) for d in passes]  # other tests may have compiled them
+    for points, xs in enumerate(histories[:8], start=1):
+        kernel.errors(1, views[0], xs, extrapolation_matrix(points), np.empty(points + 1))
+        w = np.array(extrapolation_weights(points), dtype=float)
+        kernel.extrapolate(1, w, xs, points, 1, np.empty_like(views[0]))
+    assert all(len(set(d.signatures) - b) <= 1 for d, b in zip(passes, before, strict=True))
 
 
 def test_split_warm_passes_have_the_serial_bits() -> None:
