@@ -140,9 +140,10 @@ def _padded(xs: tuple[Any, ...]) -> tuple[Any, ...]:
     return (*xs, *(xs[0],) * (size - len(xs)))
 
 
-def extrapolate(groups: int, w: Any, xs: tuple[Any, ...], m: int, parts: int, out: Any) -> None:
-    """``out = Σ_{j < m} w[j] xs[j]`` (:func:`_extrapolate`) in ``groups`` runs of chunks."""
-    _extrapolate_pass(groups, w, _padded(xs), m, parts, out)
+def extrapolate(groups: int, w: Any, xs: tuple[Any, ...], parts: int, out: Any) -> None:
+    """``out = Σ_j w[j] xs[j]`` over the ``len(xs)`` arrays (:func:`_extrapolate`) in
+    ``groups`` runs of chunks."""
+    _extrapolate_pass(groups, w, _padded(xs), len(xs), parts, out)
 
 
 def errors(groups: int, solved: Any, xs: tuple[Any, ...], C: Any, out: Any) -> None:

@@ -188,7 +188,7 @@ def _combine(weights: Sequence[int], history: Sequence[Any], stack: Any = None) 
         out = np.empty_like(history[0])
         w = _VECTORS[m] if m < len(_VECTORS) else np.array(weights, dtype=float)
         o = out.reshape(-1).view(np.float64)
-        _kernel().extrapolate(_kernel().work_groups(o.size), w, flat[0], m, flat[1], o)
+        _kernel().extrapolate(_kernel().work_groups(o.size), w, flat[0], flat[1], o)
         return out
     if stack is None:
         stack = _stacked(history[:m])

@@ -248,7 +248,7 @@ def test_one_compilation_of_each_warm_pass_serves_every_history_length() -> None
     for points, xs in enumerate(histories[:8], start=1):
         kernel.errors(1, views[0], xs, extrapolation_matrix(points), np.empty(points + 1))
         w = np.array(extrapolation_weights(points), dtype=float)
-        kernel.extrapolate(1, w, xs, points, 1, np.empty_like(views[0]))
+        kernel.extrapolate(1, w, xs, 1, np.empty_like(views[0]))
     assert all(len(set(d.signatures) - b) <= 1 for d, b in zip(passes, before, strict=True))
 
 
@@ -265,7 +265,7 @@ def test_split_warm_passes_have_the_serial_bits() -> None:
     for groups in (1, 2, 5, 100):
         out = np.empty_like(views[0])
         sums = np.empty(6)
-        kernel.extrapolate(groups, w, tuple(views[1:]), 5, 2, out)
+        kernel.extrapolate(groups, w, tuple(views[1:]), 2, out)
         kernel.errors(groups, views[0], tuple(views[1:]), C, sums)
         results.append((out, sums))
     for out, sums in results[1:]:
