@@ -25,13 +25,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+from benchmarks.timing import run_process
 
 #: The cases: name -> (system, scheme, steps).
 CASES = {
@@ -73,17 +73,12 @@ def _process(case: str, cache: str, save: str) -> dict[str, float]:
     """Wall and CPU seconds of one fresh interpreter running ``case`` on the numba cache
     ``cache``, and the seconds of its ``lf.integrate`` call."""
     env = {**os.environ, "NUMBA_CACHE_DIR": cache, "OPENBLAS_NUM_THREADS": "1"}
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    start = time.perf_counter()
-    out = subprocess.run(
+    timed = run_process(
         [sys.executable, "-m", "benchmarks.compile_time", "--child", case, "--save", save],
         capture_output=True, text=True, check=True, env=env,
     )  # fmt: skip
-    wall = time.perf_counter() - start
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    inner = json.loads(out.stdout.strip().splitlines()[-1])
-    return {"wall": wall, "cpu": cpu, "integrate": inner["integrate"]}
+    inner = json.loads(timed.done.stdout.strip().splitlines()[-1])
+    return {"wall": timed.wall, "cpu": timed.cpu, "integrate": inner["integrate"]}
 
 
 def main(argv: list[str] | None = None) -> int:

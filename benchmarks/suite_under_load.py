@@ -31,17 +31,17 @@ from __future__ import annotations
 import argparse
 import os
 import re
-import resource
 import shutil
 import subprocess
 import sys
 import tempfile
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 import attrs
+
+from benchmarks.timing import run_process
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -119,23 +119,18 @@ def run_command(command: str, clone: Path, label: str, busy: int, log: Path) -> 
         "XDG_CACHE_HOME": str(clone.parent / "pip-cache"),
     }
     with busy_loops(busy), log.open("w", encoding="utf-8") as out:
-        before = resource.getrusage(resource.RUSAGE_CHILDREN)
-        start = time.perf_counter()
-        done = subprocess.run(
+        timed = run_process(  # while the loops spin: their CPU is not counted
             ["bash", "-euo", "pipefail", "-c", command],
             cwd=clone, env=env, stdout=out, stderr=subprocess.STDOUT, check=False,
         )  # fmt: skip
-        wall = time.perf_counter() - start
-        after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     found = list(_SUMMARY.finditer(log.read_text(encoding="utf-8", errors="replace")))
     last = found[-1] if found else None
     return Run(
         label,
-        done.returncode,
-        wall,
+        timed.done.returncode,
+        timed.wall,
         None if last is None else float(last["seconds"]),
-        cpu,
+        timed.cpu,
         "no summary (see the log)" if last is None else last["counts"],
     )
 

@@ -9,10 +9,12 @@ median round (:attr:`Timing.median`), not its fastest.
 from __future__ import annotations
 
 import math
+import resource
+import subprocess
 import time
 import tracemalloc
-from collections.abc import Callable, Mapping
-from typing import Generic, TypeVar
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, Generic, TypeVar
 
 import attrs
 import numpy as np
@@ -135,3 +137,27 @@ def matmul_seconds(n: int, count: int, repeats: int, dtype: type = np.float64) -
 
     products()
     return best_of(products, repeats).best
+
+
+@attrs.frozen
+class ProcessTime:
+    """A finished child process (its :class:`subprocess.CompletedProcess`), its wall
+    seconds and the CPU seconds (user + system) of all it ran."""
+
+    done: subprocess.CompletedProcess[Any]
+    wall: float
+    cpu: float
+
+
+def run_process(args: Sequence[str], **options: Any) -> ProcessTime:
+    """``subprocess.run(args, **options)``, timed: the wall clock around it and the CPU of
+    the child and of every descendant it waited for (the growth of
+    ``resource.getrusage(RUSAGE_CHILDREN)``, which other processes on the machine do not
+    enter, unlike the wall clock); the caller's other children must not end meanwhile."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    start = time.perf_counter()
+    done = subprocess.run(args, **options)
+    wall = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return ProcessTime(done, wall, cpu)

@@ -72,7 +72,14 @@ def test_the_busy_loops_end_with_the_block() -> None:
     assert left == ""  # ended and reaped, not a zombie
 
 
-def test_dry_run_prints_the_command_and_runs_nothing(capsys: pytest.CaptureFixture[str]) -> None:
+def test_dry_run_prints_the_command_and_runs_nothing(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def refuse(*args: object, **kwargs: object) -> None:
+        raise AssertionError(f"a dry run started {args}")
+
+    monkeypatch.setattr(load.subprocess, "run", refuse)
+    monkeypatch.setattr(load.subprocess, "Popen", refuse)
     assert load.main(["--dry-run", "--busy", "3"]) == 0
     out = capsys.readouterr().out
     assert "README command 2: python3 -m venv .venv" in out
