@@ -33,9 +33,9 @@ import numpy as np
 
 import lieflow as lf
 from lieflow.app.reproduce import Case
+from lieflow.chunks import Diagnostics
 from lieflow.schemes import SyDIRK
 from lieflow.schemes.sydirk import MidpointProblem
-from lieflow.stepping import Diagnostics
 
 IMG = Path(__file__).resolve().parent.parent / "docs" / "img"
 TODA_W0 = np.array([[-1.0, -1, 0, 1], [-1, 1, 1, 0], [0, 1, -1, -1], [1, 0, -1, 1]])

@@ -19,7 +19,7 @@ import importlib
 from importlib.metadata import PackageNotFoundError, version
 from typing import TYPE_CHECKING, Any
 
-from . import algebras, flows, schemes, sinks, solvers, stepping, systems, tableaus
+from . import algebras, chunks, flows, schemes, sinks, solvers, stepping, systems, tableaus
 from .algebras import GL, SO, SU, LieAlgebra, U
 from .errors import (
     AlgebraError,
@@ -106,6 +106,7 @@ __all__ = [
     "WarmStart",
     "__version__",
     "algebras",
+    "chunks",
     "default_registry",
     "flows",
     "hookimpl",

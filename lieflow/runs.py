@@ -37,6 +37,7 @@ from numpy.typing import ArrayLike
 from . import _signals, state_trees, stepping
 from .algebras import Array
 from .backends import from_host, is_foreign_array, is_numpy, place, to_numpy
+from .chunks import DeferredDiagnostics, Diagnostics
 from .engines import Engine, scheme_flow
 from .errors import InputError
 from .flows import Flow
@@ -44,7 +45,7 @@ from .schemes.base import Scheme
 from .sinks import MemorySink, RunInfo, Sink, run_identity
 from .solvers.base import Solver
 from .solvers.fixed_point import FixedPoint
-from .stepping import DeferredDiagnostics, Diagnostics, Monitor, Outcome
+from .stepping import Monitor, Outcome
 from .systems.base import IsospectralSystem
 from .systems.shifted import CasimirShifted, shifted
 

@@ -3,9 +3,9 @@ sinks found by suffix (:func:`open_sink`), and the :class:`Sink` protocol they f
 by the loop that feeds them, :mod:`lieflow.stepping`, and importable from here).
 
 :func:`lieflow.stepping.run` is the one consumer loop: it takes each
-:class:`~lieflow.stepping.Chunk` of steps from :func:`lieflow.stepping.advance`, decides which
+:class:`~lieflow.chunks.Chunk` of steps from :func:`lieflow.stepping.advance`, decides which
 states are saved (every ``save_every``-th and the last), computes the diagnostics once
-(:class:`~lieflow.stepping.ChunkDiagnostics`), and hands both to every sink. A sink only
+(:class:`~lieflow.chunks.ChunkDiagnostics`), and hands both to every sink. A sink only
 stores: in memory (:class:`MemorySink`, this module), in an HDF5 trajectory file (the
 application's ``TrajectorySink``, :mod:`lieflow.app.io`), or wherever a plugin writes.
 
@@ -33,16 +33,10 @@ import numpy as np
 
 from .algebras import Array
 from .backends import to_numpy
+from .chunks import Chunk, ChunkDiagnostics, DeferredDiagnostics, Diagnostics
 from .errors import ConvergenceError, InputError
 from .solution import Solution, Status
-from .stepping import (  # the Sink protocol is the stepping loop's: what its loop feeds
-    Chunk,
-    ChunkDiagnostics,
-    DeferredDiagnostics,
-    Diagnostics,
-    Ending,
-    Sink,
-)
+from .stepping import Ending, Sink  # the Sink protocol is the stepping loop's: what it feeds
 
 __all__ = [
     "DEFAULT_SUFFIX",

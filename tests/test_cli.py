@@ -106,7 +106,7 @@ def test_ctrl_c_then_resume_from_the_command_line(
 
     real_advance = lf.stepping.advance
 
-    def interrupted(*args: Any, **kwargs: Any) -> Iterator[lf.stepping.Chunk]:
+    def interrupted(*args: Any, **kwargs: Any) -> Iterator[lf.chunks.Chunk]:
         for chunk in real_advance(*args, **kwargs):
             yield chunk
             if chunk.stop == 23:

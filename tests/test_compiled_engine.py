@@ -18,7 +18,7 @@ import pytest
 from helpers import import_plugin
 
 import lieflow as lf
-from lieflow import stepping
+from lieflow import chunks, stepping
 from lieflow.app import io
 from lieflow.app.cli import main
 from lieflow.engines import compiled
@@ -290,7 +290,7 @@ class _Recorder:
     def step_many(self, W: np.ndarray, start: int, h: float, steps: int, state: Any) -> Any:
         self.asked.append(steps)
         n = np.zeros(steps, dtype=np.int64)
-        return stepping.Chunk(start, h, np.repeat(W[None], steps, 0), n, n * 0.0,
+        return chunks.Chunk(start, h, np.repeat(W[None], steps, 0), n, n * 0.0,
                             ("",) * steps, state)  # fmt: skip
 
 
@@ -468,7 +468,7 @@ def test_compiled_run_interrupted_and_resumed_is_bit_for_bit(
     assert main(["run", str(config), "--no-progress", "--out", str(tmp_path / "ref.h5")]) == 0
     real_advance = stepping.advance
 
-    def interrupted(*args: Any, **kwargs: Any) -> Iterator[stepping.Chunk]:
+    def interrupted(*args: Any, **kwargs: Any) -> Iterator[chunks.Chunk]:
         for chunk in real_advance(*args, **kwargs):
             yield chunk
             if chunk.stop == 1024:

@@ -107,7 +107,7 @@ def test_a_ctrl_c_between_a_step_and_its_record_keeps_state_and_flow_state_toget
     be one step ahead (its updates per step differ from the uninterrupted run's; seen by
     ``test_sigint_at_random_points_on_a_terminal`` once in CI)."""
     import lieflow as lf
-    from lieflow import stepping
+    from lieflow import chunks, stepping
     from lieflow.engines import scheme_flow
 
     system = lf.systems.GeneralizedRigidBody((1.0, 1.3, 1.7, 2.2, 2.8, 3.1))
@@ -129,7 +129,7 @@ def test_a_ctrl_c_between_a_step_and_its_record_keeps_state_and_flow_state_toget
         return finite(W)
 
     monkeypatch.setattr(stepping, "all_finite", interrupted)
-    first: list[stepping.Chunk] = []
+    first: list[chunks.Chunk] = []
     with pytest.raises(KeyboardInterrupt):
         first.extend(stepping.advance(flow(), W0, h, steps, batch=16))
     monkeypatch.undo()

@@ -62,7 +62,7 @@ def test_resume_on_a_device_continues_from_the_checkpoint(
         placed.append(a)
         return real_place(a, like, dtype)
 
-    def interrupted(*args: Any, **kwargs: Any) -> Iterator[lf.stepping.Chunk]:
+    def interrupted(*args: Any, **kwargs: Any) -> Iterator[lf.chunks.Chunk]:
         for chunk in real_advance(*args, **kwargs):
             assert not backends.is_numpy(chunk.W)  # the steps run on the device library
             yield chunk

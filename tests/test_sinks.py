@@ -409,8 +409,8 @@ def test_deferred_diagnostics_are_the_eager_ones() -> None:
     flow = lf.SchemeFlow(body, MID)
     chunk = next(lf.stepping.advance(flow, X0, 0.05, 3, batch=3))
     assert chunk.size == 3
-    eager = lf.stepping.Diagnostics.of(body, X0)
-    diag, first = lf.stepping.Diagnostics.deferred(body, X0).start(chunk)
+    eager = lf.chunks.Diagnostics.of(body, X0)
+    diag, first = lf.chunks.Diagnostics.deferred(body, X0).start(chunk)
     np.testing.assert_allclose(diag.H0, eager.H0, rtol=1e-15, atol=0)
     np.testing.assert_allclose(diag.C0, eager.C0, rtol=1e-14, atol=0)
     np.testing.assert_array_equal(diag.scale, eager.scale)

@@ -45,7 +45,7 @@ stepping loop's set-up 2; the step's bookkeeping beyond the bare step ~5 on nump
 the chunk), ~10 on the compiled engine (the loops' arguments and results, the chunk);
 recording the chunk 5; closing the sink, the :class:`~lieflow.Solution` and the outcome 6.
 Diagnostics on add 20 (so(3)) / 31–35 (so(10)) for the energy, Casimirs and Casimir scale of
-``W0`` and the step's state (one batch: :meth:`lieflow.stepping.Diagnostics.deferred`) and
+``W0`` and the step's state (one batch: :meth:`lieflow.chunks.Diagnostics.deferred`) and
 their errors, and ~6 in the sink (its per-step arrays, their recording). Each of these is a
 handful of NumPy calls of 0.5–2 µs each in a call's context (a call touches ~100); none
 is one large cost.

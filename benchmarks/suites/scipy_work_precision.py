@@ -31,8 +31,8 @@ import numpy as np
 import lieflow as lf
 from lieflow import IsospectralSystem
 from lieflow.app.reproduce import Case
+from lieflow.chunks import Diagnostics
 from lieflow.engines import Engine
-from lieflow.stepping import Diagnostics
 from lieflow.systems.shifted import casimir_shift
 
 from ..config import BenchContext

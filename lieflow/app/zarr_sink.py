@@ -28,9 +28,9 @@ import numpy as np
 
 from .. import _signals
 from ..algebras import Array
+from ..chunks import Chunk, ChunkDiagnostics, Diagnostics
 from ..errors import ConvergenceError
 from ..sinks import Ending, to_host
-from ..stepping import Chunk, ChunkDiagnostics, Diagnostics
 from .datasets import (
     _CHUNK_BYTES,
     _DIAGNOSTICS,

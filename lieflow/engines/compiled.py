@@ -54,7 +54,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple, TypeVar
 import attrs
 import numpy as np
 
-from .. import stepping
+from .. import chunks
 from ..algebras import Array
 from ..flows import SchemeFlow, StepStats
 from ..schemes.base import Scheme
@@ -166,7 +166,7 @@ def __getattr__(name: str) -> Any:
 @attrs.frozen
 class CompiledSteps:
     """The steps one call of :meth:`CompiledPlan.advance` took in the compiled loops (the
-    flow turns them into a :class:`lieflow.stepping.Chunk`).
+    flow turns them into a :class:`lieflow.chunks.Chunk`).
 
     Attributes
     ----------
@@ -442,7 +442,7 @@ class CompiledSchemeFlow(SchemeFlow):
 
     def step_many(
         self, W: Array, start: int, h: float, steps: int, state: WarmStart | None
-    ) -> stepping.Chunk:
+    ) -> chunks.Chunk:
         """Up to ``steps`` steps after step ``start`` (fewer if one is not accepted)."""
         if state is None:
             c = self.plan.advance(W, h, steps, depth=0)
@@ -455,7 +455,7 @@ class CompiledSchemeFlow(SchemeFlow):
             states = self.system.project(states)
         residuals = np.empty(c.done)  # not recorded by the loops
         residuals.fill(np.nan)  # (np.full's wrapper: 0.4 µs more)
-        return stepping.Chunk(
+        return chunks.Chunk(
             start,
             h,
             states,

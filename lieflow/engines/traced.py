@@ -36,7 +36,7 @@ from typing import Any
 import attrs
 import numpy as np
 
-from .. import stepping
+from .. import chunks, stepping
 from ..algebras import Array
 from ..backends import is_numpy, namespace
 from ..errors import InputError
@@ -218,7 +218,7 @@ class TracedSchemeFlow(SchemeFlow):
         steps: int,
         state: WarmStart | None,
         recording: stepping.Recording | None = None,
-    ) -> stepping.Chunk:
+    ) -> chunks.Chunk:
         """Up to ``steps`` steps after step ``start`` (fewer if one is not accepted), the
         chunk holding the last state only, with each step's energy and Casimirs when
         ``recording`` asks for diagnostics."""
@@ -266,7 +266,7 @@ class TracedSchemeFlow(SchemeFlow):
             W_out = _like(last, W) if done else _like(last, W)[:0]
             kept = np.array([done - 1]) if done else np.zeros(0, dtype=np.int64)
         on_device = program.diagnostics and not program.holds_all
-        return stepping.Chunk(
+        return chunks.Chunk(
             start,
             h,
             W_out,

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ... import stepping
+from ... import chunks
 from ...algebras import Array
 from ._format import (
     _EXTRA,
@@ -131,7 +131,7 @@ def _initialise(f: h5py.File, header: TrajectoryHeader) -> None:
     casimir_labels = np.asarray(powers if len(powers) == C0.shape[-1] else
                                 np.arange(C0.shape[-1]), dtype=np.int64)  # fmt: skip
     _lay_out(f, meta, W0, H0, C0, labels, casimir_labels)
-    extra, _ = stepping.extra_hook(system, header.save_every)
+    extra, _ = chunks.extra_hook(system, header.save_every)
     if extra is not None:
         _append_extra(f, [(0, 0.0, extra(W0))])
 

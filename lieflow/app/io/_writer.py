@@ -17,10 +17,10 @@ import numpy as np
 from ... import _signals, state_trees
 from ...algebras import Array
 from ...backends import is_foreign_array
+from ...chunks import Chunk, ChunkDiagnostics
 from ...errors import ConvergenceError, LieflowError
 from ...sinks import Ending, RunInfo, to_host
 from ...solution import Solution, Status
-from ...stepping import Chunk, ChunkDiagnostics
 from ..config import BuiltRun, check_output_path
 from ._disk import (
     _ATTRIBUTES_ROOM,
@@ -81,7 +81,7 @@ class TrajectoryWriter:
     :class:`~lieflow.sinks.Sink` for ``.h5`` files (``TrajectorySink``).
 
     Create one with :meth:`create` (a new file), :meth:`reopen` (resume) or :meth:`open`
-    (either). :func:`lieflow.stepping.run` feeds every :class:`~lieflow.stepping.Chunk` of steps
+    (either). :func:`lieflow.stepping.run` feeds every :class:`~lieflow.chunks.Chunk` of steps
     to :meth:`record` (buffered), calls :meth:`checkpoint` at its checkpoint cadence (it
     appends the buffered diagnostics and saved states, writes a checkpoint and flushes) and
     :meth:`close` at the end. A checkpoint runs with interrupts deferred and writes to
