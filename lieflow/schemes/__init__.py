@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from .base import Scheme, StepResult
+from .base import Scheme, StageEquations, StepResult, TableauProblem, TableauScheme
 from .block import BlockGauss, BlockProblem, ReducedProblem
 from .modin_viviani import ModinViviani, ModinVivianiProblem
 from .sydirk import MidpointProblem, SyDIRK
@@ -33,8 +33,11 @@ __all__ = [
     "ModinVivianiProblem",
     "ReducedProblem",
     "Scheme",
+    "StageEquations",
     "StepResult",
     "SyDIRK",
+    "TableauProblem",
+    "TableauScheme",
     "available",
     "get",
 ]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import attrs
 import numpy as np
@@ -15,8 +15,9 @@ from ..errors import ConvergenceError
 from ..solvers.base import ImplicitProblem, Solver, SolveResult, einsum
 from ..steps import StepStats
 from ..systems.base import IsospectralSystem
-from ..tableaus import ButcherTableau
+from ..tableaus import ButcherTableau, gauss, one_of
 from ..underflow import flush_tiny
+from . import conjugation
 
 P = TypeVar("P", bound=ImplicitProblem)
 
@@ -267,9 +268,9 @@ class StageProblem:
         return out
 
 
-class TableauProblem(StageProblem):
+class TableauProblem(StageProblem, ABC):
     """What the stage equations of every tableau-based scheme hold: the system, ``W0``,
-    ``h`` and the coefficients ``A``, ``b``.
+    ``h``, the coefficients ``A``, ``b`` and the warm start ``warm``.
 
     The coefficients are kept in ``W0``'s real precision and ``h`` as a Python float, so a
     single-precision state stays single (NumPy promotes ``complex64`` times a ``float64``
@@ -277,20 +278,113 @@ class TableauProblem(StageProblem):
     """
 
     def __init__(
-        self, system: IsospectralSystem, W0: Array, h: float, tableau: ButcherTableau
+        self,
+        system: IsospectralSystem,
+        W0: Array,
+        h: float,
+        tableau: ButcherTableau,
+        warm: Array | None = None,
     ) -> None:
         super().__init__(system, W0)
         self.h = float(h)
+        #: The previous step's :meth:`offsets` (a warm start), or ``None`` (cold).
+        self.warm = warm
         # read-only here: no copy where the tableau's precision is W0's already; host
         # float64 for arrays of another library (placed on its device where a map needs it)
         real = W0.real.dtype if is_numpy(W0) else np.float64
         self.A = tableau.A.astype(real, copy=False)
         self.b = tableau.b.astype(real, copy=False)
 
+    @abstractmethod
+    def stages(self, x: Array) -> Array:
+        """The stage values ``W_i`` of the unknown ``x``, shape ``(..., s, n, n)``."""
+
+    def update(self, x: Array) -> Array:
+        """``W1 = W0 + h sum_i b_i [B(W_i), W_i]`` with ``W_i`` the :meth:`stages` of ``x``:
+        isospectral at the fixed point."""
+        return self.commutator_update(self.stages(x), self.h * self.b)
+
+    def conjugation_update(self, x: Array) -> Array:
+        """``W1 = g1^† W0 g1^{-†}`` with the lifted ``G_i`` of the stages' ``B``
+        (:func:`~lieflow.schemes.conjugation.frozen_stage_conjugator`): isospectral for any
+        ``x`` (:func:`~lieflow.schemes.conjugation.lifted_update`)."""
+        B = self.B(self.stages(x))
+        Gdag = conjugation.frozen_stage_conjugator(B, self.A, self.h)
+        return conjugation.lifted_update(self.W0, Gdag, B, self.h * self.b, self.skew)
+
 
 def symplectic(tableau: ButcherTableau) -> ButcherTableau:
     """attrs converter: the tableau itself, after checking it is symplectic."""
     return tableau.require_symplectic()
+
+
+class StageEquations(ImplicitProblem, Protocol):
+    """What :class:`TableauScheme` asks of its stage equations: an implicit problem, and
+    how its solution ``x`` gives ``W1`` and the next step's warm start."""
+
+    def update(self, x: Array) -> Array:
+        """``W1 = W0 + h sum_i b_i [B(W_i), W_i]`` from the stage values ``W_i`` of ``x``:
+        isospectral at the fixed point."""
+        ...
+
+    def conjugation_update(self, x: Array) -> Array:
+        """``W1`` as a conjugation of ``W0`` (SPEC §4.7): isospectral for any ``x``."""
+        ...
+
+    def offsets(self, x: Array) -> Array:
+        """``x`` minus its value at ``h = 0``: what the next step's warm start adds to its
+        own ``h = 0`` guess."""
+        ...
+
+
+def _gauss2() -> ButcherTableau:
+    return gauss(2)
+
+
+@attrs.frozen
+class TableauScheme(Scheme):
+    """A scheme whose step is one implicit solve for the stages of a symplectic tableau,
+    then an update: :class:`~lieflow.schemes.BlockGauss` and
+    :class:`~lieflow.schemes.ModinViviani`, which differ only in how they state the stage
+    equations (:attr:`problem_class`).
+
+    Parameters
+    ----------
+    tableau : ButcherTableau
+        Any symplectic tableau (checked); Gauss–Legendre with 2 stages by default.
+    update : {"commutator", "conjugation"}
+        ``"commutator"`` (default): ``W1 = W0 + h sum_i b_i [B_i, W_i]``, isospectral at
+        the fixed point; ``"conjugation"``: ``W1`` a conjugation of ``W0`` by the lifted
+        ``g1`` made unitary, isospectral for any iterate (SPEC §4.7,
+        :mod:`lieflow.schemes.conjugation`).
+    """
+
+    tableau: ButcherTableau = attrs.field(factory=_gauss2, converter=symplectic)
+    update: str = attrs.field(
+        default="commutator", validator=one_of(*conjugation.UPDATES), kw_only=True
+    )
+
+    @property
+    @abstractmethod
+    def problem_class(self) -> Callable[..., StageEquations]:
+        """The stage equations, built as ``problem_class(system, W0, h, tableau, warm)``."""
+
+    def step(
+        self,
+        W0: Array,
+        h: float,
+        system: IsospectralSystem,
+        solver: Solver,
+        warm: Array | None = None,
+    ) -> StepResult:
+        cls = self.problem_class
+        problem, res = solve(solver, lambda guess: cls(system, W0, h, self.tableau, guess), warm)
+        update = problem.update if self.update == "commutator" else problem.conjugation_update
+        return StepResult(
+            update(res.x),
+            problem.offsets(res.x),
+            StepStats(res.iterations, res.solver, res.residuals[-1]),
+        )
 
 
 def solve_right(rhs: Array, mat: Array) -> Array:

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Literal
 
 import attrs
@@ -11,20 +12,16 @@ import numpy as np
 
 from ..algebras import Array, dagger
 from ..backends import copy, device_of, from_host, identity, is_numpy, namespace
-from ..solvers.base import Solver
-from ..steps import StepStats
 from ..systems.base import IsospectralSystem
-from ..tableaus import ButcherTableau, gauss, one_of
+from ..tableaus import ButcherTableau, one_of
 from . import conjugation
 from .base import (
-    Scheme,
-    StepResult,
+    StageEquations,
     TableauProblem,
+    TableauScheme,
     contract,
     scratch,
-    solve,
     solve_right,
-    symplectic,
 )
 
 
@@ -96,13 +93,12 @@ class BlockProblem(TableauProblem):
         tableau: ButcherTableau,
         warm: Array | None = None,
     ) -> None:
-        super().__init__(system, W0, h, tableau)
+        super().__init__(system, W0, h, tableau, warm)
         self.s = s = tableau.stages
         self.diag = np.arange(s)
         self.trivial = namespace(W0).broadcast_to(
             W0[..., None, None, :, :], (*W0.shape[:-2], s, s, *W0.shape[-2:])
         )
-        self.warm = warm
 
     @property
     def x0(self) -> Array:
@@ -155,17 +151,6 @@ class BlockProblem(TableauProblem):
         left = namespace(B).linalg.solve(eye - self.h * AB, blocks_to_dense(self.trivial))
         return dense_to_blocks(solve_right(left, eye + self.h * BAt), s)
 
-    def update(self, M: Array) -> Array:
-        """``W1 = W0 + h sum_i b_i [B(M_ii), M_ii]``."""
-        return self.commutator_update(self.stages(M), self.h * self.b)
-
-    def conjugation_update(self, M: Array) -> Array:
-        """``W1 = g1^† W0 g1^{-†}`` with the lifted ``G_i`` of the stages' ``B``:
-        isospectral for any ``M`` (:func:`~lieflow.schemes.conjugation.lifted_update`)."""
-        B = self.B(self.stages(M))
-        Gdag = conjugation.frozen_stage_conjugator(B, self.A, self.h)
-        return conjugation.lifted_update(self.W0, Gdag, B, self.h * self.b, self.skew)
-
     def offsets(self, M: Array) -> Array:
         """``M`` minus its ``h = 0`` value, for warm starts."""
         return M - self.W0[..., None, None, :, :]
@@ -192,7 +177,7 @@ class ReducedProblem(TableauProblem):
         tableau: ButcherTableau,
         warm: Array | None = None,
     ) -> None:
-        super().__init__(system, W0, h, tableau)
+        super().__init__(system, W0, h, tableau, warm)
         s, n = tableau.stages, W0.shape[-1]
         shape = (*W0.shape[:-2], s, n, n)
         if is_numpy(W0):
@@ -205,7 +190,6 @@ class ReducedProblem(TableauProblem):
             parts = [xp.broadcast_to(eye, shape), xp.broadcast_to(W0[..., None, :, :], shape)]
             trivial = xp.stack(parts, axis=-4)
         self.trivial = trivial
-        self.warm = warm
         self._coefficients = reduced_coefficients(self.h, self.A, self.skew)
         self._stages: Array | None = None
         self._products: Array | None = None
@@ -297,10 +281,6 @@ class ReducedProblem(TableauProblem):
         out = xp.reshape(xp.stack([G, P], axis=-3), (*G.shape[:-2], 2, n, s, n))
         return xp.moveaxis(out, -3, -2)
 
-    def update(self, x: Array) -> Array:
-        """``W1 = W0 + h sum_i b_i [B(W_i), W_i]`` with ``W_i = G_i^† P_i``."""
-        return self.commutator_update(self.stages(x), self.h * self.b)
-
     def conjugation_update(self, x: Array) -> Array:
         """``W1 = Q^† W0 Q``, ``Q`` the lifted ``g1 = I + h sum_j b_j G_j B_j^†`` made
         unitary (a similarity by ``g1^†`` for non-skew ``B``): isospectral for any ``x``
@@ -314,35 +294,27 @@ class ReducedProblem(TableauProblem):
         return x - self.trivial
 
 
-def _gauss2() -> ButcherTableau:
-    return gauss(2)
-
-
 @attrs.frozen
-class BlockGauss(Scheme):
+class BlockGauss(TableauScheme):
     """ISOSyRK for any symplectic tableau via the block algorithm (SPEC §4.3).
 
     Parameters
     ----------
     tableau : ButcherTableau
-        Any symplectic tableau (checked); Gauss–Legendre with 2 stages by default.
+        As for :class:`~lieflow.schemes.TableauScheme`: any symplectic tableau,
+        Gauss–Legendre with 2 stages by default.
     form : {"reduced", "block"}
         ``"reduced"`` (default) iterates the ``2s`` stage matrices of the lifted system
         (SPEC §4.5, ``3s`` products per iteration); ``"block"`` iterates the paper's ``s×s``
         block matrix ``M`` block-wise (``3s^2`` products). Both have the same fixed point
         and give the same ``W1`` to roundoff.
     update : {"commutator", "conjugation"}
-        ``"commutator"`` (default): ``W1 = W0 + h sum_i b_i [B_i, W_i]``, isospectral at
-        the fixed point; ``"conjugation"``: ``W1 = Q^† W0 Q`` with the lifted ``g1`` made
-        unitary, isospectral for any iterate (SPEC §4.7, :mod:`lieflow.schemes.conjugation`).
+        As for :class:`~lieflow.schemes.TableauScheme` (the conjugation form:
+        ``W1 = Q^† W0 Q`` with the lifted ``g1`` made unitary).
     """
 
-    tableau: ButcherTableau = attrs.field(factory=_gauss2, converter=symplectic)
     form: Literal["reduced", "block"] = attrs.field(
         default="reduced", validator=one_of("reduced", "block")
-    )
-    update: str = attrs.field(
-        default="commutator", validator=one_of(*conjugation.UPDATES), kw_only=True
     )
 
     @property
@@ -354,19 +326,7 @@ class BlockGauss(Scheme):
         ``update``); ``None`` for the block form."""
         return ("reduced", self.tableau.A, self.tableau.b) if self.form == "reduced" else None
 
-    def step(
-        self,
-        W0: Array,
-        h: float,
-        system: IsospectralSystem,
-        solver: Solver,
-        warm: Array | None = None,
-    ) -> StepResult:
-        cls = ReducedProblem if self.form == "reduced" else BlockProblem
-        problem, res = solve(solver, lambda guess: cls(system, W0, h, self.tableau, guess), warm)
-        update = problem.update if self.update == "commutator" else problem.conjugation_update
-        return StepResult(
-            update(res.x),
-            problem.offsets(res.x),
-            StepStats(res.iterations, res.solver, res.residuals[-1]),
-        )
+    @property
+    def problem_class(self) -> Callable[..., StageEquations]:
+        """:class:`ReducedProblem` or :class:`BlockProblem`, by :attr:`form`."""
+        return ReducedProblem if self.form == "reduced" else BlockProblem

@@ -2,26 +2,23 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import attrs
 import numpy as np
 
 from ..algebras import Array
 from ..backends import device_of, identity, namespace
-from ..solvers.base import Solver
-from ..steps import StepStats
 from ..systems.base import IsospectralSystem
-from ..tableaus import ButcherTableau, one_of
-from . import conjugation
+from ..tableaus import ButcherTableau
 from .base import (
-    Scheme,
-    StepResult,
+    StageEquations,
     TableauProblem,
+    TableauScheme,
     contract,
-    solve,
     solve_right,
-    symplectic,
 )
-from .block import _block_coefficient_matrix, _gauss2
+from .block import _block_coefficient_matrix
 
 
 class ModinVivianiProblem(TableauProblem):
@@ -47,7 +44,7 @@ class ModinVivianiProblem(TableauProblem):
         tableau: ButcherTableau,
         warm: Array | None = None,
     ) -> None:
-        super().__init__(system, W0, h, tableau)
+        super().__init__(system, W0, h, tableau, warm)
         self.s = s = tableau.stages
         shape = (*W0.shape[:-2], 2 * s + s * s, *W0.shape[-2:])
         if self._host:
@@ -174,48 +171,26 @@ class ModinVivianiProblem(TableauProblem):
         sol = xp.moveaxis(sol, -2, -4)  # (..., 1+s, s, n, n)
         return self._join(X, sol[..., 0, :, :, :], sol[..., 1:, :, :, :])
 
-    def update(self, x: Array) -> Array:
-        """``W1 = W0 + h sum_i b_i [B(W~_i), W~_i]``."""
-        return self.commutator_update(self.stages(x), self.h * self.b)
-
-    def conjugation_update(self, x: Array) -> Array:
-        """``W1 = g1^† W0 g1^{-†}`` with the lifted ``G_i`` of the stages' ``B``:
-        isospectral for any ``x`` (:func:`~lieflow.schemes.conjugation.lifted_update`)."""
-        B = self.B(self.stages(x))
-        Gdag = conjugation.frozen_stage_conjugator(B, self.A, self.h)
-        return conjugation.lifted_update(self.W0, Gdag, B, self.h * self.b, self.skew)
+    def offsets(self, x: Array) -> Array:
+        """``x`` itself: the unknowns ``X, Y, K`` vanish at ``h = 0``."""
+        return x
 
 
 @attrs.frozen
-class ModinViviani(Scheme):
+class ModinViviani(TableauScheme):
     """The classic ``3s + s^2`` Modin–Viviani ISOSyRK form for any symplectic tableau.
 
     Kept as the reference formulation: the block algorithm must reproduce it to roundoff.
-    ``update`` as for :class:`~lieflow.schemes.BlockGauss` (the conjugation form builds the
-    lifted ``G_i`` from the stages' ``B``: the unknowns carry ``G_i^† W0``, not ``G_i``).
+    ``tableau`` and ``update`` as for :class:`~lieflow.schemes.TableauScheme` (the
+    conjugation form builds the lifted ``G_i`` from the stages' ``B``: the unknowns carry
+    ``G_i^† W0``, not ``G_i``).
     """
-
-    tableau: ButcherTableau = attrs.field(factory=_gauss2, converter=symplectic)
-    update: str = attrs.field(
-        default="commutator", validator=one_of(*conjugation.UPDATES), kw_only=True
-    )
 
     @property
     def name(self) -> str:
         return f"modin_viviani_{self.tableau.name}"
 
-    def step(
-        self,
-        W0: Array,
-        h: float,
-        system: IsospectralSystem,
-        solver: Solver,
-        warm: Array | None = None,
-    ) -> StepResult:
-        problem, res = solve(
-            solver, lambda guess: ModinVivianiProblem(system, W0, h, self.tableau, guess), warm
-        )
-        update = problem.update if self.update == "commutator" else problem.conjugation_update
-        return StepResult(
-            update(res.x), res.x, StepStats(res.iterations, res.solver, res.residuals[-1])
-        )
+    @property
+    def problem_class(self) -> Callable[..., StageEquations]:
+        """:class:`ModinVivianiProblem`."""
+        return ModinVivianiProblem
