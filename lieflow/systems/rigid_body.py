@@ -28,6 +28,18 @@ def _moments(values: Sequence[float] | np.ndarray) -> np.ndarray:
     return _positive_vector(values, "moments of inertia")
 
 
+def _scaled_weights(scale: float) -> Any:
+    """The default of a body's field ``scale * weights`` (read-only), made once ``weights``
+    is: with ``scale`` -1, -1/2 or 1/2 bit for bit ``-weights``, ``-weights / 2``,
+    ``weights / 2`` (a sign and a halving are exact)."""
+    return attrs.Factory(lambda body: read_only(scale * body.weights), takes_self=True)
+
+
+_NEGATIVE_WEIGHTS = _scaled_weights(-1.0)
+_NEGATIVE_HALF_WEIGHTS = _scaled_weights(-0.5)
+_HALF_WEIGHTS = _scaled_weights(0.5)
+
+
 class _Body(IsospectralSystem):
     r"""What both bodies share: ``B(W) = F \odot W`` with the constant matrix
     ``F = -weights`` (``self._factor``, and ``self._half_factor = F / 2``), the
@@ -102,15 +114,11 @@ class GeneralizedRigidBody(_Body):
     #: so(n), built once (``B`` and the schemes read it every iteration).
     algebra: SO = attrs.field(init=False, repr=False)
     #: ``-weights``: ``B(W) = W * factor``, bit for bit ``-W * weights``.
-    _factor: np.ndarray = attrs.field(init=False, repr=False)
+    _factor: np.ndarray = attrs.field(init=False, repr=False, default=_NEGATIVE_WEIGHTS)
     #: ``factor / 2`` (exact): ``B`` of the stage projection (:meth:`_Body.stage_B`).
-    _half_factor: np.ndarray = attrs.field(
-        init=False, repr=False, default=attrs.Factory(lambda s: 0.5 * s._factor, takes_self=True)
-    )
+    _half_factor: np.ndarray = attrs.field(init=False, repr=False, default=_NEGATIVE_HALF_WEIGHTS)
     #: ``weights / 2`` (exact): the Hamiltonian's weights (:meth:`_Body.hamiltonian`).
-    _half_weights: np.ndarray = attrs.field(
-        init=False, repr=False, default=attrs.Factory(lambda s: 0.5 * s.weights, takes_self=True)
-    )
+    _half_weights: np.ndarray = attrs.field(init=False, repr=False, default=_HALF_WEIGHTS)
     linear_B = True
     casimir_powers = (2, 4, 6)
 
@@ -121,10 +129,6 @@ class GeneralizedRigidBody(_Body):
     @algebra.default
     def _algebra(self) -> SO:
         return SO(self.J.size)
-
-    @_factor.default
-    def _negative_weights(self) -> np.ndarray:
-        return read_only(-self.weights)
 
     def casimirs(self, W: Array) -> Array:
         """``tr W^2``, ``tr W^4``, ``tr W^6`` (those of degree up to ``n``), from two
@@ -164,15 +168,11 @@ class RigidBody(_Body):
     #: so(3), built once (``B`` and the schemes read it every iteration).
     algebra: SO = attrs.field(init=False, repr=False, factory=lambda: SO(3))
     #: ``-weights``: ``B(W) = W * factor``, bit for bit ``-W * weights``.
-    _factor: np.ndarray = attrs.field(init=False, repr=False)
+    _factor: np.ndarray = attrs.field(init=False, repr=False, default=_NEGATIVE_WEIGHTS)
     #: ``factor / 2`` (exact): ``B`` of the stage projection (:meth:`_Body.stage_B`).
-    _half_factor: np.ndarray = attrs.field(
-        init=False, repr=False, default=attrs.Factory(lambda s: 0.5 * s._factor, takes_self=True)
-    )
+    _half_factor: np.ndarray = attrs.field(init=False, repr=False, default=_NEGATIVE_HALF_WEIGHTS)
     #: ``weights / 2`` (exact): the Hamiltonian's weights (:meth:`_Body.hamiltonian`).
-    _half_weights: np.ndarray = attrs.field(
-        init=False, repr=False, default=attrs.Factory(lambda s: 0.5 * s.weights, takes_self=True)
-    )
+    _half_weights: np.ndarray = attrs.field(init=False, repr=False, default=_HALF_WEIGHTS)
     linear_B = True
     casimir_powers = (2,)
 
@@ -183,10 +183,6 @@ class RigidBody(_Body):
         for i, j, k in ((0, 1, 2), (1, 2, 0), (0, 2, 1)):
             w[i, j] = w[j, i] = inv[k]
         return read_only(w)
-
-    @_factor.default
-    def _negative_weights(self) -> np.ndarray:
-        return read_only(-self.weights)
 
     def casimirs(self, W: Array) -> Array:
         """``tr W^2 = sum_ij W_ij W_ji`` (``-2 |m|^2``), without a matrix product."""
