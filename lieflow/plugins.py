@@ -212,9 +212,8 @@ class RegistryBuilder:
         self._plotters: dict[str, Plotter] = {}
         self._sinks: dict[str, SinkFormat] = {}
         self._source = "?"
-        self._pending: list[Entry] = []
-        self._pending_plotters: list[Plotter] = []
-        self._pending_sinks: list[SinkFormat] = []
+        #: ``(table, key, record)`` of the plugin loading now, committed once it has loaded.
+        self._pending: list[tuple[str, str, Any]] = []
 
     def add_system(self, name: str, factory: Callable[..., Any], description: str = "") -> None:
         """Register an :class:`~lieflow.IsospectralSystem` subclass or factory."""
@@ -245,15 +244,8 @@ class RegistryBuilder:
                 f"invalid system name {system!r} for a plotter: use lower-case letters, "
                 "digits and underscores"
             )
-        if not callable(function):
-            raise PluginError(f"plotter for {system!r}: {function!r} is not callable")
-        taken = self._plotters.get(system) or next(
-            (p for p in self._pending_plotters if p.system == system), None
-        )
-        if taken is not None:
-            raise PluginError(f"a plotter for {system!r} is already registered by {taken.source}")
-        doc = description or (inspect.getdoc(function) or "").split("\n")[0]
-        self._pending_plotters.append(Plotter(system, function, doc, self._source))
+        doc = self._free("plotters", system, f"a plotter for {system!r}", function, description)
+        self._pending.append(("plotters", system, Plotter(system, function, doc, self._source)))
 
     def add_sink(self, suffix: str, factory: Callable[..., Any], description: str = "") -> None:
         """Register the :class:`~lieflow.sinks.Sink` that writes files named ``*<suffix>``
@@ -267,33 +259,33 @@ class RegistryBuilder:
                 f"invalid sink suffix {suffix!r}: a dot, then lower-case letters, digits, '_', "
                 "'-' or '.' (e.g. '.h5')"
             )
-        if not callable(factory):
-            raise PluginError(f"sink {suffix!r}: the factory {factory!r} is not callable")
-        taken = self._sinks.get(suffix) or next(
-            (e for e in self._pending_sinks if e.suffix == suffix), None
-        )
-        if taken is not None:
-            raise PluginError(
-                f"a sink for {suffix!r} files is already registered by {taken.source}"
-            )
-        doc = description or (inspect.getdoc(factory) or "").split("\n")[0]
-        self._pending_sinks.append(SinkFormat(suffix, factory, doc, self._source))
+        doc = self._free("sinks", suffix, f"a sink for {suffix!r} files", factory, description)
+        self._pending.append(("sinks", suffix, SinkFormat(suffix, factory, doc, self._source)))
 
     def _add(self, kind: Kind, name: str, factory: Callable[..., Any], description: str) -> None:
         if not isinstance(name, str) or not _NAME.match(name):
             raise PluginError(
                 f"invalid {kind} name {name!r}: use lower-case letters, digits and underscores"
             )
-        if not callable(factory):
-            raise PluginError(f"{kind} {name!r}: the factory {factory!r} is not callable")
-        taken = self._entries[kind].get(name) or next(
-            (e for e in self._pending if e.kind == kind and e.name == name), None
+        doc = self._free(f"{kind}s", name, f"{kind} {name!r}", factory, description)
+        self._validate(kind, name, factory)
+        self._pending.append((f"{kind}s", name, Entry(kind, name, factory, doc, self._source)))
+
+    def _free(
+        self, table: str, key: str, what: str, function: Callable[..., Any], description: str
+    ) -> str:
+        """Check that ``function`` is callable and ``key`` not yet taken in ``table`` (by a
+        loaded plugin, or earlier by the one loading now), and return the registration's
+        one-line description (``description``, else the first line of the function's
+        docstring); ``what`` names it in the errors."""
+        if not callable(function):
+            raise PluginError(f"{what}: {function!r} is not callable")
+        taken = self._table(table).get(key) or next(
+            (record for t, k, record in self._pending if (t, k) == (table, key)), None
         )
         if taken is not None:
-            raise PluginError(f"{kind} name {name!r} is already registered by {taken.source}")
-        self._validate(kind, name, factory)
-        doc = description or (inspect.getdoc(factory) or "").split("\n")[0]
-        self._pending.append(Entry(kind, name, factory, doc, self._source))
+            raise PluginError(f"{what} is already registered by {taken.source}")
+        return description or (inspect.getdoc(function) or "").split("\n")[0]
 
     @staticmethod
     def _validate(kind: Kind, name: str, factory: Callable[..., Any]) -> None:
@@ -320,18 +312,12 @@ class RegistryBuilder:
             raise PluginError(f"{kind} {name!r} is invalid: {problem}")
 
     def _commit(self) -> None:
-        for e in self._pending:
-            self._entries[e.kind][e.name] = e
-        for p in self._pending_plotters:
-            self._plotters[p.system] = p
-        for k in self._pending_sinks:
-            self._sinks[k.suffix] = k
+        for table, key, record in self._pending:
+            self._table(table)[key] = record
         self._discard()
 
     def _discard(self) -> None:
         self._pending = []
-        self._pending_plotters = []
-        self._pending_sinks = []
 
     def _table(self, name: str) -> dict[str, Any]:
         """The committed table ``name`` (``"systems"`` ... ``"flows"``, ``"plotters"``,
