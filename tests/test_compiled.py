@@ -415,10 +415,10 @@ def test_auto_picks_compiled_only_for_small_n() -> None:
 def test_stopping_rule_is_one_function_on_both_engines() -> None:
     """The compiled loops judge with the numpy path's rule: the same function object,
     compiled, giving the same reason on every case (not just accept/fail)."""
-    from lieflow.engines import _compiled_loops
+    from lieflow.engines import _compiled_rules
     from lieflow.solvers import fixed_point
 
-    assert getattr(_compiled_loops.verdict, "py_func", None) is fixed_point.stopping_verdict
+    assert getattr(_compiled_rules.verdict, "py_func", None) is fixed_point.stopping_verdict
     rule = lf.solvers.StoppingRule(rtol=1e-16, patience=3)
     cases = [
         [1e-3, 1e-8, 1e-15, 3e-16],
@@ -437,7 +437,7 @@ def test_stopping_rule_is_one_function_on_both_engines() -> None:
             for met in (False, True):
                 for r in (rule, attrs.evolve(rule, project=False, max_iter=len(res))):
                     want = r.verdict(list(res), met, growth)
-                    got = _compiled_loops.verdict(
+                    got = _compiled_rules.verdict(
                         np.array(res), len(res), met, growth, r.rtol, r.roundoff_floor,
                         r.divergence_factor, r.max_iter, r.patience, r.window, r.project,
                     )  # fmt: skip

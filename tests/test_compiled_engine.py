@@ -229,14 +229,14 @@ def test_toda_is_symmetrized_every_step_inside_the_loops() -> None:
 
 
 def test_compiled_B_defaults() -> None:
-    from lieflow.engines import _compiled_loops
+    from lieflow.engines import _compiled_maps
 
     body = lf.systems.RigidBody()
     got = body.compiled_B()
     assert got is not None
     fn, params = got
     assert fn == "hadamard_B_skew"  # lieflow's own map, by name (the system imports no engine)
-    assert compiled._by_name(got)[0] is _compiled_loops.hadamard_B_skew
+    assert compiled._by_name(got)[0] is _compiled_maps.hadamard_B_skew
     np.testing.assert_array_equal(params, body.hadamard_factor.ravel())
     assert "no compiled map named 'no_such_map'" in compiled._by_name(("no_such_map", params))
     assert body.compiled_project() is None
@@ -511,6 +511,23 @@ def test_the_loops_load_from_the_disk_cache_in_a_new_process() -> None:
     assert (hits, misses) == (1, 0)
 
 
+def test_the_entry_points_cache_key_covers_the_modules_of_the_loops() -> None:
+    """numba's cache of an entry point tracks its own file (``_compiled_loops.py``) only, not
+    the files of the functions it compiles into it: every other module of lieflow.engines the
+    loops take a function or a constant from is hashed into the entry points' cache key
+    (``SHARED_KEY``), so that editing a helper there recompiles them."""
+    from lieflow.engines import _compiled_loops
+
+    modules = {
+        getattr(getattr(value, "py_func", value), "__module__", None)
+        for value in vars(_compiled_loops).values()
+    } | {m.__name__ for m in vars(_compiled_loops).values() if isinstance(m, type(sys))}
+    below = {m for m in modules if m and m.startswith("lieflow.engines.")}
+    below -= {_compiled_loops.__name__}
+    assert {"lieflow.engines._compiled_formulations", "lieflow.engines._numba_jit"} <= below
+    assert below <= {m.__name__ for m in _compiled_loops.SHARED_MODULES}
+
+
 # ------------------------------------------------------------------ what a plan keeps
 
 
@@ -562,16 +579,16 @@ def test_a_run_compiles_only_the_loop_of_its_own_update(tmp_path: Path) -> None:
         """
         import pathlib, sys
         import lieflow as lf
-        from lieflow.engines import _compiled_loops
+        from lieflow.engines import _compiled_formulations, _numba_jit
         body = lf.systems.RigidBody()
         for update in ("commutator", "conjugation"):
             lf.integrate(body, lf.schemes.get("midpoint", update=update), body.random_state(0),
                          0.1, steps=5, engine="compiled")
-            print(update, len(_compiled_loops._gauss_jordan.signatures),
-                  len(_compiled_loops._orthonormalize.signatures),
+            print(update, len(_compiled_formulations._gauss_jordan.signatures),
+                  len(_compiled_formulations._orthonormalize.signatures),
                   sorted(p.name.split("-")[0].split(".")[-1]
                          for p in pathlib.Path(sys.argv[1]).rglob("*sydirk_advance*.nbi")),
-                  len(_compiled_loops._gemm.signatures))
+                  len(_numba_jit._gemm.signatures))
         """
     )
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}  # an empty cache: all compiled

@@ -195,9 +195,8 @@ def test_update_option_is_validated() -> None:
 @pytest.mark.parametrize("case", ["so10", "toda"])
 @pytest.mark.parametrize("scheme_name", ["midpoint", "gauss2"])
 def test_compiled_engine_runs_the_same_update(case: str, scheme_name: str) -> None:
-    """The compiled loops' conjugation updates (:mod:`lieflow.engines._compiled_loops`) agree with
-    the
-    numpy path to roundoff, and keep the Casimirs at a loose solve."""
+    """The compiled loops' conjugation updates (:mod:`lieflow.engines._compiled_formulations`)
+    agree with the numpy path to roundoff, and keep the Casimirs at a loose solve."""
     pytest.importorskip("numba")
     from lieflow.engines import compiled
 

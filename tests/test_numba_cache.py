@@ -23,13 +23,13 @@ COMPILED = {"lieflow": 2, "lieflow_vortices": 2, "lieflow_zeitlin": 4}
 #: it.
 PROBE = """
 import importlib.util, json, sys
-from lieflow.engines import _compiled_loops
+from lieflow.engines import _compiled_maps, _compiled_rules
 from lieflow.numba_cache import cache_directory
 
 sys.path.insert(0, sys.argv[1])
 import probe_module
 
-functions = [_compiled_loops.hadamard_B_skew, _compiled_loops.verdict]
+functions = [_compiled_maps.hadamard_B_skew, _compiled_rules.verdict]
 if importlib.util.find_spec("lieflow_vortices"):
     import lieflow_vortices._compiled as vortices
     functions += [vortices.vortex_B, vortices.vortex_project]

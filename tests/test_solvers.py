@@ -242,19 +242,20 @@ def test_the_cap_accepts_an_update_at_roundoff() -> None:
 
 def test_compiled_rule_agrees_at_the_cap() -> None:
     """The compiled engine's rule gives the same verdicts at the cap: the shared
-    ``stopping_verdict`` compiled with numba (``_compiled_loops.verdict``, the same function)."""
+    ``stopping_verdict`` compiled with numba (``_compiled_rules.verdict``, the same function)."""
+    from lieflow.engines import _compiled_rules
     from lieflow.engines.compiled import kernels
     from lieflow.solvers.fixed_point import REASONS
 
     try:
-        k = kernels()
+        kernels()
     except ImportError:
         pytest.skip("numba is not installed")
     rule = lf.solvers.StoppingRule(max_iter=20, project=False)
     seen = set()
     for res in (1e-2 * 0.2 ** np.arange(20), 1e-2 * 0.5 ** np.arange(20)):
         expected = rule.verdict(list(res), met=False, growth=1.0)
-        code = k.verdict(
+        code = _compiled_rules.verdict(
             np.array(res), 20, False, 1.0, rule.rtol, rule.roundoff_floor,
             rule.divergence_factor, 20, rule.patience, rule.window, False,
         )  # fmt: skip

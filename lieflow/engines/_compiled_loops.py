@@ -7,24 +7,28 @@ One compiled driver and per-formulation map kernels:
   (:func:`lieflow.schemes.base.solve`), the per-step phase-space projection and the
   finiteness check; :func:`_solver` is the fixed-point loop, judged by
   :func:`lieflow.solvers.fixed_point.stopping_verdict` — the same function object the numpy
-  path calls, compiled here (:data:`verdict`);
+  path calls, compiled (:data:`~lieflow.engines._compiled_rules.verdict`);
 * the formulations are a map (:func:`_midpoint_map`, :func:`_reduced_map`) and a step
   (:func:`_sydirk_step`: a composition of midpoint solves; :func:`_reduced_step`: the
   reduced stage form), each the numpy code path written out entry by entry.
 
-The system enters as compiled functions passed as *arguments*, by address (an ``int64``,
-:func:`address`), and called as numba's first-class function type of :func:`map_signature`
-(``B(W, params, out)`` and ``project(W, params, out)``, see
-:meth:`lieflow.IsospectralSystem.compiled_B`): a typed function argument keeps the loops
-in numba's on-disk cache whatever the system (an untyped dispatcher argument would make
-numba recompile them in every process), and an integer costs the call no Python-level
-typing. ``B`` is the stage-value ``B`` of
-:class:`~lieflow.schemes.base.StageProblem`, i.e. ``B(project_stage(W))``.
+This module holds the driver (the solves, the steps, the warm start's sums, the entry points
+:func:`entry` and their arguments :class:`LoopArguments`); the rest of the loops is in the
+modules below it: how they are compiled, and the products (:mod:`~lieflow.engines._numba_jit`);
+the numpy path's rules, compiled (:mod:`~lieflow.engines._compiled_rules`); the systems'
+maps, and compiled functions by address, as the loops take them
+(:mod:`~lieflow.engines._compiled_maps`: the system enters as compiled functions passed as
+*arguments*, by address, an ``int64``, and called as numba's first-class function type of
+:func:`map_signature`); the formulations' maps and updates
+(:mod:`~lieflow.engines._compiled_formulations`). It is what
+:func:`lieflow.engines.compiled.kernels` loads: it re-exports the names of those modules
+that :mod:`lieflow.engines.compiled` reads of it.
 
 numba's cache tracks this file only, not the files of the functions it inlines; the entry
 points (:func:`entry`: ``"sydirk_advance"``, ``"reduced_advance"``, each for the commutator
-update and for the update in conjugation form) are therefore keyed by a hash of the stopping
-rules' source (:data:`SHARED_KEY`), so editing a rule recompiles them.
+update and for the update in conjugation form) are therefore keyed by a hash of the source of
+the stopping rules and of the modules of the loops below this one (:data:`SHARED_KEY`, of
+:data:`SHARED_MODULES`), so editing a rule, or a function of those modules, recompiles them.
 
 Compile time (a user's first run compiles its entry point: issue 37 item 11): each entry
 point holds one formulation, one data type, one update, one kind of product (plain loops or
@@ -58,10 +62,8 @@ import functools
 import hashlib
 import importlib
 import inspect
-import math
 import types
-from collections.abc import Callable
-from typing import Any, NamedTuple, TypeVar, cast
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 
@@ -69,898 +71,71 @@ from .. import warm_start
 from ..schemes import base, conjugation
 from ..schemes.conjugation import UPDATES
 from ..solvers import fixed_point
+from . import _compiled_formulations, _compiled_maps, _compiled_rules, _numba_jit
+from ._compiled_formulations import (
+    _ALGEBRAS,
+    _cayley_into,
+    _commutator_add,
+    _lifted_into,
+    _midpoint_map_general,
+    _midpoint_map_skew,
+    _reduced_map_general,
+    _reduced_map_skew,
+)
+from ._compiled_maps import _at, _FunctionPointer
+from ._compiled_maps import address as address
+from ._compiled_maps import function_pointer as function_pointer
+from ._compiled_maps import hadamard_B as hadamard_B
+from ._compiled_maps import hadamard_B_skew as hadamard_B_skew
+from ._compiled_maps import hadamard_B_symmetric as hadamard_B_symmetric
+from ._compiled_maps import inline_code as inline_code
+from ._compiled_maps import linked_function as linked_function
+from ._compiled_maps import skew_hermitian_part as skew_hermitian_part
+from ._compiled_maps import symmetric_part as symmetric_part
+from ._compiled_rules import (
+    FILLED,
+    MAX_ITER,
+    RETRY_COLD,
+    TRUSTED,
+    WARM_STARTS,
+    _judge,
+    _retries_cold,
+    _trusted_points,
+)
+from ._compiled_rules import stopping_arrays as stopping_arrays
+from ._numba_jit import (
+    _PRODUCT_SIGNATURES,
+    DTYPES,
+    F,
+    _abs2,
+    _finite,
+    _gemm,
+    _helper,
+    _inner,
+    _matmul_hn,
+    _norm,
+    map_signature,
+    numba,
+    numba_cache,
+)
+from ._numba_jit import LOOP_PRODUCTS_MAX_N as LOOP_PRODUCTS_MAX_N
+from ._numba_jit import compiled_map as compiled_map
 
-numba: Any
-numba_cache: Any
-try:
-    numba = importlib.import_module("numba")
-    numba_cache = importlib.import_module("lieflow.numba_cache")
-except ImportError:  # pragma: no cover - importable without numba (doctest collection, docs)
-    numba = numba_cache = None
-
-F = TypeVar("F", bound=Callable[..., Any])
-
-_TINY = float(np.finfo(float).tiny)
 _GO, _CONVERGED, _ROUNDOFF = fixed_point.GO, fixed_point.CONVERGED, fixed_point.ROUNDOFF
-#: Up to this ``n`` products are plain loops (and a skew ``B M B`` is formed as a strict
-#: upper triangle of dot products); above it BLAS (``np.dot`` called from compiled code, no
-#: Python overhead) is faster: 2.5x at n = 16 and 50 for ``A @ B``, up to 8x for ``A @ B^T``.
-LOOP_PRODUCTS_MAX_N = 8
 
-#: The modules whose functions and constants the entry points compile (the rules shared
-#: with the numpy path, :data:`SHARED`).
-SHARED_MODULES = (fixed_point, warm_start, conjugation, base)
+#: The modules whose functions and constants the entry points compile: the rules shared
+#: with the numpy path and the other modules of the loops (numba's cache tracks this file
+#: only, not theirs).
+SHARED_MODULES = (
+    fixed_point, warm_start, conjugation, base,
+    _numba_jit, _compiled_rules, _compiled_maps, _compiled_formulations,
+)  # fmt: skip
 
 #: Hash of the source of :data:`SHARED_MODULES`: part of the cache key of the entry points
 #: (numba's cache tracks this file only), so that editing a shared rule recompiles them.
 SHARED_KEY = hashlib.sha256(
     "".join(inspect.getsource(module) for module in SHARED_MODULES).encode()
 ).hexdigest()
-
-#: The data types the loops are compiled for.
-DTYPES = (np.dtype(np.float64), np.dtype(np.complex128))
-
-
-def _signature(dtype: np.dtype) -> Any:
-    mat = numba.from_dtype(dtype)[:, ::1]
-    return numba.types.void(mat, numba.types.float64[::1], mat)
-
-
-def _product_signature(dtype: np.dtype) -> Any:
-    mat = numba.from_dtype(dtype)[:, ::1]
-    return numba.types.void(mat, mat, mat, numba.types.boolean, numba.types.boolean)
-
-
-#: The signatures of :func:`map_signature` and of :func:`_gemm`, made once (numba types are
-#: immutable; making one costs ~80 µs, and numba asks for a function argument's on every
-#: call of the loops).
-_SIGNATURES = {} if numba is None else {dtype: _signature(dtype) for dtype in DTYPES}
-_PRODUCT_SIGNATURES = {} if numba is None else {d: _product_signature(d) for d in DTYPES}
-
-
-def map_signature(dtype: np.dtype) -> Any:
-    """Signature of a system's compiled map for data of ``dtype`` (one of :data:`DTYPES`):
-    ``f(W, params, out)`` writes into ``out`` (``W``, ``out``: C-contiguous ``(n, n)`` of
-    that dtype; ``params``: ``float64`` 1-D)."""
-    return _SIGNATURES[np.dtype(dtype)]
-
-
-def _jit(func: F) -> F:
-    """``numba.njit`` with an on-disk cache in the user's cache directory
-    (:func:`lieflow.numba_cache.cached_njit`), or in memory where none can be written.
-    Without numba the plain function is returned (so the module imports) and
-    :func:`lieflow.engines.compiled.kernels` raises ``ImportError``.
-    """
-    if numba is None:  # pragma: no cover - lieflow.engines.compiled.kernels() refuses this case
-        return func
-    return cast(F, numba_cache.cached_njit(func, error_model="numpy"))
-
-
-def _renamed(func: F, name: str) -> F:
-    """``func`` under the name ``name`` (qualified name too): numba's symbol and cache names
-    are the qualified name and the argument types, so each function a factory makes (below)
-    needs a name of its own."""
-    func.__name__ = func.__qualname__ = name
-    return func
-
-
-def _inner(func: F, name: str | None = None) -> F:
-    """``numba.njit`` without a cache, for the functions between an entry point and the
-    shared rules: they are compiled into the entry points (whose cache is keyed by
-    :data:`SHARED_KEY`), never loaded from a cache of their own that could hold an old rule.
-
-    They are inlined by numba (``inline="always"``): as separate calls, the generic driver
-    and solve cost twice the time per step of hand-inlined loops (so(3) midpoint, measured).
-    ``name`` renames a function made by a factory: numba's symbol names are the qualified
-    name, the argument types and a per-process counter, so two closures of one factory with
-    the same argument types could meet under one symbol in code loaded from the cache."""
-    if name is not None:
-        func = _renamed(func, name)
-    if numba is None:  # pragma: no cover
-        return func
-    return cast(F, numba.njit(error_model="numpy", inline="always")(func))
-
-
-def _helper(func: F) -> F:
-    """``numba.njit`` without a cache, for the helpers of the loops: numba links a function
-    loaded from its own cache as machine code, which cannot be inlined into a caller, so the
-    loops would call ``_matmul`` and friends instead of inlining them whenever they are
-    recompiled (a new stopping rule) while the helpers' cache is still valid.
-
-    Only compiled code calls them, so numba makes neither of its wrappers for them (the
-    Python one, ``no_cpython_wrapper``, and the C one, ``no_cfunc_wrapper``), code that a
-    first run would otherwise compile for each helper (issue 37 item 11)."""
-    if numba is None:  # pragma: no cover
-        return func
-    return cast(F, numba.njit(**_HELPER_OPTIONS)(func))
-
-
-#: numba's options of :func:`_helper` (and of the overloads of the products); explicitly
-#: not ``forceinline``, which a function compiled while another is compiling would
-#: otherwise take from it (numba's flags are inherited where not set).
-_HELPER_OPTIONS = {
-    "error_model": "numpy", "no_cpython_wrapper": True, "no_cfunc_wrapper": True,
-    "forceinline": False,
-}  # fmt: skip
-
-
-def _inlined_by_llvm(func: F) -> F:
-    """``numba.njit`` for the large functions the loops call in their innermost loop (the
-    maps, the stopping rule's bookkeeping): compiled on their own once, without a cache or
-    wrappers (as :func:`_helper`), and inlined by LLVM (``forceinline``: LLVM's
-    ``alwaysinline``) into the code that calls them, rather than by numba as :func:`_inner`.
-
-    Numba inlines a function by copying its code block by block together with the whole
-    scope of its variables, at every level of nesting (the map into the solve, the solve
-    into the step, the step into the entry point), so the cost grows with the square of
-    the inlined code; the maps and the stopping rule were most of it (a first so(3)
-    midpoint run: 2.7 s of numba's inlining before, 0.9 s after, issue 37 item 11). The
-    same code runs: LLVM inlines them where numba did, and the loops' states are the same
-    bits (``benchmarks/compile_time.py --save``)."""
-    if numba is None:  # pragma: no cover
-        return func
-    return cast(F, numba.njit(**{**_HELPER_OPTIONS, "forceinline": True})(func))
-
-
-def compiled_map(func: F) -> F:
-    """``func(W, params, out)`` as a system's compiled map (what
-    :meth:`~lieflow.IsospectralSystem.compiled_B` may return): jitted with a disk cache,
-    compiled for :func:`map_signature` of the data's dtype when
-    :func:`lieflow.engines.compiled.plan`
-    first asks for it (not at import, so that importing this module stays cheap)."""
-    return _jit(func)
-
-
-# ------------------------------------------------------------------ the shared rules
-# The rules the numpy path runs as plain Python, compiled here (the same function objects):
-# the stopping rule, the warm start's trust rule, the cold retry, and the Newton–Schulz
-# iteration's decisions and unitarity test of the conjugation updates.
-
-#: :func:`lieflow.solvers.fixed_point.stopping_verdict`, compiled (the same function object):
-#: cached, for calls from Python; the loops inline their own compilation of it (``_rule``).
-verdict = _jit(fixed_point.stopping_verdict)
-_rule = _inner(fixed_point.stopping_verdict)
-_trusted_points = _inner(warm_start.trusted_points)
-_retries_cold = _inner(base.retries_cold)
-_schulz_step = _inner(conjugation.newton_schulz_step)
-_skew_to_roundoff_rule = _inner(conjugation.skew_to_roundoff)
-
-#: Entries of the loops' ``tolerances`` (float64): the stopping rule's
-#: (:class:`~lieflow.solvers.StoppingRule`) ...
-RTOL, ATOL, ROUNDOFF_FLOOR, DIVERGENCE_FACTOR = range(4)
-#: ... and of their ``settings`` (int64): the stopping rule's counts and its rate test
-#: (``StoppingRule.project``), then whether a failed warm-started solve is retried cold
-#: (:func:`~lieflow.schemes.base.retries_cold`) and whether steps are warm-started.
-MAX_ITER, PATIENCE, WINDOW, RATE_TEST, RETRY_COLD, WARM_STARTS = range(6)
-#: Entries of their ``warm_counts`` (int64, updated in place): how many solutions the
-#: history holds, and how many the next prediction extrapolates from
-#: (:class:`~lieflow.warm_start.WarmStart`).
-FILLED, TRUSTED = range(2)
-
-
-def stopping_arrays(
-    rule: fixed_point.StoppingRule, retry_cold: bool, warm_starts: bool
-) -> tuple[np.ndarray, np.ndarray]:
-    """The loops' ``tolerances`` and ``settings`` (see :data:`RTOL`, :data:`MAX_ITER`) for
-    the stopping ``rule`` of a fixed-point solve, whether a failed warm solve is retried
-    cold and whether steps are warm-started (writable: the loops' type)."""
-    tolerances = np.empty(4)
-    tolerances[[RTOL, ATOL, ROUNDOFF_FLOOR, DIVERGENCE_FACTOR]] = (
-        rule.rtol, rule.atol, rule.roundoff_floor, rule.divergence_factor,
-    )  # fmt: skip
-    settings = np.empty(6, dtype=np.int64)
-    settings[[MAX_ITER, PATIENCE, WINDOW, RATE_TEST, RETRY_COLD, WARM_STARTS]] = (
-        rule.max_iter, rule.patience, rule.window, rule.project, retry_cold, warm_starts,
-    )  # fmt: skip
-    return tolerances, settings
-
-
-@_inlined_by_llvm
-def _judge(
-    step2: float, size2: float, k: int, size0: float, res: Any, tolerances: Any, settings: Any
-) -> tuple[int, float]:
-    """Record the ``k``-th update, of squared norm ``step2`` to an iterate of squared norm
-    ``size2`` (the :class:`~lieflow.solvers.fixed_point.IterationMonitor` bookkeeping),
-    and judge it with :data:`verdict`.
-
-    Returns the verdict's code and the (possibly updated) reference size for the growth
-    test (``tolerances``, ``settings``: :func:`stopping_arrays`).
-    """
-    step, size = math.sqrt(step2), math.sqrt(size2)
-    if not (math.isfinite(step) and math.isfinite(size)):
-        return fixed_point.NON_FINITE, size0
-    if k == 1:
-        size0 = max(size0, size, _TINY)
-    res[k - 1] = step / max(size, _TINY)
-    met = step <= tolerances[ATOL] + tolerances[RTOL] * size
-    code = _rule(
-        res, k, met, size / size0, tolerances[RTOL], tolerances[ROUNDOFF_FLOOR],
-        tolerances[DIVERGENCE_FACTOR], settings[MAX_ITER], settings[PATIENCE],
-        settings[WINDOW], settings[RATE_TEST] != 0,
-    )  # fmt: skip
-    return code, size0
-
-
-# ------------------------------------------------------------------ real or complex
-
-
-def _is_complex(x: Any) -> bool:
-    """Whether ``x`` (an array or a scalar) is complex: a constant of the compiled code."""
-    return bool(np.iscomplexobj(x))
-
-
-if numba is not None:
-
-    @numba.extending.overload(_is_complex, inline="always")
-    def _is_complex_compiled(x: Any) -> Any:
-        answer = isinstance(getattr(x, "dtype", x), numba.types.Complex)
-
-        def constant(x: Any) -> bool:  # the stub's signature, annotations included
-            return answer
-
-        return constant
-
-
-@_helper
-def _abs2(z: Any) -> float:
-    """``|z|²`` (``z * z`` for real ``z``); a real number for every ``z``, so that both
-    branches type alike (numba types the branch it does not take, too)."""
-    if _is_complex(z):
-        return z.real * z.real + z.imag * z.imag
-    return z.real * z.real
-
-
-@_helper
-def _finite(z: Any) -> bool:
-    """Whether ``z`` is finite (both parts of a complex number)."""
-    return math.isfinite(z.real) and math.isfinite(z.imag)
-
-
-# ------------------------------------------------------------------ products
-
-
-@_jit
-def _gemm(A: Any, B: Any, out: Any, transpose_a: bool, transpose_b: bool) -> None:
-    """``out = op(A) @ op(B)`` by BLAS (``np.dot``), ``op(X) = X^T`` where its flag is set
-    (the loops set one at most): the products of the loops above ``n = LOOP_PRODUCTS_MAX_N``.
-
-    Compiled on its own, with numba's reference counting (``np.dot`` needs it), and handed
-    to the loops — compiled without it — as a function argument (:func:`gemm`).
-    """
-    if transpose_a:
-        np.dot(A.T, B, out)
-    elif transpose_b:
-        np.dot(A, B.T, out)
-    else:
-        np.dot(A, B, out)
-
-
-@_helper
-def _loops(A: Any, B: Any, out: Any) -> None:
-    """``out = A @ B`` in plain loops: unrolled for ``n = 3``, else in ``i, k, j`` order
-    (vectorisable)."""
-    n = A.shape[0]
-    if n == 3:
-        for i in range(3):
-            a0, a1, a2 = A[i, 0], A[i, 1], A[i, 2]
-            out[i, 0] = a0 * B[0, 0] + a1 * B[1, 0] + a2 * B[2, 0]
-            out[i, 1] = a0 * B[0, 1] + a1 * B[1, 1] + a2 * B[2, 1]
-            out[i, 2] = a0 * B[0, 2] + a1 * B[1, 2] + a2 * B[2, 2]
-        return
-    for i in range(n):
-        for j in range(n):
-            out[i, j] = 0.0
-        for k in range(n):
-            a = A[i, k]
-            for j in range(n):
-                out[i, j] += a * B[k, j]
-
-
-@_helper
-def _conj_into(A: Any, out: Any) -> None:
-    """``out = conj(A)``, entry by entry."""
-    n = A.shape[0]
-    for i in range(n):
-        for j in range(n):
-            out[i, j] = np.conj(A[i, j])
-
-
-# The products of the loops: by ``gemm`` (the BLAS product, :func:`gemm`) in the entry
-# points above ``n = LOOP_PRODUCTS_MAX_N``, by :func:`_loops` in those of the smaller ``n``,
-# which pass ``None`` for ``gemm``. Each is a stub with the formula in numpy and its
-# compiled form an overload: numba types and compiles only the form of the type of
-# ``gemm`` (it cannot prune a branch on a function argument that is not ``None``), so a
-# run compiles no BLAS call or no loops it does not run.
-
-
-def _matmul(A: Any, B: Any, out: Any, gemm: Any) -> None:
-    """``out = A @ B`` (compiled: by ``gemm``, or :func:`_loops` where it is ``None``)."""
-    np.dot(A, B, out)
-
-
-def _matmul_hn(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> None:
-    """``out = A^† @ B``: the product with the transpose of ``A``, or of its conjugate
-    (compiled: written into the scratch matrix ``tmp``) for complex data."""
-    np.dot(A.conj().T, B, out)
-
-
-def _matmul_nh(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> None:
-    """``out = A @ B^†`` (as :func:`_matmul_hn`)."""
-    np.dot(A, B.conj().T, out)
-
-
-def _by_products(gemm: Any, loops: F, blas: F) -> F:
-    """The compiled form of a product for the type of ``gemm``: ``loops`` for ``None``,
-    else ``blas``."""
-    return loops if isinstance(gemm, numba.types.NoneType) else blas
-
-
-if numba is not None:
-
-    @numba.extending.overload(_matmul, jit_options=_HELPER_OPTIONS)
-    def _matmul_compiled(A: Any, B: Any, out: Any, gemm: Any) -> Any:
-        def loops(A: Any, B: Any, out: Any, gemm: Any) -> None:
-            _loops(A, B, out)
-
-        def blas(A: Any, B: Any, out: Any, gemm: Any) -> None:
-            gemm(A, B, out, False, False)
-
-        return _by_products(gemm, loops, blas)
-
-    @numba.extending.overload(_matmul_hn, jit_options=_HELPER_OPTIONS)
-    def _matmul_hn_compiled(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> Any:
-        conj = isinstance(A.dtype, numba.types.Complex)  # a constant: numba prunes on it
-
-        def loops(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> None:
-            if conj:
-                _conj_into(A, tmp)
-                A = tmp
-            _loops(A.T, B, out)
-
-        def blas(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> None:
-            if conj:
-                _conj_into(A, tmp)
-                A = tmp
-            gemm(A, B, out, True, False)
-
-        return _by_products(gemm, loops, blas)
-
-    @numba.extending.overload(_matmul_nh, jit_options=_HELPER_OPTIONS)
-    def _matmul_nh_compiled(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> Any:
-        conj = isinstance(B.dtype, numba.types.Complex)
-
-        def loops(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> None:
-            if conj:
-                _conj_into(B, tmp)
-                B = tmp
-            _loops(A, B.T, out)
-
-        def blas(A: Any, B: Any, out: Any, tmp: Any, gemm: Any) -> None:
-            if conj:
-                _conj_into(B, tmp)
-                B = tmp
-            gemm(A, B, out, False, True)
-
-        return _by_products(gemm, loops, blas)
-
-
-@_helper
-def _norm(xf: Any) -> float:
-    """Euclidean norm of a 1-D array."""
-    acc = 0.0
-    for i in range(xf.size):
-        acc += _abs2(xf[i])
-    return math.sqrt(acc)
-
-
-# ------------------------------------------------------------------ systems' maps
-# Compiled forms of the built-in systems' B and projections (map_signature); ``params`` is
-# the flattened factor S for the Hadamard maps.
-
-#: How the loops evaluate ``B`` (the first entry of the ``params`` they are given; the
-#: system's own ``params`` follow): through the system's map, or — for the built-in
-#: Hadamard maps — the same loop inline. A call through a function pointer cannot be
-#: inlined; on so(3) it cost ~165 ns of a ~900 ns midpoint step (measured).
-CALL_MAP, INLINE_HADAMARD, INLINE_HADAMARD_SKEW, INLINE_HADAMARD_SYMMETRIC = 0, 1, 2, 3
-
-
-@_inner
-def _hadamard(W: Any, S: Any, out: Any, code: int) -> None:
-    """``out = S ⊙ part(W)`` (``S`` flattened), ``part`` by ``code``: ``W`` itself
-    (:data:`INLINE_HADAMARD`), its skew part ``(W - W^T)/2`` or its symmetric part
-    ``(W + W^T)/2``: the Hadamard maps below, and :func:`_apply_B`'s inline form of them."""
-    n = W.shape[0]
-    for i in range(n):
-        for j in range(n):
-            if code == INLINE_HADAMARD:
-                w = W[i, j]
-            elif code == INLINE_HADAMARD_SKEW:
-                w = 0.5 * (W[i, j] - W[j, i])
-            else:
-                w = 0.5 * (W[i, j] + W[j, i])
-            out[i, j] = S[i * n + j] * w
-
-
-@compiled_map
-def hadamard_B(W: Any, params: Any, out: Any) -> None:
-    """``out = S ⊙ W`` (``params = S.ravel()``): ``B`` on gl(n)."""
-    _hadamard(W, params, out, INLINE_HADAMARD)
-
-
-@compiled_map
-def hadamard_B_skew(W: Any, params: Any, out: Any) -> None:
-    """``out = S ⊙ (W - W^T)/2``: ``B`` of a stage value on so(n) (projected first)."""
-    _hadamard(W, params, out, INLINE_HADAMARD_SKEW)
-
-
-@compiled_map
-def hadamard_B_symmetric(W: Any, params: Any, out: Any) -> None:
-    """``out = S ⊙ (W + W^T)/2``: ``B`` of a stage value on the symmetric matrices."""
-    _hadamard(W, params, out, INLINE_HADAMARD_SYMMETRIC)
-
-
-@compiled_map
-def symmetric_part(W: Any, params: Any, out: Any) -> None:
-    """``out = (W + W^T)/2`` (``out`` may be ``W``; ``params`` unused)."""
-    n = W.shape[0]
-    for i in range(n):
-        out[i, i] = W[i, i]
-        for j in range(i + 1, n):
-            a = 0.5 * (W[i, j] + W[j, i])
-            out[i, j] = a
-            out[j, i] = a
-
-
-@compiled_map
-def skew_hermitian_part(W: Any, params: Any, out: Any) -> None:
-    """``out = (W - W^†)/2``, then, if ``params[0]``, minus its trace over ``n`` on the
-    diagonal: the projection onto u(n), or su(N) (``out`` may be ``W``)."""
-    n = W.shape[0]
-    trace = 0.0j
-    for i in range(n):
-        d = 0.5 * (W[i, i] - np.conj(W[i, i]))
-        out[i, i] = d
-        trace += d
-        for j in range(i + 1, n):
-            a = 0.5 * (W[i, j] - np.conj(W[j, i]))
-            out[i, j] = a
-            out[j, i] = -np.conj(a)
-    if params[0] != 0.0:
-        trace = trace / n
-        for i in range(n):
-            out[i, i] -= trace
-
-
-@_inner
-def _apply_B(B: Any, params: Any, W: Any, out: Any) -> None:
-    """``out = B(W)``: inline for the codes of :data:`CALL_MAP`, else
-    ``B(W, params[1:], out)``."""
-    code = int(params[0])
-    S = params[1:]
-    if code == CALL_MAP:
-        B(W, S, out)
-        return
-    _hadamard(W, S, out, code)
-
-
-def inline_code(function: Any) -> int:
-    """The code :func:`_apply_B` evaluates ``function`` by (a built-in Hadamard map inline,
-    anything else through its pointer)."""
-    codes = {
-        hadamard_B: INLINE_HADAMARD,
-        hadamard_B_skew: INLINE_HADAMARD_SKEW,
-        hadamard_B_symmetric: INLINE_HADAMARD_SYMMETRIC,
-    }
-    return next((c for f, c in codes.items() if f is function), CALL_MAP)
-
-
-class _FunctionPointer:
-    """A compiled function as the loops take it: its address, resolved once (numba's
-    C-callable wrapper of the compiled ``signature``), with the function, which keeps the
-    compiled code alive. The entry points take the address as an integer (:func:`address`,
-    :func:`_at`)."""
-
-    def __init__(self, function: Any, dtype: np.dtype, signature: Any = None) -> None:
-        from numba.experimental.function_type import _get_wrapper_address
-
-        self.function = function  # keeps the compiled code alive
-        self.dtype = np.dtype(dtype)
-        self._signature = map_signature(self.dtype) if signature is None else signature
-        self.address = _get_wrapper_address(function, self._signature)
-
-    def signature(self) -> Any:
-        return self._signature
-
-
-def function_pointer(function: Any, dtype: np.dtype) -> Any:
-    """``function`` (a numba dispatcher compiled for :func:`map_signature` of ``dtype``) in
-    the form the loops take it, cheaply converted on every call.
-
-    The maps of this module (the built-in systems' ``B`` and projections: objects that live
-    as long as the process and are compiled once) are resolved once per process, like
-    :func:`gemm`; any other function on every call (~15 µs), since its dispatcher could be
-    recompiled."""
-    if isinstance(function, _FunctionPointer) and function.dtype == dtype:
-        return function
-    name = getattr(getattr(function, "py_func", None), "__name__", "")
-    if globals().get(name) is not function:
-        return _FunctionPointer(function, dtype)
-    return _module_map_pointer(function, np.dtype(dtype))
-
-
-@functools.cache
-def _module_map_pointer(function: Any, dtype: np.dtype) -> Any:
-    """:func:`function_pointer` of one of this module's maps, made once per process."""
-    return _FunctionPointer(function, dtype)
-
-
-def address(pointer: Any, signature: Any) -> int:
-    """The address of ``pointer`` (a :class:`_FunctionPointer`: :func:`function_pointer`,
-    :func:`gemm`) for the entry points, which take their functions as integers (:func:`_at`)
-    and so cannot check them: raises ``TypeError`` unless ``pointer`` is a resolved function
-    of exactly ``signature`` (the type the loops call it with)."""
-    if not (isinstance(pointer, _FunctionPointer) and pointer.signature() == signature):
-        raise TypeError(
-            f"the compiled loops take a resolved function of signature {signature}, got {pointer!r}"
-        )
-    return int(pointer.address)
-
-
-# ------------------------------------------------------------------ formulations
-
-
-#: The name of each kind of algebra in the names of the functions made for one
-#: (``skew``: skew-Hermitian, so(n), u(n), su(N); else general, gl(n), symmetric).
-_ALGEBRAS = {False: "general", True: "skew"}
-
-
-def _midpoint_map_of(skew: bool) -> Any:
-    """:func:`_midpoint_map` for skew-Hermitian algebras (``skew``) or general ones: a
-    constant of the compiled code, so that the branches of the other kind are neither typed
-    nor compiled (numba prunes a branch on a closure constant; issue 37 item 11)."""
-
-    def _midpoint_map(
-        W0: Any, coef: Any, x: Any, Bm: Any, BM: Any, BMB: Any, MB: Any, B: Any, params: Any,
-        gemm: Any,
-    ) -> tuple[float, float]:  # fmt: skip
-        """One update of the midpoint map (SPEC §4.1), in place:
-
-        ``M <- W0 + q (B M - M B) + q^2 B M B``, ``B = B(M)``, ``coef = (q, q^2)``
-        (:func:`~lieflow.schemes.sydirk.midpoint_coefficients`, ``q = h/2``);
-        for skew algebras ``M B = (B M)^†`` (two products per update, SPEC §4.1), and for
-        small real ``n`` only half of the skew ``B M B`` is formed. The new iterate overwrites ``x``
-        entry by entry once the products are formed; ``Bm``, ... ``MB`` are scratch matrices,
-        ``gemm`` the products above ``n = LOOP_PRODUCTS_MAX_N`` (:func:`gemm`; ``None``: plain
-        loops, :func:`_matmul`). Returns the squared norms of the update and of the new
-        iterate.
-        """
-        n = W0.shape[0]
-        q, qq = coef[0], coef[1]
-        _apply_B(B, params, x, Bm)
-        _matmul(Bm, x, BM, gemm)
-        step2 = 0.0
-        size2 = 0.0
-        if skew and n <= LOOP_PRODUCTS_MAX_N and not _is_complex(x):
-            # B M B is skew for skew B, M: form its strict upper triangle only (its diagonal
-            # is zero in exact arithmetic) and mirror it, half a product instead of one.
-            for i in range(n):
-                g = W0[i, i]
-                step2 += _abs2(g - x[i, i])
-                size2 += _abs2(g)
-                x[i, i] = g
-                for j in range(i + 1, n):
-                    bmb = 0.0
-                    for c in range(n):
-                        bmb += BM[i, c] * Bm[c, j]
-                    c1 = BM[i, j] - BM[j, i]
-                    g = W0[i, j] + q * c1 + qq * bmb
-                    gt = W0[j, i] - q * c1 - qq * bmb
-                    step2 += _abs2(g - x[i, j]) + _abs2(gt - x[j, i])
-                    size2 += _abs2(g) + _abs2(gt)
-                    x[i, j] = g
-                    x[j, i] = gt
-        else:
-            _matmul(BM, Bm, BMB, gemm)
-            if not skew:
-                _matmul(x, Bm, MB, gemm)
-            for i in range(n):
-                for j in range(n):
-                    mb = np.conj(BM[j, i]) if skew else MB[i, j]
-                    g = W0[i, j] + q * (BM[i, j] - mb) + qq * BMB[i, j]
-                    step2 += _abs2(g - x[i, j])
-                    size2 += _abs2(g)
-                    x[i, j] = g
-        return step2, size2
-
-    name = f"_midpoint_map_{_ALGEBRAS[skew]}"
-    return _inlined_by_llvm(_renamed(_midpoint_map, name))
-
-
-_midpoint_map_general, _midpoint_map_skew = (_midpoint_map_of(skew) for skew in _ALGEBRAS)
-
-
-@_inner
-def _commutator_add(
-    W: Any, hb: float, skew: bool, M: Any, B: Any, params: Any, Bm: Any, BM: Any, MB: Any,
-    gemm: Any,
-) -> None:  # fmt: skip
-    """``W += hb [B(M), M]`` in place (one product for skew algebras: ``M B = (B M)^†``);
-    ``Bm``, ``BM``, ``MB`` are scratch matrices."""
-    n = W.shape[0]
-    _apply_B(B, params, M, Bm)
-    _matmul(Bm, M, BM, gemm)
-    if skew:
-        for i in range(n):
-            for j in range(n):
-                MB[i, j] = np.conj(BM[j, i])
-    else:
-        _matmul(M, Bm, MB, gemm)
-    for i in range(n):
-        for j in range(n):
-            W[i, j] = W[i, j] + hb * (BM[i, j] - MB[i, j])
-
-
-def _reduced_map_of(skew: bool) -> Any:
-    """:func:`_reduced_map` for skew-Hermitian algebras or general ones (as
-    :func:`_midpoint_map_of`)."""
-
-    def _reduced_map(
-        W0: Any, coef: Any, x: Any, Wst: Any, Bs: Any, GB: Any, PB: Any, B: Any, params: Any,
-        gemm: Any,
-    ) -> tuple[float, float]:  # fmt: skip
-        """One update of the reduced stage form (SPEC §4.5), in place (``x[0] = G``,
-        ``x[1] = P``, each ``(s, n, n)``):
-
-        ``G_i <- I + sum_j (C_G)_ij G_j B_j^†``, ``P_i <- W0 + sum_j (C_P)_ij P_j B_j``,
-        ``B_j = B(G_j^† P_j)``; ``coef = (C_G; C_P)`` stacked, ``(2s, s)``
-        (:func:`~lieflow.schemes.block.reduced_coefficients`: ``C_P = -hA``, ``C_G = hA``,
-        or ``-hA`` for skew algebras, where ``G_j B_j`` is formed for ``G_j B_j^† = -G_j B_j``).
-        ``3 s`` products per update; ``Wst``, ... ``PB`` are scratch stacks ``(s, n, n)``
-        (``GB[j]`` and ``Wst[j]`` also hold the conjugates that complex data need, before they
-        are overwritten; ``Wst`` and ``Bs`` then the stage sums, each entry summed in the order
-        ``j = 1..s``). Returns the squared norms of the update and of the new iterate.
-        """
-        s, n = coef.shape[1], W0.shape[0]
-        nn = n * n
-        for j in range(s):
-            _matmul_hn(x[0, j], x[1, j], Wst[j], GB[j], gemm)
-            _apply_B(B, params, Wst[j], Bs[j])
-            if skew:  # G_j B_j, whose sign goes into the coefficients below (B^† = -B)
-                _matmul(x[0, j], Bs[j], GB[j], gemm)
-            else:
-                _matmul_nh(x[0, j], Bs[j], GB[j], Wst[j], gemm)
-            _matmul(x[1, j], Bs[j], PB[j], gemm)
-        # the stage sums, into Wst and Bs (free by now), over the n² entries of each matrix as
-        # one flat loop (vectorised whatever n)
-        GBf, PBf = GB.reshape((s, nn)), PB.reshape((s, nn))
-        accG, accP = Wst.reshape((s, nn)), Bs.reshape((s, nn))
-        for i in range(s):
-            for e in range(nn):
-                accG[i, e] = 0.0
-                accP[i, e] = 0.0
-            for j in range(s):
-                wG, wP = coef[i, j], coef[s + i, j]
-                for e in range(nn):
-                    accG[i, e] += wG * GBf[j, e]
-                    accP[i, e] += wP * PBf[j, e]
-        step2 = 0.0
-        size2 = 0.0
-        for i in range(s):
-            for a in range(n):
-                for c in range(n):
-                    gG = Wst[i, a, c] + (1.0 if a == c else 0.0)
-                    gP = Bs[i, a, c] + W0[a, c]
-                    step2 += _abs2(gG - x[0, i, a, c]) + _abs2(gP - x[1, i, a, c])
-                    size2 += _abs2(gG) + _abs2(gP)
-                    x[0, i, a, c] = gG
-                    x[1, i, a, c] = gP
-        return step2, size2
-
-    name = f"_reduced_map_{_ALGEBRAS[skew]}"
-    return _inlined_by_llvm(_renamed(_reduced_map, name))
-
-
-_reduced_map_general, _reduced_map_skew = (_reduced_map_of(skew) for skew in _ALGEBRAS)
-
-
-# ------------------------------------------------------------------ conjugation updates
-# The compiled forms of :mod:`lieflow.schemes.conjugation` (SPEC §4.7), in the entry points
-# of that update (:func:`entry`'s ``conjugation``): the same formulas, with Gauss–Jordan
-# elimination in loops for the solves (compiled code here cannot allocate, so LAPACK's
-# solve is not available).
-
-_EPS64 = float(np.finfo(np.float64).eps)
-
-
-@_helper
-def _gauss_jordan(L: Any, R: Any) -> None:
-    """``R <- L^{-1} R`` in place (``L``, ``n×n``, is destroyed): elimination with partial
-    pivoting, then back substitution."""
-    n, m = L.shape[0], R.shape[1]
-    for k in range(n):
-        p = k
-        best = _abs2(L[k, k])
-        for i in range(k + 1, n):
-            v = _abs2(L[i, k])
-            if v > best:
-                best = v
-                p = i
-        if p != k:
-            for j in range(k, n):
-                t = L[k, j]
-                L[k, j] = L[p, j]
-                L[p, j] = t
-            for j in range(m):
-                t = R[k, j]
-                R[k, j] = R[p, j]
-                R[p, j] = t
-        inv = 1.0 / L[k, k]
-        for i in range(k + 1, n):
-            f = L[i, k] * inv
-            for j in range(k + 1, n):
-                L[i, j] -= f * L[k, j]
-            for j in range(m):
-                R[i, j] -= f * R[k, j]
-    for k in range(n - 1, -1, -1):
-        inv = 1.0 / L[k, k]
-        for j in range(m):
-            acc = R[k, j]
-            for c in range(k + 1, n):
-                acc -= L[k, c] * R[c, j]
-            R[k, j] = acc * inv
-
-
-@_helper
-def _skew_to_roundoff(B: Any) -> bool:
-    """Whether ``B`` is skew-Hermitian to roundoff
-    (:func:`~lieflow.schemes.conjugation.skew_to_roundoff` of its norms)."""
-    n = B.shape[0]
-    defect = 0.0
-    size = 0.0
-    for i in range(n):
-        for j in range(n):
-            defect += _abs2(B[i, j] + np.conj(B[j, i]))
-            size += _abs2(B[i, j])
-    return _skew_to_roundoff_rule(math.sqrt(defect), math.sqrt(size), _EPS64)
-
-
-@_helper
-def _orthonormalize(K: Any, E: Any, KE: Any, tmp: Any, gemm: Any) -> bool:
-    """Newton–Schulz on ``U = I + K`` in its increment, in place:
-    ``E = K + K^† + K^† K``, ``K <- K - (E + K E)/2``
-    (:func:`~lieflow.schemes.conjugation.orthonormalize`, its decisions by
-    :func:`~lieflow.schemes.conjugation.newton_schulz_step`); false if ``U`` is too far
-    from unitary (``||E|| >= 1`` at the start)."""
-    n = K.shape[0]
-    last = math.inf
-    for _ in range(conjugation.NEWTON_SCHULZ_STEPS):
-        _matmul_hn(K, K, E, tmp, gemm)
-        err2 = 0.0
-        for i in range(n):
-            for j in range(n):
-                e = E[i, j] + K[i, j] + np.conj(K[j, i])
-                E[i, j] = e
-                err2 += _abs2(e)
-        err = math.sqrt(err2)
-        decision = _schulz_step(err, last, n, _EPS64)
-        if decision == conjugation.SCHULZ_DONE:
-            return True
-        if decision == conjugation.SCHULZ_REFUSED:
-            return False
-        last = err
-        _matmul(K, E, KE, gemm)
-        for i in range(n):
-            for j in range(n):
-                K[i, j] -= 0.5 * (E[i, j] + KE[i, j])
-        if decision == conjugation.SCHULZ_LAST:
-            return True
-    return True
-
-
-def _conjugate_into_of(skew: bool) -> Any:
-    """:func:`_conjugate_into` for skew-Hermitian algebras, where ``U`` is always made
-    unitary (``unitary`` is not read: the Gauss–Jordan solve of the general case is not
-    compiled), or general ones (as :func:`_midpoint_map_of`)."""
-
-    def _conjugate_into(
-        W: Any, K: Any, unitary: bool, s1: Any, s2: Any, s3: Any, gemm: Any
-    ) -> bool:
-        """``W <- U W U^{-1}``, ``U = I + K``, in place, as ``W`` plus an increment
-        (:func:`~lieflow.schemes.conjugation.conjugate`): with ``unitary``, ``K`` made unitary
-        and ``W += K W + W K^† + K W K^†`` (its skew-Hermitian part with ``skew``), else
-        ``W += (K W - W K) U^{-1}`` by a solve with ``U^T``. ``s1``, ``s2``, ``s3``: scratch;
-        false if ``U`` is too far from unitary."""
-        n = W.shape[0]
-        if skew or unitary:
-            if not _orthonormalize(K, s1, s2, s3, gemm):
-                return False
-            _matmul(K, W, s1, gemm)
-            if skew:
-                _matmul_nh(s1, K, s2, s3, gemm)
-                for i in range(n):
-                    for j in range(i, n):
-                        dij = s1[i, j] - np.conj(s1[j, i]) + s2[i, j]
-                        dji = s1[j, i] - np.conj(s1[i, j]) + s2[j, i]
-                        d = 0.5 * (dij - np.conj(dji))
-                        W[i, j] = W[i, j] + d
-                        if j != i:
-                            W[j, i] = W[j, i] - np.conj(d)
-            else:
-                _matmul_nh(W, K, s3, s2, gemm)  # W K^† (real data: s2 is not touched)
-                for i in range(n):
-                    for j in range(n):
-                        s3[i, j] += s1[i, j]
-                _matmul_nh(s1, K, s2, s1, gemm)  # K W K^† (real data: s1 is not touched)
-                for i in range(n):
-                    for j in range(n):
-                        W[i, j] = W[i, j] + (s3[i, j] + s2[i, j])
-        else:
-            _matmul(K, W, s1, gemm)
-            _matmul(W, K, s2, gemm)
-            for i in range(n):
-                for j in range(n):
-                    s3[i, j] = s1[j, i] - s2[j, i]  # D^T
-                    s2[i, j] = K[j, i] + (1.0 if i == j else 0.0)  # U^T
-            _gauss_jordan(s2, s3)  # (D U^{-1})^T = U^{-T} D^T
-            for i in range(n):
-                for j in range(n):
-                    W[i, j] = W[i, j] + s3[j, i]
-        return True
-
-    return _helper(_renamed(_conjugate_into, f"_conjugate_into_{_ALGEBRAS[skew]}"))
-
-
-_conjugate_into_general, _conjugate_into_skew = (_conjugate_into_of(skew) for skew in _ALGEBRAS)
-
-
-@_inner
-def _cayley_into(
-    W: Any, a: float, skew: bool, M: Any, B: Any, params: Any, Bm: Any, L: Any, C: Any,
-    s3: Any, gemm: Any,
-) -> bool:  # fmt: skip
-    """The midpoint update in Cayley form in place: ``W <- C W C^{-1}``,
-    ``C = (I - aB)^{-1}(I + aB) = I + K``, ``K = 2a (I - aB)^{-1} B``, ``B = B(M)``
-    (:func:`~lieflow.schemes.conjugation.cayley_update`); ``Bm``, ``L``, ``C``, ``s3``
-    scratch (``M`` is read only)."""
-    n = W.shape[0]
-    _apply_B(B, params, M, Bm)
-    unitary = skew or _skew_to_roundoff(Bm)  # (skew: a constant, see _sydirk_step_of)
-    for i in range(n):
-        for j in range(n):
-            L[i, j] = (1.0 if i == j else 0.0) - a * Bm[i, j]
-            C[i, j] = (2 * a) * Bm[i, j]
-    _gauss_jordan(L, C)
-    if skew:
-        return _conjugate_into_skew(W, C, unitary, L, Bm, s3, gemm)
-    return _conjugate_into_general(W, C, unitary, L, Bm, s3, gemm)
-
-
-@_inner
-def _lifted_into(
-    W: Any, hb: Any, skew: bool, x: Any, B: Any, params: Any, Wi: Any, Bi: Any, P: Any,
-    U: Any, gemm: Any,
-) -> bool:  # fmt: skip
-    """The Gauss update in conjugation form in place: ``W <- U W U^{-1}``, ``U = I + K``,
-    ``K = sum_i hb_i B_i G_i^†`` (held in ``U``), ``B_i = B(G_i^† P_i)``, ``x = (G, P)``
-    (:func:`~lieflow.schemes.conjugation.lifted_update`); ``Wi``, ``Bi``, ``P``, ``U``
-    scratch."""
-    n = W.shape[0]
-    for a in range(n):
-        for c in range(n):
-            U[a, c] = 0.0
-    unitary = True
-    for i in range(hb.shape[0]):
-        _matmul_hn(x[0, i], x[1, i], Wi, P, gemm)
-        _apply_B(B, params, Wi, Bi)
-        if not skew:  # (a constant, see _reduced_step_of)
-            unitary = unitary and _skew_to_roundoff(Bi)
-        _matmul_nh(Bi, x[0, i], P, Wi, gemm)
-        for a in range(n):
-            for c in range(n):
-                U[a, c] += hb[i] * P[a, c]
-    if skew:
-        return _conjugate_into_skew(W, U, unitary, Wi, Bi, P, gemm)
-    return _conjugate_into_general(W, U, unitary, Wi, Bi, P, gemm)
 
 
 # ------------------------------------------------------------------ the one driver
@@ -1221,79 +396,6 @@ class LoopArguments(NamedTuple):
     gemm: int
     workspace: np.ndarray
     real_workspace: np.ndarray
-
-
-def _at(signature_of: Callable[[np.dtype], Any]) -> Any:
-    """An intrinsic ``f(address, like)``: the compiled function at ``address`` (an
-    ``int64``: a :class:`_FunctionPointer`'s :attr:`~_FunctionPointer.address`) as a value of
-    the first-class function type of ``signature_of(like.dtype)`` — the value numba unboxes
-    from a :class:`_FunctionPointer` argument (the address in its C-callable slot, the
-    others null), made in compiled code: the entry points take the addresses as integers,
-    which their dispatcher types without Python (a function object is typed by a Python
-    call per argument and call, ~4 µs each)."""
-
-    def at(typingctx: Any, address: Any, like: Any) -> Any:
-        from numba.core import cgutils
-        from numba.np.numpy_support import as_dtype
-
-        if not isinstance(address, numba.types.Integer):
-            return None
-        ftype = numba.types.FunctionType(signature_of(as_dtype(like.dtype)))
-
-        def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-            value = cgutils.create_struct_proxy(ftype)(context, builder)
-            pointer = context.get_value_type(numba.types.voidptr)
-            value.c_addr = builder.inttoptr(args[0], pointer)
-            value.py_addr = cgutils.get_null_value(pointer)
-            value.jit_addr = cgutils.get_null_value(pointer)
-            return value._getvalue()
-
-        return ftype(address, like), codegen
-
-    return numba.extending.intrinsic(at)
-
-
-def linked_function(symbol: str, function: Any, signature: Any) -> Any:
-    """``function`` (a numba dispatcher, compiled for ``signature`` with its C wrapper: not
-    :func:`_helper`'s options) under the linker's name ``symbol``, for compiled code to call
-    through the intrinsic returned, ``f(like)``, which gives that function as a value of
-    numba's first-class function type of ``signature`` (``like``: any value, unused but for
-    typing).
-
-    A compiled function that calls another by name has numba link the callee's code into
-    its own and optimize and generate it again (a second compilation of the callee's code,
-    in every caller: issue 37 item 11). Called through its symbol, the callee's code is
-    compiled once; the caller's code (also as loaded from numba's disk cache) holds only the
-    symbol, which the linker resolves in each process to the address registered here (as
-    numba's own runtime functions are), so no process-local address is stored anywhere.
-    Register before any function that calls it is compiled or loaded."""
-    from llvmlite import binding
-    from numba.experimental.function_type import _get_wrapper_address
-
-    if signature.args not in function.overloads:
-        function.compile(signature)
-    binding.add_symbol(symbol, _get_wrapper_address(function, signature))
-
-    def at(typingctx: Any, like: Any) -> Any:
-        from llvmlite import ir
-        from numba.core import cgutils
-
-        ftype = numba.types.FunctionType(signature)
-
-        def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
-            declared = cgutils.get_or_insert_function(
-                builder.module, ir.FunctionType(ir.VoidType(), []), symbol
-            )
-            value = cgutils.create_struct_proxy(ftype)(context, builder)
-            pointer = context.get_value_type(numba.types.voidptr)
-            value.c_addr = builder.bitcast(declared, pointer)
-            value.py_addr = cgutils.get_null_value(pointer)
-            value.jit_addr = cgutils.get_null_value(pointer)
-            return value._getvalue()
-
-        return ftype(like), codegen
-
-    return numba.extending.intrinsic(at)
 
 
 if numba is not None:

@@ -386,10 +386,10 @@ class CompiledPlan:
         (:class:`_Fixed`): the stopping rule's arrays, the extrapolation weights (a writable
         copy: the loops' type), and the addresses of ``B``, the projection (``B``'s when
         there is none: not called) and the BLAS product (0 up to ``n =``
-        :data:`~lieflow.engines._compiled_loops.LOOP_PRODUCTS_MAX_N`, whose entry points
+        :data:`~lieflow.engines._numba_jit.LOOP_PRODUCTS_MAX_N`, whose entry points
         multiply in plain loops and never read it), each checked to be a resolved function
         of the signature the loops call it with
-        (:func:`lieflow.engines._compiled_loops.address`; the loops take bare integers)."""
+        (:func:`lieflow.engines._compiled_maps.address`; the loops take bare integers)."""
         k = kernels()
         tolerances, settings = k.stopping_arrays(self.rule, self.retry_cold, depth > 0)
         blas = self.n > k.LOOP_PRODUCTS_MAX_N  # else the loops' own products, no BLAS
@@ -501,7 +501,7 @@ def _checked_map(
     dtype: np.dtype,
 ) -> tuple[Any, Array] | str:
     """``(function, params)`` of a system's compiled map, compiled for
-    :func:`~lieflow.engines._compiled_loops.map_signature` of ``dtype`` and checked on each ``(W,
+    :func:`~lieflow.engines._numba_jit.map_signature` of ``dtype`` and checked on each ``(W,
     want)``
     of ``checks`` against ``want`` (the numpy result) to roundoff; or the reason it cannot
     be used (which names the check: ``"on W0"``, then ``"off W0"``)."""
@@ -554,7 +554,7 @@ def _wave(shape: tuple[int, ...], complex_data: bool) -> Array:
 def _identity(got: Any, dtype: np.dtype) -> tuple[Any, Any, bytes | None]:
     """What the cache of checked maps compares of a hook's ``(function, params)``: the
     function, its compiled code for the data's dtype (a numba dispatcher's overload for
-    :func:`~lieflow.engines._compiled_loops.map_signature`: a recompiled function is checked and
+    :func:`~lieflow.engines._numba_jit.map_signature`: a recompiled function is checked and
     resolved
     again) and the ``params`` as float64 bytes; ``(got, None, None)`` if malformed (never
     taken from the cache)."""
@@ -652,7 +652,7 @@ def _system_maps(
     system: IsospectralSystem, W0: Array, dtype: np.dtype
 ) -> tuple[tuple[Any, Array], tuple[Any, Array] | None] | str:
     """The system's compiled ``B`` as the loops take it (its address, and its ``params``
-    led by :func:`~lieflow.engines._compiled_loops.inline_code`) and its compiled projection (or
+    led by :func:`~lieflow.engines._compiled_maps.inline_code`) and its compiled projection (or
     ``None``), checked against ``system.B(system.project_stage(V))`` and
     ``system.project(V)`` (:func:`_checked_map`) on ``V = W0`` and off it; or the reason
     they cannot be used.

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import lieflow as lf
-from lieflow.engines import _compiled_loops, compiled
+from lieflow.engines import _compiled_maps, compiled
 
 lz = pytest.importorskip("lieflow_zeitlin")
 pytest.importorskip("numba")
@@ -115,7 +115,7 @@ def test_the_plan_uses_the_plugins_map_and_the_su_projection() -> None:
     assert isinstance(plan, compiled.CompiledPlan)
     assert plan.dtype == np.complex128 and plan.skew
     assert plan.B.function is lz._compiled.zeitlin_B
-    assert plan.project.function is _compiled_loops.skew_hermitian_part
+    assert plan.project.function is _compiled_maps.skew_hermitian_part
 
 
 def test_the_compiled_B_calls_the_sweeps_by_their_symbol(tmp_path: Any) -> None:
