@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import lieflow as lf
-from lieflow.engines import compiled
+from lieflow.engines import compiled, compiled_plan, map_checks
 
 TODA_W0 = lf.systems.PAPER_W0
 
@@ -308,13 +308,13 @@ def test_changed_compiled_maps_are_checked_again_and_used() -> None:
     _assert_same(ref, fast)
     # the engine keeps the checked maps per live system, not on it: a pickle or a copy is
     # another system and starts without them
-    assert compiled._KEPT.of(system)
+    assert map_checks._KEPT.of(system)
     system.S[0, 1] = system.S[1, 0] = -0.25
     clone = pickle.loads(pickle.dumps(system))
-    assert compiled._KEPT.of(clone) == {}
+    assert map_checks._KEPT.of(clone) == {}
     _assert_same(*_both(clone, scheme, W0, 0.1, steps=4))
-    assert compiled._KEPT.of(clone)
-    assert compiled._KEPT.of(copy.deepcopy(HADAMARD["rigid_body"])) == {}
+    assert map_checks._KEPT.of(clone)
+    assert map_checks._KEPT.of(copy.deepcopy(HADAMARD["rigid_body"])) == {}
     assert "_derived" not in vars(system) and "_derived" not in vars(clone)
 
 
@@ -326,9 +326,9 @@ def test_a_plan_is_kept_for_the_same_scheme_and_solver() -> None:
     assert compiled.plan(system, mid, fp, _state(system, seed=1)) is first
     gauss = compiled.plan(system, lf.schemes.get("gauss3"), fp, _state(system))
     loose = compiled.plan(system, mid, lf.solvers.FixedPoint(rtol=1e-8), _state(system))
-    assert isinstance(first, compiled.CompiledPlan) and first.kind == "sydirk"
-    assert isinstance(gauss, compiled.CompiledPlan) and gauss.kind == "reduced"
-    assert isinstance(loose, compiled.CompiledPlan) and loose.rule.rtol == 1e-8
+    assert isinstance(first, compiled_plan.CompiledPlan) and first.kind == "sydirk"
+    assert isinstance(gauss, compiled_plan.CompiledPlan) and gauss.kind == "reduced"
+    assert isinstance(loose, compiled_plan.CompiledPlan) and loose.rule.rtol == 1e-8
     assert first.rule.rtol == 1e-14
     # kept by value (the last plan per dtype): a scheme and solver built anew, as
     # lf.schemes.get does on every call, find it; another update or tolerance does not
@@ -336,10 +336,10 @@ def test_a_plan_is_kept_for_the_same_scheme_and_solver() -> None:
     fresh = lf.schemes.get("midpoint"), lf.solvers.FixedPoint()
     assert compiled.plan(system, *fresh, _state(system)) is first
     cayley = compiled.plan(system, lf.schemes.SyDIRK(update="conjugation"), fp, _state(system))
-    assert isinstance(cayley, compiled.CompiledPlan) and cayley is not first
+    assert isinstance(cayley, compiled_plan.CompiledPlan) and cayley is not first
     assert cayley.conjugation and not first.conjugation
     capped = compiled.plan(system, mid, lf.solvers.FixedPoint(max_iter=7), _state(system))
-    assert isinstance(capped, compiled.CompiledPlan) and capped.rule.max_iter == 7
+    assert isinstance(capped, compiled_plan.CompiledPlan) and capped.rule.max_iter == 7
     # one kept plan run with and without warm starts, in turn: each as numpy runs it
     for warm in (False, True, False):
         _assert_same(*_both(system, mid, _state(system), 0.05, steps=30, solver=fp,
@@ -407,7 +407,7 @@ def test_auto_picks_compiled_only_for_small_n() -> None:
         (large, work, 1, False),
     ):
         plan = compiled.plan(system, mid, fp, system.random_state(seed=0))
-        assert isinstance(plan, compiled.CompiledPlan)
+        assert isinstance(plan, compiled_plan.CompiledPlan)
         assert compiled.wins(plan.n, steps, K) is wins
 
 

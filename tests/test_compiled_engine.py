@@ -21,7 +21,7 @@ import lieflow as lf
 from lieflow import chunks, stepping
 from lieflow.app import io
 from lieflow.app.cli import main
-from lieflow.engines import compiled
+from lieflow.engines import compiled, compiled_plan, map_checks
 
 numba = pytest.importorskip("numba")
 
@@ -68,7 +68,7 @@ def test_a_plugin_system_runs_compiled(scheme: str) -> None:
     system = vortices.PointVortices()
     W0 = system.random_state(seed=1)
     plan = compiled.plan(system, lf.schemes.get(scheme), lf.solvers.FixedPoint(), W0)
-    assert isinstance(plan, compiled.CompiledPlan)
+    assert isinstance(plan, compiled_plan.CompiledPlan)
     assert plan.B.function is vortices._compiled.vortex_B
     assert plan.project.function is vortices._compiled.vortex_project
     ref, fast = _both(system, lf.schemes.get(scheme), W0, 0.05, steps=60)
@@ -88,16 +88,16 @@ def test_a_plugin_system_runs_compiled(scheme: str) -> None:
     # a plugin's map is resolved once per system, kept with its check while its dispatcher
     # holds the same compiled code; lieflow's own maps once per process
     again = compiled.plan(system, lf.schemes.get(scheme), lf.solvers.FixedPoint(), W0)
-    assert isinstance(again, compiled.CompiledPlan) and again.B is plan.B
+    assert isinstance(again, compiled_plan.CompiledPlan) and again.B is plan.B
     other = vortices.PointVortices()
     fresh = compiled.plan(other, lf.schemes.get(scheme), lf.solvers.FixedPoint(), W0)
-    assert isinstance(fresh, compiled.CompiledPlan) and fresh.B is not plan.B
+    assert isinstance(fresh, compiled_plan.CompiledPlan) and fresh.B is not plan.B
     body = lf.systems.GeneralizedRigidBody.random_inertia(5, seed=1)
     plans = [
         compiled.plan(body, lf.schemes.get(scheme), lf.solvers.FixedPoint(), body.random_state(k))
         for k in (1, 2)
     ]
-    assert all(isinstance(p, compiled.CompiledPlan) for p in plans)
+    assert all(isinstance(p, compiled_plan.CompiledPlan) for p in plans)
     assert plans[0].B is plans[1].B  # type: ignore[union-attr]
 
 
@@ -166,11 +166,11 @@ def test_a_recompiled_map_is_checked_and_resolved_again() -> None:
     system, mid, fp = Own(), lf.schemes.get("midpoint"), lf.solvers.FixedPoint()
     W0 = 0.7 * system.random_state(seed=2)
     first = compiled.plan(system, mid, fp, W0)
-    assert isinstance(first, compiled.CompiledPlan)
+    assert isinstance(first, compiled_plan.CompiledPlan)
     assert compiled.plan(system, mid, fp, W0).B is first.B  # type: ignore[union-attr]
     own_B.recompile()
     again = compiled.plan(system, mid, fp, W0)
-    assert isinstance(again, compiled.CompiledPlan) and again.B is not first.B
+    assert isinstance(again, compiled_plan.CompiledPlan) and again.B is not first.B
     _agree(*_both(system, mid, W0, 0.05, steps=40))
 
 
@@ -196,7 +196,7 @@ def test_the_loops_get_only_resolved_maps_of_their_signature() -> None:
     body = lf.systems.GeneralizedRigidBody.random_inertia(4, seed=1)
     W0 = body.random_state(seed=3)
     plan = compiled.plan(body, lf.schemes.get("midpoint"), lf.solvers.FixedPoint(), W0)
-    assert isinstance(plan, compiled.CompiledPlan)
+    assert isinstance(plan, compiled_plan.CompiledPlan)
     k = compiled.kernels()
     good = plan.advance(W0, 0.05, 3)
     assert good.done == 3
@@ -220,7 +220,7 @@ def test_toda_is_symmetrized_every_step_inside_the_loops() -> None:
     toda = lf.systems.PeriodicToda(5)
     W0 = toda.random_state(seed=0)
     plan = compiled.plan(toda, lf.schemes.get("gauss3"), lf.solvers.FixedPoint(), W0)
-    assert isinstance(plan, compiled.CompiledPlan) and plan.project is not None
+    assert isinstance(plan, compiled_plan.CompiledPlan) and plan.project is not None
     ref, fast = _both(toda, lf.schemes.get("gauss3"), W0, 0.05, steps=300)
     _agree(ref, fast, atol=1e-12)
     long = lf.integrate(toda, lf.schemes.get("gauss3"), W0, 0.05, steps=3000, engine="compiled")
@@ -236,9 +236,10 @@ def test_compiled_B_defaults() -> None:
     assert got is not None
     fn, params = got
     assert fn == "hadamard_B_skew"  # lieflow's own map, by name (the system imports no engine)
-    assert compiled._by_name(got)[0] is _compiled_maps.hadamard_B_skew
+    assert map_checks._by_name(got, compiled.kernels())[0] is _compiled_maps.hadamard_B_skew
     np.testing.assert_array_equal(params, body.hadamard_factor.ravel())
-    assert "no compiled map named 'no_such_map'" in compiled._by_name(("no_such_map", params))
+    unknown = map_checks._by_name(("no_such_map", params), compiled.kernels())
+    assert "no compiled map named 'no_such_map'" in unknown
     assert body.compiled_project() is None
     assert lf.systems.PeriodicToda(gl_gradient=True).compiled_B() is None
     assert CubicBody().compiled_project() is None
@@ -265,7 +266,7 @@ def test_eligibility_is_asked_of_the_scheme_and_the_solver() -> None:
     assert kind == "reduced" and A.shape == (2, 2) and b.shape == (2,)
     for solver in (MyFixedPoint(), lf.solvers.Auto(first=MyFixedPoint())):
         plan = compiled.plan(body, MySyDIRK(), solver, W0)
-        assert isinstance(plan, compiled.CompiledPlan) and plan.kind == "sydirk"
+        assert isinstance(plan, compiled_plan.CompiledPlan) and plan.kind == "sydirk"
     assert isinstance(compiled.plan(body, MySyDIRK(), lf.solvers.FrozenB(), W0), str)
     ref, fast = _both(body, MySyDIRK(), W0, 0.1, steps=50, solver=MyFixedPoint())
     _agree(ref, fast, atol=1e-13)
@@ -363,7 +364,7 @@ def test_a_compiled_flow_stays_compiled_inside_a_splitting(
     W0 = body.random_state(3)
     scheme, solver = lf.schemes.get(scheme_name), lf.solvers.FixedPoint(rtol=1e-14)
     flows = {e: scheme_flow(body, scheme, solver, W0, 10, engine=e) for e in ("numpy", "compiled")}
-    assert isinstance(flows["compiled"], compiled.CompiledSchemeFlow)
+    assert isinstance(flows["compiled"], compiled_plan.CompiledSchemeFlow)
     ref = _split_run(lf.Splitting.strang(_Drag(), flows["numpy"]), W0, 0.1, 60)
     calls = _numpy_steps(monkeypatch, scheme)
     got = _split_run(lf.Splitting.strang(_Drag(), flows["compiled"]), W0, 0.1, 60)
@@ -423,7 +424,7 @@ def test_a_forced_dissipative_euler_zeitlin_run_is_compiled(
     ref = _split_run(slow.flow(), slow.W0, 0.05, 40)
     flow = fast.flow()
     assert isinstance(flow, lf.Splitting)
-    assert isinstance(flow.flows[-1], compiled.CompiledSchemeFlow)
+    assert isinstance(flow.flows[-1], compiled_plan.CompiledSchemeFlow)
     calls = _numpy_steps(monkeypatch, fast.scheme)
     got = _split_run(flow, fast.W0, 0.05, 40)
     assert calls == []
@@ -558,7 +559,7 @@ def test_the_bare_loop_call_is_the_engines_first_step() -> None:
     body = lf.systems.get("generalized_rigid_body", J=(1.0, 1.3, 1.7, 2.2, 2.8))
     scheme, W0, h = lf.schemes.get("midpoint"), body.random_state(2), 0.05
     plan = compiled.plan(body, scheme, lf.solvers.FixedPoint(), W0)
-    assert isinstance(plan, compiled.CompiledPlan)
+    assert isinstance(plan, compiled_plan.CompiledPlan)
     run, args = plan.loop_call(W0, h, 1, depth=0)
     sol = lf.integrate(body, scheme, W0, h, steps=1, engine="compiled")
     for _ in range(2):

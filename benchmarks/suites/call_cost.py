@@ -8,7 +8,7 @@ checked) and the projection onto the phase space, i.e. the algorithm of that ste
 
 * numpy engine: ``system.project(scheme.step(W0, h, system, solver, None).W)``;
 * compiled engine: the compiled loop called directly on its prepared arguments for one
-  step from the cold start (:meth:`lieflow.engines.compiled.CompiledPlan.loop_call`: the same
+  step from the cold start (:meth:`lieflow.engines.compiled_plan.CompiledPlan.loop_call`: the same
   loop, the same numba dispatch as the engine's), then ``system.project`` where the plan
   has no compiled projection (so(n): as the engine does after each chunk).
 
@@ -67,7 +67,7 @@ import numpy as np
 import lieflow as lf
 from lieflow.app.reproduce import Case
 from lieflow.engines import scheme_flow
-from lieflow.engines.compiled import CompiledSchemeFlow
+from lieflow.engines.compiled_plan import CompiledSchemeFlow
 from lieflow.runs import DEFAULT_SOLVER
 
 from ..config import BenchContext
@@ -187,7 +187,7 @@ def bare_step(
     same cold solve (checked: ``updates`` updates) and the projection onto the phase space,
     without the call around it. numpy: ``scheme.step`` from no guess, then
     ``system.project``; compiled: the compiled loop called on its prepared arguments
-    (:meth:`lieflow.engines.compiled.CompiledPlan.loop_call`, cold start: repeatable), then
+    (:meth:`lieflow.engines.compiled_plan.CompiledPlan.loop_call`, cold start: repeatable), then
     ``system.project`` where the plan has no compiled projection (as the engine does)."""
     solver = DEFAULT_SOLVER
     W = system.validate(W0)

@@ -4,7 +4,7 @@ A forced, dissipative run composes the isospectral step with exact sub-flows (St
 ``φ^{diss+force}_{h/2} ∘ Φ^{cons}_h ∘ φ^{diss+force}_{h/2}``, the dissipative and forcing
 sub-flows of the plugin, :mod:`lieflow_zeitlin.dissipation`). The compiled scheme flow
 takes its steps inside the splitting one at a time (a chunk of one step,
-:meth:`lieflow.engines.compiled.CompiledSchemeFlow.step`); before, they silently ran on numpy.
+:meth:`lieflow.engines.compiled_plan.CompiledSchemeFlow.step`); before, they silently ran on numpy.
 
 Compared in the same process, interleaved, median rounds: the conservative run on the
 compiled engine (many steps per call: the floor), the same isospectral step inside a

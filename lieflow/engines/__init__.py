@@ -54,14 +54,14 @@ def scheme_flow(
     """The :class:`SchemeFlow` that runs ``scheme`` on ``system`` with ``engine``.
 
     ``"numpy"``: a plain :class:`SchemeFlow` (eager, on the array's own library).
-    ``"compiled"``: the numba loops (:class:`lieflow.engines.compiled.CompiledSchemeFlow`), NumPy
-    arrays only. ``"jax"``: the traced engine
-    (:class:`lieflow.engines.traced.TracedSchemeFlow`). Both raise :class:`InputError`
-    naming what is missing or unsupported. ``"auto"``: for NumPy arrays the compiled loops
-    where supported, installed and faster (:func:`lieflow.engines.compiled.wins`, judged for
-    ``steps`` steps of ``W0``), else eager; for arrays of another library the traced engine
-    where JAX runs the case on the array's device, else eager. The flow is built once, of
-    the class it ends up with.
+    ``"compiled"``: the numba loops
+    (:class:`lieflow.engines.compiled_plan.CompiledSchemeFlow`), NumPy arrays only.
+    ``"jax"``: the traced engine (:class:`lieflow.engines.traced.TracedSchemeFlow`).
+    Both raise :class:`InputError` naming what is missing or unsupported. ``"auto"``: for
+    NumPy arrays the compiled loops where supported, installed and faster
+    (:func:`lieflow.engines.compiled.wins`, judged for ``steps`` steps of ``W0``), else
+    eager; for arrays of another library the traced engine where JAX runs the case on the
+    array's device, else eager. The flow is built once, of the class it ends up with.
     """
     if engine not in ENGINES:
         raise InputError(f"engine must be one of {', '.join(map(repr, ENGINES))}, got {engine!r}")

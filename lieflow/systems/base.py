@@ -137,7 +137,7 @@ class IsospectralSystem(ABC):
         every system; compile it with ``numba.njit(cache=True)`` at module level (or
         the decorator :func:`lieflow.engines.compiled.compiled_map`) so that it is cached too;
         lieflow's
-        own maps (:data:`lieflow.engines.compiled.MAPS`) are returned by name (``("hadamard_B",
+        own maps (:data:`lieflow.engines.map_checks.MAPS`) are returned by name (``("hadamard_B",
         params)``: the system need not import the engine) or called. The engine checks it
         against :meth:`B` and :meth:`project_stage` on the initial state (to roundoff)
         before use, once per system and dtype while this method returns the same function

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import lieflow as lf
-from lieflow.engines import _compiled_maps, compiled
+from lieflow.engines import _compiled_maps, compiled, compiled_plan
 
 lz = pytest.importorskip("lieflow_zeitlin")
 pytest.importorskip("numba")
@@ -61,7 +61,7 @@ def test_the_conjugation_update_runs_compiled_on_su_n(scheme: str) -> None:
     solver = lf.solvers.FixedPoint(rtol=1e-6)
     updated = lf.schemes.get(scheme, update="conjugation")
     plan = compiled.plan(system, updated, solver, W0)
-    assert isinstance(plan, compiled.CompiledPlan) and plan.conjugation
+    assert isinstance(plan, compiled_plan.CompiledPlan) and plan.conjugation
     ref, fast = _both(system, updated, W0, h, steps=30, solver=solver)
     assert fast.W.dtype == np.complex128
     np.testing.assert_allclose(fast.W, ref.W, rtol=0, atol=1e-13 * np.abs(ref.W).max())
@@ -76,7 +76,7 @@ def test_the_casimir_shift_is_folded_into_the_compiled_B() -> None:
     shifted = lf.systems.shifted.shifted(system, W0, "auto")
     assert isinstance(shifted, lf.systems.shifted.CasimirShifted) and shifted.c != 0
     plan = compiled.plan(shifted, lf.schemes.get("gauss3"), lf.solvers.FixedPoint(), W0)
-    assert isinstance(plan, compiled.CompiledPlan)
+    assert isinstance(plan, compiled_plan.CompiledPlan)
     assert plan.B_params[1] == shifted.c  # B_params: [inline code, c, ...]
     ref, fast = _both(system, lf.schemes.get("gauss3"), W0, 0.2, steps=20, casimir_shift="auto")
     np.testing.assert_allclose(fast.W, ref.W, rtol=0, atol=1e-13 * np.abs(ref.W).max())
@@ -112,7 +112,7 @@ def test_the_plan_uses_the_plugins_map_and_the_su_projection() -> None:
     system = lz.EulerZeitlin(8)
     W0 = system.random_state(seed=0)
     plan = compiled.plan(system, lf.schemes.get("midpoint"), lf.solvers.FixedPoint(), W0)
-    assert isinstance(plan, compiled.CompiledPlan)
+    assert isinstance(plan, compiled_plan.CompiledPlan)
     assert plan.dtype == np.complex128 and plan.skew
     assert plan.B.function is lz._compiled.zeitlin_B
     assert plan.project.function is _compiled_maps.skew_hermitian_part
