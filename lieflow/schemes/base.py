@@ -294,6 +294,14 @@ class TableauProblem(StageProblem, ABC):
         real = W0.real.dtype if is_numpy(W0) else np.float64
         self.A = tableau.A.astype(real, copy=False)
         self.b = tableau.b.astype(real, copy=False)
+        #: The number of stages.
+        self.s = tableau.stages
+        self._prepare()
+
+    @abstractmethod
+    def _prepare(self) -> None:
+        """What the formulation derives once per step from the values above (its ``h = 0``
+        guess, its coefficients); the end of :meth:`__init__`."""
 
     @abstractmethod
     def stages(self, x: Array) -> Array:

@@ -12,8 +12,7 @@ import numpy as np
 
 from ..algebras import Array, dagger
 from ..backends import copy, device_of, from_host, identity, is_numpy, namespace
-from ..systems.base import IsospectralSystem
-from ..tableaus import ButcherTableau, one_of
+from ..tableaus import one_of
 from . import conjugation
 from .base import (
     StageEquations,
@@ -85,16 +84,8 @@ class BlockProblem(TableauProblem):
 
     core_ndim = 4
 
-    def __init__(
-        self,
-        system: IsospectralSystem,
-        W0: Array,
-        h: float,
-        tableau: ButcherTableau,
-        warm: Array | None = None,
-    ) -> None:
-        super().__init__(system, W0, h, tableau, warm)
-        self.s = s = tableau.stages
+    def _prepare(self) -> None:
+        W0, s = self.W0, self.s
         self.diag = np.arange(s)
         self.trivial = namespace(W0).broadcast_to(
             W0[..., None, None, :, :], (*W0.shape[:-2], s, s, *W0.shape[-2:])
@@ -169,16 +160,8 @@ class ReducedProblem(TableauProblem):
 
     core_ndim = 4
 
-    def __init__(
-        self,
-        system: IsospectralSystem,
-        W0: Array,
-        h: float,
-        tableau: ButcherTableau,
-        warm: Array | None = None,
-    ) -> None:
-        super().__init__(system, W0, h, tableau, warm)
-        s, n = tableau.stages, W0.shape[-1]
+    def _prepare(self) -> None:
+        W0, s, n = self.W0, self.s, self.W0.shape[-1]
         shape = (*W0.shape[:-2], s, n, n)
         if is_numpy(W0):
             trivial = np.empty((*W0.shape[:-2], 2, s, n, n), dtype=W0.dtype)

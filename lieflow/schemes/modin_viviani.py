@@ -9,8 +9,6 @@ import numpy as np
 
 from ..algebras import Array
 from ..backends import device_of, identity, namespace
-from ..systems.base import IsospectralSystem
-from ..tableaus import ButcherTableau
 from .base import (
     StageEquations,
     TableauProblem,
@@ -36,16 +34,8 @@ class ModinVivianiProblem(TableauProblem):
 
     core_ndim = 3
 
-    def __init__(
-        self,
-        system: IsospectralSystem,
-        W0: Array,
-        h: float,
-        tableau: ButcherTableau,
-        warm: Array | None = None,
-    ) -> None:
-        super().__init__(system, W0, h, tableau, warm)
-        self.s = s = tableau.stages
+    def _prepare(self) -> None:
+        W0, s, warm = self.W0, self.s, self.warm
         shape = (*W0.shape[:-2], 2 * s + s * s, *W0.shape[-2:])
         if self._host:
             self.x0 = (
