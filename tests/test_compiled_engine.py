@@ -519,13 +519,21 @@ def test_the_entry_points_cache_key_covers_the_modules_of_the_loops() -> None:
     (``SHARED_KEY``), so that editing a helper there recompiles them."""
     from lieflow.engines import _compiled_loops
 
-    modules = {
-        getattr(getattr(value, "py_func", value), "__module__", None)
-        for value in vars(_compiled_loops).values()
-    } | {m.__name__ for m in vars(_compiled_loops).values() if isinstance(m, type(sys))}
-    below = {m for m in modules if m and m.startswith("lieflow.engines.")}
-    below -= {_compiled_loops.__name__}
+    def sources(module: Any) -> set[str]:
+        """The lieflow.engines modules ``module`` takes a function, constant or module from."""
+        names = {
+            getattr(getattr(value, "py_func", value), "__module__", None)
+            for value in vars(module).values()
+        } | {m.__name__ for m in vars(module).values() if isinstance(m, type(sys))}
+        return {m for m in names if m and m.startswith("lieflow.engines.")}
+
+    below, todo = set(), [_compiled_loops.__name__]
+    while todo:  # what the loops compile, and what that compiles, ...
+        for name in sources(sys.modules[todo.pop()]) - below - {_compiled_loops.__name__}:
+            below.add(name)
+            todo.append(name)
     assert {"lieflow.engines._compiled_formulations", "lieflow.engines._numba_jit"} <= below
+    assert {"lieflow.engines._compiled_rules", "lieflow.engines._compiled_maps"} <= below
     assert below <= {m.__name__ for m in _compiled_loops.SHARED_MODULES}
 
 
