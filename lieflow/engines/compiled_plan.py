@@ -71,13 +71,11 @@ def _read_only(values: Any) -> Array:
 
 class _Fixed(NamedTuple):
     """What :meth:`CompiledPlan.loop_call` passes the loops unchanged from call to call for
-    one warm-start depth (made once per plan and depth): the loops' module and entry point,
-    their arguments of that kind (:class:`lieflow.engines._compiled_loops.LoopArguments`: writable
-    copies
-    of the plan's values, which nothing outside the plan sees), the warm offsets' core
-    shape and size, and ``max_iter``."""
+    one warm-start depth (made once per plan and depth): the entry point, its arguments of
+    that kind (:class:`lieflow.engines._compiled_loops.LoopArguments`: writable copies of the
+    plan's values, which nothing outside the plan sees), the warm offsets' core shape and
+    size, and ``max_iter``."""
 
-    kernels: ModuleType
     run: Any
     B: int
     B_params: Array
@@ -196,7 +194,7 @@ class CompiledPlan:
             states, iterations = states[:done], iterations[:done]
         batch, n = W.shape[:-2], self.n
         fixed = self._fixed[depth]
-        k, shape = fixed.kernels, (*batch, *fixed.core)
+        k, shape = self.loops, (*batch, *fixed.core)
         return CompiledSteps(
             states.reshape(done, *batch, n, n),
             iterations,
@@ -225,7 +223,7 @@ class CompiledPlan:
         fixed = self._fixed.get(depth)
         if fixed is None:
             fixed = self._fixed[depth] = self._fixed_arguments(depth)
-        k, size = fixed.kernels, fixed.size
+        k, size = self.loops, fixed.size
         Wk = np.ascontiguousarray(W, dtype=dtype).reshape(K, n, n)
         keep = max(depth, 1)
         kept = np.zeros((keep, K, size), dtype=dtype)
@@ -267,7 +265,7 @@ class CompiledPlan:
         gemm = k.gemm(self.dtype) if blas else None
         core = self.warm_shape()
         return _Fixed(
-            k, run, B, self.B_params.copy(), P, self.project_params.copy(), tolerances,
+            run, B, self.B_params.copy(), P, self.project_params.copy(), tolerances,
             settings, np.array(extrapolation_matrix(max(depth, 1))),
             0 if gemm is None else k.address(gemm, gemm.signature()), core, math.prod(core),
             self.rule.max_iter,

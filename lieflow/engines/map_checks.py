@@ -47,13 +47,12 @@ def _checked_map(
     of ``checks`` against ``want`` (the numpy result) to roundoff; or the reason it cannot
     be used (which names the check: ``"on W0"``, then ``"off W0"``); ``loops``: the
     compiled loops' module."""
-    k = loops
     tiny = np.finfo(float).tiny
     if not (isinstance(got, tuple) and len(got) == 2):
         return f"{what} must return (function, params), got {got!r}"
     fn, params = got
     params = np.array(params, dtype=np.float64, order="C").reshape(-1)  # a writable copy
-    signature = k.map_signature(dtype)
+    signature = loops.map_signature(dtype)
     for i, (W, want) in enumerate(checks):
         try:
             if (
@@ -74,7 +73,7 @@ def _checked_map(
         if not float(np.abs(out - want).max(initial=0.0)) <= 1e-12 * scale:
             return f"{what} does not reproduce the numpy result {'on' if i == 0 else 'off'} W0"
     try:
-        return k.function_pointer(fn, dtype), params
+        return loops.function_pointer(fn, dtype), params
     except Exception as exc:
         return (
             f"{what} does not compile for (W, params, out) with {dtype} data: "
@@ -234,7 +233,6 @@ def _system_maps(
         and _unchanged(kept[1], got_P)
     ):
         return kept[2]
-    k = loops
     W = np.ascontiguousarray(W0.reshape(-1, *W0.shape[-2:])[0])
     Wp = W + 1e-3 * float(np.abs(W).max(initial=1.0)) * _wave(W.shape, dtype.kind == "c")
     Bw = _checked_map(
@@ -256,9 +254,9 @@ def _system_maps(
         if isinstance(Pw, str):
             return Pw
         P = Pw
-    params = np.concatenate([[float(k.inline_code(got_B[0]))], Bw[1]])
+    params = np.concatenate([[float(loops.inline_code(got_B[0]))], Bw[1]])
     maps = ((Bw[0], params), P)
     # what the maps are now that the check compiled them
-    signature = k.map_signature(dtype)
+    signature = loops.map_signature(dtype)
     values[key] = (_identity(got_B, signature), _identity(got_P, signature), maps)
     return maps

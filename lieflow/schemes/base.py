@@ -331,12 +331,11 @@ class StageEquations(ImplicitProblem, Protocol):
     how its solution ``x`` gives ``W1`` and the next step's warm start."""
 
     def update(self, x: Array) -> Array:
-        """``W1 = W0 + h sum_i b_i [B(W_i), W_i]`` from the stage values ``W_i`` of ``x``:
-        isospectral at the fixed point."""
+        """``W1`` by the commutator update (:meth:`TableauProblem.update`)."""
         ...
 
     def conjugation_update(self, x: Array) -> Array:
-        """``W1`` as a conjugation of ``W0`` (SPEC §4.7): isospectral for any ``x``."""
+        """``W1`` by a conjugation of ``W0`` (:meth:`TableauProblem.conjugation_update`)."""
         ...
 
     def offsets(self, x: Array) -> Array:
